@@ -1,0 +1,180 @@
+"""The scenario configuration: one validated dataclass, loaded from the packaged Hydra presets.
+
+The YAML files under ``conf/env/`` (paper tables 2 and 3) are the single source of the preset values;
+:func:`scenario` reads them so that Python users, tests and benchmarks see exactly what ``mcrs-*``
+commands see.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from importlib import resources
+from typing import Any
+
+SCENARIOS = ("map10", "map15", "map20")
+INVALID_ACTION_MODES = ("raise", "clip")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Every parameter of the MCRS-LCR environment (see ``shared/spec/environment.md``)."""
+
+    name: str = "map10"
+    width: int = 10
+    height: int = 10
+    n_uavs: int = 4
+    n_targets: int = 6
+    n_no_fly: int = 3
+    max_steps: int = 50
+    comm_range: float = 5.0
+    comm_rounds: Any = 1  # int >= 1 or "flood"; Any because OmegaConf has no Union of int and str
+    sight_range: float = 4.0
+    no_fly_safety: float = 1.0
+    uav_safety: float = 1.0
+    m_f: float = 0.8
+    m_e: float = 0.8
+    p_detect: float = 0.8
+    p_false_alarm: float = 0.2
+    w_uncertainty: float = 1.0
+    w_discovery: float = 1.0
+    w_no_fly: float = 1.0
+    w_collision: float = 1.0
+    target_threshold: float = 0.95
+    invalid_action: str = "raise"
+    expose_beliefs: bool = False
+    num_envs: int = 1
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        problems = validation_errors(self)
+        if problems:
+            raise ValueError("invalid environment config:\n  - " + "\n  - ".join(problems))
+
+    # Derived sizes (paper table 2): the layouts of observation and state follow from these.
+    @property
+    def n_cells(self) -> int:
+        return self.width * self.height
+
+    @property
+    def obs_dim(self) -> int:
+        return 18 + 3 * (self.n_uavs - 1) + 3 * self.n_no_fly
+
+    @property
+    def state_dim(self) -> int:
+        return 2 * self.n_cells + 2 * self.n_uavs + 2 * self.n_no_fly + 2 * self.n_targets
+
+    @property
+    def rounds_per_step(self) -> int:
+        """Exchange rounds per step; ``flood`` needs at most N - 1 rounds to cross any component."""
+        if self.comm_rounds == "flood":
+            return max(self.n_uavs - 1, 1)
+        return int(self.comm_rounds)
+
+    def replace(self, **overrides: Any) -> EnvConfig:
+        unknown = set(overrides) - {f.name for f in fields(self)}
+        if unknown:
+            raise ValueError(f"unknown environment field(s) {sorted(unknown)}; allowed: {field_names()}")
+        return replace(self, **overrides)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def field_names() -> list[str]:
+    return [f.name for f in fields(EnvConfig)]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def validation_errors(cfg: EnvConfig) -> list[str]:
+    """All problems of a config, one message each naming the field, the value and what is allowed."""
+    errors: list[str] = []
+    for name in ("width", "height", "n_uavs", "max_steps", "num_envs"):
+        value = getattr(cfg, name)
+        if not _is_int(value) or value < 1:
+            errors.append(f"{name}={value!r}: must be an integer >= 1")
+    for name in ("n_targets", "n_no_fly"):
+        value = getattr(cfg, name)
+        if not _is_int(value) or value < 0:
+            errors.append(f"{name}={value!r}: must be an integer >= 0")
+    for name in ("m_f", "m_e"):
+        value = getattr(cfg, name)
+        # m = 1 would make one reading certain and two conflicting readings undefined (D = 0).
+        if not _is_number(value) or not 0.0 <= value < 1.0:
+            errors.append(f"{name}={value!r}: must be a probability in [0, 1)")
+    for name in ("p_detect", "p_false_alarm", "target_threshold"):
+        value = getattr(cfg, name)
+        if not _is_number(value) or not 0.0 <= value <= 1.0:
+            errors.append(f"{name}={value!r}: must be a probability in [0, 1]")
+    for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
+        value = getattr(cfg, name)
+        if not _is_number(value) or math.isnan(value) or value < 0:
+            errors.append(f"{name}={value!r}: must be a distance >= 0 (inf allowed)")
+    if not _is_number(cfg.sight_range) or cfg.sight_range == 0 or math.isinf(cfg.sight_range):
+        if not any(e.startswith("sight_range") for e in errors):
+            errors.append(
+                f"sight_range={cfg.sight_range!r}: must be finite and > 0 (it normalises positions)"
+            )
+    for name in ("w_uncertainty", "w_discovery", "w_no_fly", "w_collision"):
+        value = getattr(cfg, name)
+        if not _is_number(value) or not math.isfinite(value):
+            errors.append(f"{name}={value!r}: must be a finite number")
+    rounds = cfg.comm_rounds
+    if not (rounds == "flood" or (_is_int(rounds) and rounds >= 1)):
+        errors.append(f"comm_rounds={rounds!r}: must be an integer >= 1 or 'flood'")
+    if cfg.invalid_action not in INVALID_ACTION_MODES:
+        errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
+    if not isinstance(cfg.expose_beliefs, bool):
+        errors.append(f"expose_beliefs={cfg.expose_beliefs!r}: must be true or false")
+    if not isinstance(cfg.device, str):
+        errors.append(f"device={cfg.device!r}: must be a torch device string such as 'cpu' or 'cuda:0'")
+    if not errors:
+        cells = cfg.width * cfg.height
+        if cfg.n_targets + cfg.n_no_fly > cells:
+            errors.append(
+                f"n_targets + n_no_fly = {cfg.n_targets} + {cfg.n_no_fly} > {cells} cells: "
+                "targets and no-fly zones need distinct cells"
+            )
+        if cfg.n_uavs > cells - cfg.n_no_fly:
+            errors.append(
+                f"n_uavs={cfg.n_uavs} > {cells - cfg.n_no_fly} free cells (cells - n_no_fly): "
+                "UAVs start on distinct cells outside no-fly zones"
+            )
+    return errors
+
+
+def _preset_values(name: str) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}; allowed: {list(SCENARIOS)}")
+    text = resources.files("mcrs").joinpath(f"conf/env/{name}.yaml").read_text()
+    return OmegaConf.to_container(OmegaConf.create(text))
+
+
+def scenario(name: str = "map10", **overrides: Any) -> EnvConfig:
+    """The validated config of a packaged preset (``map10``, ``map15``, ``map20``) with overrides."""
+    return from_mapping({**_preset_values(name), **overrides})
+
+
+def from_mapping(values: Any) -> EnvConfig:
+    """Build a validated config from a Hydra/OmegaConf node or a plain mapping."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(values, DictConfig):
+        values = OmegaConf.to_container(values, resolve=True)
+    values = dict(values)
+    unknown = set(values) - set(field_names())
+    if unknown:
+        raise ValueError(f"unknown environment field(s) {sorted(unknown)}; allowed: {field_names()}")
+    for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
+        if _is_int(values.get(name)):
+            values[name] = float(values[name])
+    return EnvConfig(**values)

@@ -1,0 +1,375 @@
+"""The batched MCRS-LCR simulator: pure torch, every tensor ``[num_envs, ...]``, no loop over envs or UAVs.
+
+This is the one implementation of the environment's dynamics. :class:`~mcrs.env.torchrl_env.MCRSEnv`
+(TorchRL) and :class:`~mcrs.env.pettingzoo_env.MCRSParallelEnv` (PettingZoo) are thin adapters over it.
+
+Conventions: cell ``(x, y)`` has flat index ``x * height + y`` (x-major, as in the state); count channel 0
+holds positive readings ("F", target), channel 1 negative readings ("E", empty).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from mcrs.env.belief import belief_masses
+from mcrs.env.config import EnvConfig
+from mcrs.env.fusion import apply_new_detections, fuse_known, neighbour_graph, reachable_within
+
+# Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
+# 6 upper-right, 7 upper-left.
+MOVES = ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, -1), (1, 1), (-1, 1))
+N_ACTIONS = len(MOVES)
+# Observation order D_s of the 8 surrounding cells (paper eq. 19).
+SURROUNDING = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+METRICS = (
+    "episode_reward",
+    "uncertainty",
+    "targets_found",
+    "false_discoveries",
+    "collisions",
+    "no_fly_violations",
+    "coverage",
+)
+
+
+@dataclass
+class StepResult:
+    """What one reset or step produces, every entry batched over environments."""
+
+    observation: torch.Tensor  # [E, N, obs_dim]
+    action_mask: torch.Tensor  # [E, N, 8] bool
+    state: torch.Tensor  # [E, state_dim]
+    state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
+    position: torch.Tensor  # [E, N, 2] int64
+    reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
+    reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
+    reward_terms: torch.Tensor  # [E, 4]: r1 uncertainty, r2 discovery, r3 no-fly, r4 collision
+    step_count: torch.Tensor  # [E] int64: steps taken in the episode
+    truncated: torch.Tensor  # [E] bool: the time limit T is reached
+    metrics: dict[str, torch.Tensor]  # each [E] float32, running values of the episode
+    belief_map: torch.Tensor | None = None  # [E, N, 2, width, height] each UAV's fused m(U), m(F)
+    neighbours: torch.Tensor | None = None  # [E, N, N] bool communication graph of this step
+
+
+class MCRSCore:
+    """Holds the state of ``num_envs`` independent episodes and advances them together."""
+
+    def __init__(self, config: EnvConfig, device: torch.device | str | None = None) -> None:
+        self.config = config
+        self.device = torch.device(device if device is not None else config.device)
+        c = config
+        self.num_envs, self.n_uavs, self.n_cells = c.num_envs, c.n_uavs, c.n_cells
+        self.rounds = c.rounds_per_step
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(0)
+
+        dev, E, N, C = self.device, c.num_envs, c.n_uavs, c.n_cells
+        self._moves = torch.tensor(MOVES, dtype=torch.int64, device=dev)
+        self._surrounding = torch.tensor(SURROUNDING, dtype=torch.int64, device=dev)
+        self._grid_max = torch.tensor([c.width - 1, c.height - 1], dtype=torch.int64, device=dev)
+        self._pos_scale = self._grid_max.clamp(min=1).to(torch.float32)
+        others = torch.arange(N, device=dev).expand(N, N)
+        self._others = others[~torch.eye(N, dtype=torch.bool, device=dev)].view(N, N - 1)
+        self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)
+        self._env_index = torch.arange(E, device=dev)
+        count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
+        log_dtype = torch.int16 if 2 * C < 2**15 else torch.int32
+
+        # Episode state. Everything a step needs; ~40 kB per map20 environment.
+        self.uav_pos = torch.zeros(E, N, 2, dtype=torch.int64, device=dev)
+        self.no_fly_pos = torch.zeros(E, c.n_no_fly, 2, dtype=torch.int64, device=dev)
+        self.target_pos = torch.zeros(E, c.n_targets, 2, dtype=torch.int64, device=dev)
+        self.is_target = torch.zeros(E, C, dtype=torch.bool, device=dev)
+        self.step_count = torch.zeros(E, dtype=torch.int64, device=dev)
+        self.reading = torch.zeros(E, N, dtype=torch.bool, device=dev)  # last reading, True = "F"
+        # Detection log: log[e, s, q] = cell * 2 + channel of UAV q's reading at step s (s = 0 at reset).
+        self.log = torch.zeros(E, c.max_steps + 1, N, dtype=log_dtype, device=dev)
+        # known[e, i, q]: how many of q's detections UAV i has heard of (fast form of eq. 11).
+        known_dtype = torch.int16 if c.max_steps < 2**15 - 1 else torch.int64
+        self.known = torch.zeros(E, N, N, dtype=known_dtype, device=dev)
+        # UAV i's fused (max-plus-sum) counts, and the global counts of every detection.
+        self.counts = torch.zeros(E, N, 2 * C, dtype=count_dtype, device=dev)
+        self.global_counts = torch.zeros(E, 2 * C, dtype=count_dtype, device=dev)
+        # The global belief, kept current incrementally: only the cells sensed in a step change.
+        self.global_belief = torch.zeros(E, 2, C, dtype=torch.float32, device=dev)  # m(U), m(F)
+        self.discovered = torch.zeros(E, C, dtype=torch.bool, device=dev)  # global m(F) ever >= tau
+        self.total_uncertainty = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.cells_sensed = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.targets_found = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.false_discoveries = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
+        self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
+
+    # ------------------------------------------------------------------ public API
+    def seed(self, seed: int) -> None:
+        self.generator.manual_seed(int(seed))
+
+    def state_nbytes(self) -> int:
+        """Bytes of episode state held for all environments (the memory goal counts these)."""
+        return sum(t.element_size() * t.numel() for t in self._state_tensors())
+
+    def reset(self, mask: torch.Tensor | None = None) -> StepResult:
+        """Start new episodes where ``mask`` (``[E]`` bool) is True, or everywhere when it is None."""
+        if mask is None:
+            envs = torch.arange(self.num_envs, device=self.device)
+        else:
+            envs = mask.reshape(self.num_envs).nonzero().squeeze(-1)
+        if envs.numel():
+            self._reset_envs(envs)
+        zero = torch.zeros(self.num_envs, 4, device=self.device)
+        return self._result(zero, neighbours=None)
+
+    def step(self, action: torch.Tensor) -> StepResult:
+        """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
+        c = self.config
+        action = self._check_action(action)
+        target = self.uav_pos + self._moves[action]
+        if c.invalid_action == "clip":
+            target = torch.minimum(target.clamp(min=0), self._grid_max)
+        self.uav_pos = target
+        self.step_count += 1
+
+        # 2. Sense: each UAV reads its own cell and logs the reading.
+        cell = self.uav_pos[..., 0] * c.height + self.uav_pos[..., 1]
+        flat = self._sense(cell)
+        self.log[self._env_index, self.step_count] = flat.to(self.log.dtype)
+
+        # 3. Communicate: own detection first, then the synchronous exchange rounds.
+        known_before = self.known.clone()
+        self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
+        neighbours = neighbour_graph(self.uav_pos, c.comm_range)
+        self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
+        apply_new_detections(self.counts, known_before, self.known, self.log)
+
+        # 4. Global belief, rewards and metrics.
+        uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
+        r_uncertainty = c.w_uncertainty * uncertainty_drop
+        r_discovery = c.w_discovery * new_targets
+        no_fly_events, collision_events = self._safety_events()
+        r_no_fly = -c.w_no_fly * no_fly_events
+        r_collision = -c.w_collision * collision_events
+        terms = torch.stack([r_uncertainty, r_discovery, r_no_fly, r_collision], dim=-1)
+        self.episode_reward += terms.sum(-1)
+        self.collisions += collision_events
+        self.no_fly_violations += no_fly_events
+        return self._result(terms, neighbours=neighbours)
+
+    # ------------------------------------------------------------------ internals
+    def _state_tensors(self) -> list[torch.Tensor]:
+        return [
+            self.uav_pos, self.no_fly_pos, self.target_pos, self.is_target, self.step_count, self.reading,
+            self.log, self.known, self.counts, self.global_counts, self.global_belief, self.discovered,
+            self.total_uncertainty, self.cells_sensed, self.targets_found, self.false_discoveries,
+            self.episode_reward, self.collisions, self.no_fly_violations,
+        ]  # fmt: skip
+
+    def _check_action(self, action: torch.Tensor) -> torch.Tensor:
+        if not isinstance(action, torch.Tensor):
+            raise TypeError(
+                f"action must be a torch.Tensor of shape {[self.num_envs, self.n_uavs]}, got {type(action).__name__}"
+            )
+        if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
+            raise TypeError(f"action must have an integer dtype (0..{N_ACTIONS - 1}), got {action.dtype}")
+        if action.shape != (self.num_envs, self.n_uavs):
+            if action.numel() == self.num_envs * self.n_uavs and action.shape[:1] == (self.num_envs,):
+                action = action.reshape(self.num_envs, self.n_uavs)  # e.g. [E, N, 1]
+            else:
+                raise ValueError(
+                    f"action must have shape [num_envs, n_uavs] = {[self.num_envs, self.n_uavs]}, got {list(action.shape)}"
+                )
+        action = action.to(device=self.device, dtype=torch.int64)
+        bad = (action < 0) | (action >= N_ACTIONS)
+        if bad.any():
+            env, uav = bad.nonzero()[0].tolist()
+            raise ValueError(
+                f"action[{env}, {uav}] = {action[env, uav].item()} is out of range: allowed 0..{N_ACTIONS - 1}"
+            )
+        if self.config.invalid_action == "raise":
+            allowed = self._action_mask().gather(-1, action.unsqueeze(-1)).squeeze(-1)
+            if not allowed.all():
+                env, uav = (~allowed).nonzero()[0].tolist()
+                raise ValueError(
+                    f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid from "
+                    f"{self.uav_pos[env, uav].tolist()}; allowed here: "
+                    f"{self._action_mask()[env, uav].nonzero().squeeze(-1).tolist()} "
+                    "(set invalid_action=clip to clip such moves instead)"
+                )
+        return action
+
+    def _sense(self, cell: torch.Tensor) -> torch.Tensor:
+        """Draw each UAV's reading of ``cell`` ``[M, N]``; return the flat ``cell * 2 + channel``."""
+        c = self.config
+        p_positive = torch.where(self.is_target.gather(1, cell), c.p_detect, c.p_false_alarm)
+        self.reading = torch.rand(cell.shape, generator=self.generator, device=self.device) < p_positive
+        return cell * 2 + (~self.reading).long()
+
+    def _reset_envs(self, envs: torch.Tensor) -> None:
+        c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
+        # No-fly and target cells: one random permutation of the cells, without replacement.
+        order = torch.rand(M, C, generator=self.generator, device=dev).argsort(dim=1)
+        no_fly = order[:, : c.n_no_fly]
+        targets = order[:, c.n_no_fly : c.n_no_fly + c.n_targets]
+        # UAV starts: distinct cells outside no-fly zones (a UAV may start on a target).
+        keys = torch.rand(M, C, generator=self.generator, device=dev)
+        keys.scatter_(1, no_fly, 2.0)
+        starts = keys.argsort(dim=1)[:, :N]
+
+        self.no_fly_pos[envs] = self._cell_to_xy(no_fly)
+        self.target_pos[envs] = self._cell_to_xy(targets)
+        self.uav_pos[envs] = self._cell_to_xy(starts)
+        is_target = torch.zeros(M, C, dtype=torch.bool, device=dev)
+        is_target.scatter_(1, targets, True)
+        self.is_target[envs] = is_target
+        self.step_count[envs] = 0
+        self.episode_reward[envs] = 0.0
+        self.collisions[envs] = 0.0
+        self.no_fly_violations[envs] = 0.0
+
+        # Every UAV senses its start cell (no reward); no exchange happens at reset.
+        positive = torch.rand(M, N, generator=self.generator, device=dev) < torch.where(
+            is_target.gather(1, starts), c.p_detect, c.p_false_alarm
+        )
+        flat = starts * 2 + (~positive).long()
+        self.reading[envs] = positive
+        log = torch.zeros(M, c.max_steps + 1, N, dtype=self.log.dtype, device=dev)
+        log[:, 0] = flat.to(log.dtype)
+        self.log[envs] = log
+        self.known[envs] = torch.eye(N, dtype=self.known.dtype, device=dev).expand(M, N, N)
+        counts = torch.zeros(M, N, 2 * C, dtype=self.counts.dtype, device=dev)
+        counts.scatter_(2, flat.unsqueeze(-1), 1)
+        self.counts[envs] = counts
+        global_counts = torch.zeros(M, 2 * C, dtype=self.global_counts.dtype, device=dev)
+        global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=global_counts.dtype))
+        self.global_counts[envs] = global_counts
+        _, full, unknown = belief_masses(global_counts[:, 0::2], global_counts[:, 1::2], c.m_f, c.m_e)
+        self.global_belief[envs] = torch.stack([unknown, full], dim=1)
+        self.total_uncertainty[envs] = unknown.sum(-1)
+        discovered = full >= c.target_threshold  # only when tau <= m_f: counted, never rewarded
+        self.discovered[envs] = discovered
+        self.cells_sensed[envs] = (global_counts.view(M, C, 2).sum(-1) > 0).sum(-1).to(torch.float32)
+        self.targets_found[envs] = (discovered & is_target).sum(-1).to(torch.float32)
+        self.false_discoveries[envs] = (discovered & ~is_target).sum(-1).to(torch.float32)
+
+    def _cell_to_xy(self, cell: torch.Tensor) -> torch.Tensor:
+        return torch.stack([cell // self.config.height, cell % self.config.height], dim=-1)
+
+    def _update_global_belief(
+        self, cell: torch.Tensor, flat: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Add this step's readings to the global map; return (drop of sum m(U), new targets found).
+
+        Only the sensed cells change, so the work is O(E N), not O(E L1 L2). When several UAVs share a
+        cell, the first of them (lowest index) stands for the cell, so nothing is counted twice.
+        """
+        c = self.config
+        same_cell = cell.unsqueeze(-1) == cell.unsqueeze(-2)  # [E, i, j]
+        first = ~(same_cell & self._pair_upper.transpose(0, 1)).any(-1)  # no j < i on the same cell
+        pair_index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(self.num_envs, -1)
+        before = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
+        self.global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype))
+        after = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
+        _, full, unknown = belief_masses(after[..., 0], after[..., 1], c.m_f, c.m_e)
+        old_unknown = self.global_belief[:, 0].gather(1, cell)
+        self.global_belief[:, 0].scatter_(1, cell, unknown)
+        self.global_belief[:, 1].scatter_(1, cell, full)
+        drop = ((old_unknown - unknown) * first).sum(-1)
+        self.total_uncertainty -= drop
+        self.cells_sensed += (first & (before.sum(-1) == 0)).sum(-1)
+        newly = first & (full >= c.target_threshold) & ~self.discovered.gather(1, cell)
+        self.discovered.scatter_(1, cell, newly | self.discovered.gather(1, cell))
+        on_target = self.is_target.gather(1, cell)
+        new_targets = (newly & on_target).sum(-1).to(torch.float32)
+        self.targets_found += new_targets
+        self.false_discoveries += (newly & ~on_target).sum(-1)
+        return drop, new_targets
+
+    def _safety_events(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(UAV, no-fly zone) pairs within d1 and UAV pairs i < j within d2, per environment."""
+        c = self.config
+        pos = self.uav_pos.to(torch.float32)
+        to_no_fly = torch.cdist(pos, self.no_fly_pos.to(torch.float32))
+        no_fly = (to_no_fly <= c.no_fly_safety).sum((-1, -2)).to(torch.float32)
+        between = torch.cdist(pos, pos)
+        collisions = ((between <= c.uav_safety) & self._pair_upper).sum((-1, -2)).to(torch.float32)
+        return no_fly, collisions
+
+    def _action_mask(self) -> torch.Tensor:
+        target = self.uav_pos.unsqueeze(-2) + self._moves  # [E, N, 8, 2]
+        return ((target >= 0) & (target <= self._grid_max)).all(-1)
+
+    def _relative(self, others: torch.Tensor) -> torch.Tensor:
+        """(d, dx, dy) / R_sight from each UAV to each of ``others`` ``[E, K, 2]``, zero beyond sight."""
+        delta = (others.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)  # [E, N, K, 2]
+        distance = delta.norm(dim=-1, keepdim=True)
+        features = torch.cat([distance, delta], dim=-1) / self.config.sight_range
+        return features * (distance <= self.config.sight_range)
+
+    def _observation(self) -> torch.Tensor:
+        c = self.config
+        E, N = self.num_envs, self.n_uavs
+        around = self.uav_pos.unsqueeze(-2) + self._surrounding  # [E, N, 8, 2]
+        on_grid = ((around >= 0) & (around <= self._grid_max)).all(-1)
+        around = torch.minimum(around.clamp(min=0), self._grid_max)
+        cell = around[..., 0] * c.height + around[..., 1]
+        index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(E, N, 16)
+        pair = self.counts.gather(2, index).view(E, N, 8, 2)
+        _, full, unknown = belief_masses(pair[..., 0], pair[..., 1], c.m_f, c.m_e)
+        others = self._relative(self.uav_pos)  # [E, N, N, 3]
+        others = others.gather(2, self._others.view(1, N, N - 1, 1).expand(E, N, N - 1, 3))
+        return torch.cat(
+            [
+                self.uav_pos.to(torch.float32) / self._pos_scale,
+                unknown * on_grid,
+                full * on_grid,
+                others.reshape(E, N, -1),
+                self._relative(self.no_fly_pos).reshape(E, N, -1),
+            ],
+            dim=-1,
+        )
+
+    def _result(self, terms: torch.Tensor, neighbours: torch.Tensor | None) -> StepResult:
+        c = self.config
+        E = self.num_envs
+        positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
+        state = torch.cat(
+            [self.global_belief.view(E, -1)]
+            + [(p.to(torch.float32) / self._pos_scale).reshape(E, -1) for p in positions],
+            dim=-1,
+        )
+        metrics = {
+            "episode_reward": self.episode_reward.clone(),
+            "uncertainty": self.total_uncertainty.clone(),
+            "targets_found": self.targets_found.clone(),
+            "false_discoveries": self.false_discoveries.clone(),
+            "collisions": self.collisions.clone(),
+            "no_fly_violations": self.no_fly_violations.clone(),
+            "coverage": self.cells_sensed / self.n_cells,
+        }
+        result = StepResult(
+            observation=self._observation(),
+            action_mask=self._action_mask(),
+            state=state,
+            state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
+            position=self.uav_pos.clone(),
+            reading=self.reading.clone(),
+            reward=terms.sum(-1),
+            reward_terms=terms,
+            step_count=self.step_count.clone(),
+            truncated=self.step_count >= c.max_steps,
+            metrics=metrics,
+        )
+        if c.expose_beliefs:
+            result.belief_map = self.belief_maps()
+            result.neighbours = (
+                neighbours if neighbours is not None else neighbour_graph(self.uav_pos, c.comm_range)
+            )
+        return result
+
+    def belief_maps(self) -> torch.Tensor:
+        """``[E, N, 2, width, height]``: each UAV's own fused m(U) and m(F) maps."""
+        c = self.config
+        _, full, unknown = belief_masses(self.counts[..., 0::2], self.counts[..., 1::2], c.m_f, c.m_e)
+        return torch.stack([unknown, full], dim=2).view(self.num_envs, self.n_uavs, 2, c.width, c.height)

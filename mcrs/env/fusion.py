@@ -1,0 +1,122 @@
+"""Communication and max-plus-sum fusion of detection counts (paper eqs. 10-11).
+
+Two implementations of the same model:
+
+* :class:`DirectFusion` keeps every UAV's copy N^{i,q} of every UAV's count maps and applies the paper's
+  rule literally (max over neighbours, then sum over q). It is the test oracle: memory O(N^2 L1 L2).
+* The fast form used by the environment. A UAV's own counts only grow, so N^{i,q} is always q's own map
+  as of some earlier step: it is enough to know *how many* of q's detections UAV i has heard of,
+  ``known[i, q]``. A round is ``known[i, q] <- max_j known[j, q]`` over i and its neighbours, and
+  UAV i's summed count map is updated with exactly the detections it newly learned of
+  (:func:`apply_new_detections`), read from the per-step detection log. Memory O(N L1 L2 + T N).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def neighbour_graph(positions: torch.Tensor, comm_range: float) -> torch.Tensor:
+    """Neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` (strict) and ``j != i``."""
+    delta = positions.unsqueeze(-2) - positions.unsqueeze(-3)
+    distance = delta.to(torch.float32).norm(dim=-1)
+    eye = torch.eye(positions.shape[-2], dtype=torch.bool, device=positions.device)
+    return (distance < comm_range) & ~eye
+
+
+def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
+    """Who hears whom after ``rounds`` synchronous rounds: walks of length <= rounds, self included.
+
+    ``rounds`` rounds of "max over myself and my neighbours" equal one max over this set, because max
+    is associative. Computed by binary powers of the boolean adjacency (log2(rounds) products).
+    """
+    n = neighbours.shape[-1]
+    step = neighbours | torch.eye(n, dtype=torch.bool, device=neighbours.device)
+    if rounds == 1:
+        return step
+    rounds = min(rounds, n - 1) if n > 1 else 1
+    result = None
+    power = step.to(torch.float32)
+    while rounds:
+        if rounds & 1:
+            result = power if result is None else (torch.matmul(result, power) > 0).to(torch.float32)
+        rounds >>= 1
+        if rounds:
+            power = (torch.matmul(power, power) > 0).to(torch.float32)
+    return result > 0
+
+
+def fuse_known(known: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """``known[..., i, q] <- max over j reachable from i of known[..., j, q]`` (counts are >= 0)."""
+    spread = reach.unsqueeze(-1).to(known.dtype) * known.unsqueeze(-3)  # [..., i, j, q]
+    return spread.amax(dim=-2)
+
+
+def apply_new_detections(
+    counts: torch.Tensor,
+    known_before: torch.Tensor,
+    known_after: torch.Tensor,
+    log_channel_cell: torch.Tensor,
+) -> None:
+    """Add to ``counts`` every detection that UAV i learned of between the two ``known`` tables.
+
+    Args:
+        counts: ``[E, N, 2 * C]`` int, UAV i's summed count maps, indexed ``cell * 2 + channel``
+            (channel 0 = positive "F", 1 = negative "E"); updated in place.
+        known_before, known_after: ``[E, N, N]`` int, detections of q known by i.
+        log_channel_cell: ``[E, T + 1, N]`` the flat ``cell * 2 + channel`` of q's detection at step s.
+
+    The work is proportional to the number of newly learned detections (about N^2 per env and step
+    under full connectivity), never to N^2 L1 L2.
+    """
+    n_uavs = known_before.shape[-1]
+    gained = (known_after - known_before).reshape(-1).long()
+    pairs = gained.nonzero().squeeze(-1)
+    if pairs.numel() == 0:
+        return
+    lengths = gained[pairs]
+    pair_of_item = torch.repeat_interleave(pairs, lengths)
+    starts = torch.cumsum(lengths, 0) - lengths
+    offset = torch.arange(pair_of_item.numel(), device=counts.device) - torch.repeat_interleave(
+        starts, lengths
+    )
+    step = known_before.reshape(-1)[pair_of_item] + offset
+    env = pair_of_item // (n_uavs * n_uavs)
+    learner = (pair_of_item // n_uavs) % n_uavs
+    source = pair_of_item % n_uavs
+    flat_cell = log_channel_cell[env, step, source].long()
+    target = (env * n_uavs + learner) * counts.shape[-1] + flat_cell
+    flat = counts.view(-1)
+    flat.index_put_((target,), torch.ones_like(target, dtype=counts.dtype), accumulate=True)
+
+
+class DirectFusion:
+    """The paper's max-plus-sum rule, literally: every UAV keeps every UAV's count maps.
+
+    Test oracle for the fast form. Drive it with the same per-step detections and neighbour graphs.
+    """
+
+    def __init__(self, n_envs: int, n_uavs: int, n_cells: int, device: torch.device | str = "cpu") -> None:
+        # maps[e, i, q, cell, channel]: what UAV i knows of q's detection counts.
+        self.maps = torch.zeros(n_envs, n_uavs, n_uavs, n_cells, 2, dtype=torch.int64, device=device)
+
+    def sense(self, cells: torch.Tensor, readings: torch.Tensor) -> None:
+        """Each UAV q adds its reading (True = positive) of ``cells[e, q]`` to its own map N^{q,q}."""
+        n_envs, n_uavs = cells.shape
+        env = torch.arange(n_envs).unsqueeze(1).expand(n_envs, n_uavs)
+        uav = torch.arange(n_uavs).unsqueeze(0).expand(n_envs, n_uavs)
+        channel = (~readings).long()
+        self.maps[env, uav, uav, cells, channel] += 1
+
+    def exchange(self, neighbours: torch.Tensor) -> None:
+        """One synchronous round: N^{i,q} <- max over j in {i} + Ne(i) of N^{j,q}."""
+        n = neighbours.shape[-1]
+        hears = neighbours | torch.eye(n, dtype=torch.bool)
+        before = self.maps.clone()
+        for i in range(n):
+            heard = before * hears[:, i].view(-1, n, 1, 1, 1)
+            self.maps[:, i] = heard.amax(dim=1)
+
+    def summed_counts(self) -> torch.Tensor:
+        """``[E, N, C, 2]``: UAV i's fused counts, sum over q of N^{i,q}."""
+        return self.maps.sum(dim=2)
