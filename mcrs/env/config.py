@@ -117,11 +117,9 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         value = getattr(cfg, name)
         if not _is_number(value) or math.isnan(value) or value < 0:
             errors.append(f"{name}={value!r}: must be a distance >= 0 (inf allowed)")
-    if not _is_number(cfg.sight_range) or cfg.sight_range == 0 or math.isinf(cfg.sight_range):
-        if not any(e.startswith("sight_range") for e in errors):
-            errors.append(
-                f"sight_range={cfg.sight_range!r}: must be finite and > 0 (it normalises positions)"
-            )
+    sight_ok = _is_number(cfg.sight_range) and 0 < cfg.sight_range < math.inf
+    if not sight_ok and not any(e.startswith("sight_range") for e in errors):
+        errors.append(f"sight_range={cfg.sight_range!r}: must be finite and > 0 (it normalises positions)")
     for name in ("w_uncertainty", "w_discovery", "w_no_fly", "w_collision"):
         value = getattr(cfg, name)
         if not _is_number(value) or not math.isfinite(value):

@@ -122,6 +122,43 @@ class MCRSCore:
         zero = torch.zeros(self.num_envs, 4, device=self.device)
         return self._result(zero, neighbours=None)
 
+    def reset_to(
+        self, uav_positions: torch.Tensor, no_fly_positions: torch.Tensor, target_positions: torch.Tensor
+    ) -> StepResult:
+        """Start every environment from a given scene (cells ``(x, y)``), e.g. to replay or test one.
+
+        Shapes ``[E, N, 2]``, ``[E, n_no_fly, 2]`` and ``[E, n_targets, 2]`` (a leading E may be omitted).
+        The scene must obey the reset rules: distinct cells, UAVs not on no-fly cells, targets not on them.
+        """
+        c, E = self.config, self.num_envs
+        cells = []
+        for name, value, count in (
+            ("uav_positions", uav_positions, c.n_uavs),
+            ("no_fly_positions", no_fly_positions, c.n_no_fly),
+            ("target_positions", target_positions, c.n_targets),
+        ):
+            value = torch.as_tensor(value, dtype=torch.int64, device=self.device)
+            value = value.expand(E, *value.shape) if value.dim() == 2 else value
+            if value.shape != (E, count, 2):
+                raise ValueError(f"{name} must have shape {[E, count, 2]}, got {list(value.shape)}")
+            if ((value < 0) | (value > self._grid_max)).any():
+                raise ValueError(
+                    f"{name} must lie on the {c.width} x {c.height} grid (x < width, y < height)"
+                )
+            cells.append(value[..., 0] * c.height + value[..., 1])
+        starts, no_fly, targets = cells
+        for name, group in (
+            ("uav_positions", starts),
+            ("no_fly_positions + target_positions", torch.cat([no_fly, targets], 1)),
+        ):
+            ordered = group.sort(dim=1).values
+            if (ordered[:, 1:] == ordered[:, :-1]).any():
+                raise ValueError(f"{name} must be distinct cells")
+        if (starts.unsqueeze(-1) == no_fly.unsqueeze(-2)).any():
+            raise ValueError("uav_positions must not be on no-fly cells")
+        self._start_episodes(torch.arange(E, device=self.device), no_fly, targets, starts)
+        return self._result(torch.zeros(E, 4, device=self.device), neighbours=None)
+
     def step(self, action: torch.Tensor) -> StepResult:
         """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
         c = self.config
@@ -216,7 +253,13 @@ class MCRSCore:
         keys = torch.rand(M, C, generator=self.generator, device=dev)
         keys.scatter_(1, no_fly, 2.0)
         starts = keys.argsort(dim=1)[:, :N]
+        self._start_episodes(envs, no_fly, targets, starts)
 
+    def _start_episodes(
+        self, envs: torch.Tensor, no_fly: torch.Tensor, targets: torch.Tensor, starts: torch.Tensor
+    ) -> None:
+        """Begin episodes in ``envs`` from flat cells of no-fly zones, targets and UAV starts."""
+        c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
         self.no_fly_pos[envs] = self._cell_to_xy(no_fly)
         self.target_pos[envs] = self._cell_to_xy(targets)
         self.uav_pos[envs] = self._cell_to_xy(starts)

@@ -110,7 +110,7 @@ class MCRSEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
+        if tensordict is not None and "_reset" in tensordict.keys():  # noqa: SIM118 (a TensorDict)
             mask = tensordict.get("_reset").reshape(self.config.num_envs)
         return self._to_tensordict(self.core.reset(mask), with_reward=False)
 

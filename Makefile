@@ -1,0 +1,31 @@
+# Two commands do all the set-up on a fresh machine (see README.md):
+#   make run    create .venv, install mcrs, run the main job (writes to outputs/)
+#   make test   create .venv, install mcrs with the dev extra, lint and run the test suite
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+
+.PHONY: install run test lint bench clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	touch $@
+
+install: $(BIN)/.installed
+
+run: install
+	$(BIN)/mcrs-eval
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+test: install
+	$(BIN)/python -m pytest -q
+
+bench: install
+	$(BIN)/mcrs-bench-env
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache
