@@ -15,7 +15,7 @@ import torch
 
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
-from mcrs.env.fusion import apply_new_detections, fuse_known, neighbour_graph, reachable_within
+from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_from_distance, reachable_within
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
 # 6 upper-right, 7 upper-left.
@@ -32,6 +32,16 @@ METRICS = (
     "no_fly_violations",
     "coverage",
 )
+
+
+@dataclass
+class Geometry:
+    """Offsets and distances from each UAV to the other UAVs and to the no-fly zones, once per step."""
+
+    uav_delta: torch.Tensor  # [E, N, N, 2]: u_j - u_i
+    uav_distance: torch.Tensor  # [E, N, N]
+    no_fly_delta: torch.Tensor  # [E, N, Z, 2]: z_k - u_i
+    no_fly_distance: torch.Tensor  # [E, N, Z]
 
 
 @dataclass
@@ -70,8 +80,7 @@ class MCRSCore:
         self._surrounding = torch.tensor(SURROUNDING, dtype=torch.int64, device=dev)
         self._grid_max = torch.tensor([c.width - 1, c.height - 1], dtype=torch.int64, device=dev)
         self._pos_scale = self._grid_max.clamp(min=1).to(torch.float32)
-        others = torch.arange(N, device=dev).expand(N, N)
-        self._others = others[~torch.eye(N, dtype=torch.bool, device=dev)].view(N, N - 1)
+        self._diagonal_free = ~torch.eye(N, dtype=torch.bool, device=dev)  # picks j != i, in index order
         self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)
         self._env_index = torch.arange(E, device=dev)
         count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
@@ -102,6 +111,7 @@ class MCRSCore:
         self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
         self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
+        self._mask = self._action_mask()  # the action mask of the current positions
 
     # ------------------------------------------------------------------ public API
     def seed(self, seed: int) -> None:
@@ -120,7 +130,7 @@ class MCRSCore:
         if envs.numel():
             self._reset_envs(envs)
         zero = torch.zeros(self.num_envs, 4, device=self.device)
-        return self._result(zero, neighbours=None)
+        return self._result(zero)
 
     def reset_to(
         self, uav_positions: torch.Tensor, no_fly_positions: torch.Tensor, target_positions: torch.Tensor
@@ -157,7 +167,7 @@ class MCRSCore:
         if (starts.unsqueeze(-1) == no_fly.unsqueeze(-2)).any():
             raise ValueError("uav_positions must not be on no-fly cells")
         self._start_episodes(torch.arange(E, device=self.device), no_fly, targets, starts)
-        return self._result(torch.zeros(E, 4, device=self.device), neighbours=None)
+        return self._result(torch.zeros(E, 4, device=self.device))
 
     def step(self, action: torch.Tensor) -> StepResult:
         """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
@@ -177,7 +187,8 @@ class MCRSCore:
         # 3. Communicate: own detection first, then the synchronous exchange rounds.
         known_before = self.known.clone()
         self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
-        neighbours = neighbour_graph(self.uav_pos, c.comm_range)
+        geometry = self._geometry()
+        neighbours = neighbours_from_distance(geometry.uav_distance, c.comm_range)
         self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
         apply_new_detections(self.counts, known_before, self.known, self.log)
 
@@ -185,14 +196,14 @@ class MCRSCore:
         uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
         r_uncertainty = c.w_uncertainty * uncertainty_drop
         r_discovery = c.w_discovery * new_targets
-        no_fly_events, collision_events = self._safety_events()
+        no_fly_events, collision_events = self._safety_events(geometry)
         r_no_fly = -c.w_no_fly * no_fly_events
         r_collision = -c.w_collision * collision_events
         terms = torch.stack([r_uncertainty, r_discovery, r_no_fly, r_collision], dim=-1)
         self.episode_reward += terms.sum(-1)
         self.collisions += collision_events
         self.no_fly_violations += no_fly_events
-        return self._result(terms, neighbours=neighbours)
+        return self._result(terms, geometry, neighbours)
 
     # ------------------------------------------------------------------ internals
     def _state_tensors(self) -> list[torch.Tensor]:
@@ -225,13 +236,13 @@ class MCRSCore:
                 f"action[{env}, {uav}] = {action[env, uav].item()} is out of range: allowed 0..{N_ACTIONS - 1}"
             )
         if self.config.invalid_action == "raise":
-            allowed = self._action_mask().gather(-1, action.unsqueeze(-1)).squeeze(-1)
+            allowed = self._mask.gather(-1, action.unsqueeze(-1)).squeeze(-1)
             if not allowed.all():
                 env, uav = (~allowed).nonzero()[0].tolist()
                 raise ValueError(
                     f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid from "
                     f"{self.uav_pos[env, uav].tolist()}; allowed here: "
-                    f"{self._action_mask()[env, uav].nonzero().squeeze(-1).tolist()} "
+                    f"{self._mask[env, uav].nonzero().squeeze(-1).tolist()} "
                     "(set invalid_action=clip to clip such moves instead)"
                 )
         return action
@@ -329,28 +340,29 @@ class MCRSCore:
         self.false_discoveries += (newly & ~on_target).sum(-1)
         return drop, new_targets
 
-    def _safety_events(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def _geometry(self) -> Geometry:
+        uav_delta = (self.uav_pos.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)
+        no_fly_delta = (self.no_fly_pos.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)
+        return Geometry(uav_delta, uav_delta.norm(dim=-1), no_fly_delta, no_fly_delta.norm(dim=-1))
+
+    def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
         """(UAV, no-fly zone) pairs within d1 and UAV pairs i < j within d2, per environment."""
         c = self.config
-        pos = self.uav_pos.to(torch.float32)
-        to_no_fly = torch.cdist(pos, self.no_fly_pos.to(torch.float32))
-        no_fly = (to_no_fly <= c.no_fly_safety).sum((-1, -2)).to(torch.float32)
-        between = torch.cdist(pos, pos)
-        collisions = ((between <= c.uav_safety) & self._pair_upper).sum((-1, -2)).to(torch.float32)
-        return no_fly, collisions
+        no_fly = (geometry.no_fly_distance <= c.no_fly_safety).sum((-1, -2)).to(torch.float32)
+        close = (geometry.uav_distance <= c.uav_safety) & self._pair_upper
+        return no_fly, close.sum((-1, -2)).to(torch.float32)
 
     def _action_mask(self) -> torch.Tensor:
         target = self.uav_pos.unsqueeze(-2) + self._moves  # [E, N, 8, 2]
         return ((target >= 0) & (target <= self._grid_max)).all(-1)
 
-    def _relative(self, others: torch.Tensor) -> torch.Tensor:
-        """(d, dx, dy) / R_sight from each UAV to each of ``others`` ``[E, K, 2]``, zero beyond sight."""
-        delta = (others.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)  # [E, N, K, 2]
-        distance = delta.norm(dim=-1, keepdim=True)
+    def _relative(self, delta: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+        """(d, dx, dy) / R_sight from each UAV to each other object ``[E, N, K, 2]``, zero beyond sight."""
+        distance = distance.unsqueeze(-1)
         features = torch.cat([distance, delta], dim=-1) / self.config.sight_range
         return features * (distance <= self.config.sight_range)
 
-    def _observation(self) -> torch.Tensor:
+    def _observation(self, geometry: Geometry) -> torch.Tensor:
         c = self.config
         E, N = self.num_envs, self.n_uavs
         around = self.uav_pos.unsqueeze(-2) + self._surrounding  # [E, N, 8, 2]
@@ -360,22 +372,27 @@ class MCRSCore:
         index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(E, N, 16)
         pair = self.counts.gather(2, index).view(E, N, 8, 2)
         _, full, unknown = belief_masses(pair[..., 0], pair[..., 1], c.m_f, c.m_e)
-        others = self._relative(self.uav_pos)  # [E, N, N, 3]
-        others = others.gather(2, self._others.view(1, N, N - 1, 1).expand(E, N, N - 1, 3))
+        others = self._relative(geometry.uav_delta, geometry.uav_distance)[:, self._diagonal_free]
         return torch.cat(
             [
                 self.uav_pos.to(torch.float32) / self._pos_scale,
                 unknown * on_grid,
                 full * on_grid,
                 others.reshape(E, N, -1),
-                self._relative(self.no_fly_pos).reshape(E, N, -1),
+                self._relative(geometry.no_fly_delta, geometry.no_fly_distance).reshape(E, N, -1),
             ],
             dim=-1,
         )
 
-    def _result(self, terms: torch.Tensor, neighbours: torch.Tensor | None) -> StepResult:
+    def _result(
+        self, terms: torch.Tensor, geometry: Geometry | None = None, neighbours: torch.Tensor | None = None
+    ) -> StepResult:
         c = self.config
         E = self.num_envs
+        geometry = geometry if geometry is not None else self._geometry()
+        if neighbours is None:
+            neighbours = neighbours_from_distance(geometry.uav_distance, c.comm_range)
+        self._mask = self._action_mask()
         positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
         state = torch.cat(
             [self.global_belief.view(E, -1)]
@@ -392,8 +409,8 @@ class MCRSCore:
             "coverage": self.cells_sensed / self.n_cells,
         }
         result = StepResult(
-            observation=self._observation(),
-            action_mask=self._action_mask(),
+            observation=self._observation(geometry),
+            action_mask=self._mask.clone(),
             state=state,
             state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
             position=self.uav_pos.clone(),
@@ -406,9 +423,7 @@ class MCRSCore:
         )
         if c.expose_beliefs:
             result.belief_map = self.belief_maps()
-            result.neighbours = (
-                neighbours if neighbours is not None else neighbour_graph(self.uav_pos, c.comm_range)
-            )
+            result.neighbours = neighbours
         return result
 
     def belief_maps(self) -> torch.Tensor:

@@ -16,12 +16,16 @@ from __future__ import annotations
 import torch
 
 
-def neighbour_graph(positions: torch.Tensor, comm_range: float) -> torch.Tensor:
+def neighbours_from_distance(distance: torch.Tensor, comm_range: float) -> torch.Tensor:
     """Neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` (strict) and ``j != i``."""
-    delta = positions.unsqueeze(-2) - positions.unsqueeze(-3)
-    distance = delta.to(torch.float32).norm(dim=-1)
-    eye = torch.eye(positions.shape[-2], dtype=torch.bool, device=positions.device)
+    eye = torch.eye(distance.shape[-1], dtype=torch.bool, device=distance.device)
     return (distance < comm_range) & ~eye
+
+
+def neighbour_graph(positions: torch.Tensor, comm_range: float) -> torch.Tensor:
+    """Neighbours ``[..., i, j]`` of UAVs at ``positions`` ``[..., N, 2]``."""
+    delta = (positions.unsqueeze(-2) - positions.unsqueeze(-3)).to(torch.float32)
+    return neighbours_from_distance(delta.norm(dim=-1), comm_range)
 
 
 def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
