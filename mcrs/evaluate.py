@@ -1,0 +1,188 @@
+"""``mcrs-eval``: evaluate the heuristic policies on a map and report every episode metric.
+
+The K episodes run as one batch of K environments (in chunks of at most ``MAX_BATCH``), so an
+evaluation costs about as much as T batched steps. Results go to the Hydra run directory:
+``metrics.csv`` (mean and std per policy), ``episodes.csv`` (every episode), ``summary.md`` (the table)
+and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``episode.gif``.
+
+    mcrs-eval policy=all episodes=32
+    mcrs-eval env=map20 env.comm_range=0 policy=lawnmower episodes=8
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.core import METRICS
+from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.policies import POLICIES, make_policy
+from mcrs.policies.base import ACTION
+
+ALL = "all"
+# The Hydra configs: mcrs/conf links to the repo's conf/ (and is copied into wheels as package data). An
+# absolute directory, because Hydra's pkg:// lookup of "mcrs.conf" needs an __init__.py that conf/ lacks.
+CONFIG_DIR = str(Path(__file__).parent / "conf")
+MAX_BATCH = 512  # environments per batch; bounds memory on the largest map
+METRIC_LABELS = {
+    "episode_reward": "episode reward",
+    "uncertainty": "final uncertainty",
+    "targets_found": "targets found",
+    "false_discoveries": "false discoveries",
+    "collisions": "collisions",
+    "no_fly_violations": "no-fly violations",
+    "coverage": "coverage",
+}
+
+
+def policy_names(policy: str) -> list[str]:
+    """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
+    if policy == ALL:
+        return list(POLICIES)
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; allowed: {[*sorted(POLICIES), ALL]}")
+    return [policy]
+
+
+def episode_metrics(
+    env_config: EnvConfig, policy_name: str, episodes: int, seed: int, max_batch: int = MAX_BATCH
+) -> dict[str, torch.Tensor]:
+    """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``."""
+    if episodes < 1:
+        raise ValueError(f"episodes={episodes}: must be >= 1")
+    batch = min(episodes, max_batch)
+    cfg = env_config.replace(num_envs=batch, expose_beliefs=False)
+    env = MCRSEnv(cfg)
+    env.set_seed(seed)
+    policy = make_policy(policy_name, cfg, seed)
+    chunks = []
+    with torch.no_grad():
+        for _ in range(math.ceil(episodes / batch)):
+            # A plain loop instead of env.rollout: only the last step is needed, so nothing is stacked.
+            td = env.reset()
+            for _ in range(cfg.max_steps):
+                td = env.step(policy(td).select(ACTION))["next"]
+            chunks.append(td.get("metrics").clone())
+    metrics = torch.cat(chunks)[:episodes]
+    return {name: metrics.get(name) for name in METRICS}
+
+
+def summarize(values: dict[str, torch.Tensor]) -> dict[str, tuple[float, float]]:
+    """Mean and standard deviation over episodes (sample std; 0 for a single episode)."""
+    out = {}
+    for name, v in values.items():
+        v = v.to(torch.float64)
+        std = v.std(correction=1).item() if v.numel() > 1 else 0.0
+        out[name] = (v.mean().item(), std)
+    return out
+
+
+def evaluate_policy(
+    env_config: EnvConfig, policy_name: str, episodes: int, seed: int
+) -> dict[str, tuple[float, float]]:
+    """``{metric: (mean, std)}`` over ``episodes`` episodes of ``policy_name`` on ``env_config``."""
+    return summarize(episode_metrics(env_config, policy_name, episodes, seed))
+
+
+def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
+    """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
+    header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
+    rows = [[name] + [f"{r[m][0]:.2f} ± {r[m][1]:.2f}" for m in METRICS] for name, r in results.items()]
+    widths = [max(len(row[k]) for row in [header, *rows]) for k in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        padded = [
+            c.ljust(w) if k == 0 else c.rjust(w) for k, (c, w) in enumerate(zip(cells, widths, strict=True))
+        ]
+        return "| " + " | ".join(padded) + " |"
+
+    rule = "|" + "|".join("-" * (w + 1) + (":" if k else "-") for k, w in enumerate(widths)) + "|"
+    return "\n".join([line(header), rule, *(line(row) for row in rows)])
+
+
+def describe(env_config: EnvConfig, episodes: int, seed: int) -> str:
+    c = env_config
+    return (
+        f"{c.name}: {c.width}x{c.height} grid, {c.n_uavs} UAVs, {c.n_targets} targets, {c.n_no_fly} no-fly "
+        f"zones, T={c.max_steps}, R_c={c.comm_range:g}, comm_rounds={c.comm_rounds}; "
+        f"{episodes} episodes, seed {seed}"
+    )
+
+
+def write_results(
+    out_dir: Path,
+    env_config: EnvConfig,
+    per_episode: dict[str, dict[str, torch.Tensor]],
+    results: dict[str, dict[str, tuple[float, float]]],
+    title: str,
+    table: str,
+) -> None:
+    """``metrics.csv`` (one row per policy), ``episodes.csv`` (one row per episode) and ``summary.md``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / "metrics.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            ["policy", "env", "episodes", *(f"{m}_{s}" for m in METRICS for s in ("mean", "std"))]
+        )
+        for name, r in results.items():
+            episodes = len(next(iter(per_episode[name].values())))
+            writer.writerow([name, env_config.name, episodes, *(f"{v:.6g}" for m in METRICS for v in r[m])])
+    with open(out_dir / "episodes.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["policy", "episode", *METRICS])
+        for name, values in per_episode.items():
+            columns = torch.stack([values[m].to(torch.float64) for m in METRICS], dim=-1).tolist()
+            for k, row in enumerate(columns):
+                writer.writerow([name, k, *(f"{v:.6g}" for v in row)])
+    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n")
+
+
+def write_figures(out_dir: Path, env_config: EnvConfig, policy_name: str, seed: int) -> list[Path]:
+    """The three pictures of one episode (seed ``seed``) of ``policy_name``."""
+    from mcrs.env.render import plot_scene, plot_uncertainty_contours, rollout_episode, save_episode_gif
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    episode = rollout_episode(env_config, policy_name, seed)
+    without = rollout_episode(env_config.replace(comm_range=0.0), policy_name, seed)
+    paths = [out_dir / "scene.png", out_dir / "uncertainty_contours.png", out_dir / "episode.gif"]
+    plot_scene(episode, env_config, paths[0])
+    plot_uncertainty_contours(episode, without, env_config, paths[1])
+    save_episode_gif(episode, env_config, paths[2])
+    return paths
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, float]]]:
+    """Evaluate as configured, print the table and write the results (and figures) into ``out_dir``."""
+    names = policy_names(str(cfg.policy))
+    env_config = from_mapping(cfg.env)
+    episodes, seed = int(cfg.episodes), int(cfg.seed)
+    per_episode = {name: episode_metrics(env_config, name, episodes, seed) for name in names}
+    results = {name: summarize(values) for name, values in per_episode.items()}
+    title = describe(env_config, episodes, seed)
+    table = format_table(results)
+    print(f"{title}\n\n{table}\n", flush=True)
+    write_results(out_dir, env_config, per_episode, results, title, table)
+    if cfg.figures:
+        for name in names:
+            paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
+            print("figures: " + ", ".join(str(p) for p in paths), flush=True)
+    print(f"results in {out_dir}", flush=True)
+    return results
+
+
+@hydra.main(config_path=CONFIG_DIR, config_name="eval", version_base=None)
+def main(cfg: DictConfig) -> None:
+    """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    run(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,80 @@
+"""Lawnmower (boustrophedon) baseline: the classic coverage pattern, with no use of beliefs.
+
+The x range is split into one strip of columns per UAV. Inside its strip a UAV sweeps the columns one
+after the other, alternating up and down (a snake through every cell of the strip), and at the end of
+the strip it turns back along the same path (ping-pong), so it keeps covering its strip for any T.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from mcrs.env.config import EnvConfig
+from mcrs.env.core import MOVES
+from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
+
+
+def strip_bounds(config: EnvConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """First column ``[N]`` and width ``[N]`` of each UAV's strip (at least one column each)."""
+    n, width = config.n_uavs, config.width
+    edges = torch.arange(n + 1) * width // n
+    first = edges[:-1].clamp(max=width - 1)
+    return first, (edges[1:] - edges[:-1]).clamp(min=1)
+
+
+class LawnmowerPolicy(Policy):
+    """Each UAV follows the snake path of its own strip; the path pointer is kept per env and UAV.
+
+    The pointer ``s`` runs over a cycle of length ``2P - 2`` (``P`` cells in the strip): ``s < P`` walks
+    the snake forwards, ``s >= P`` walks it back. At the start of an episode (``step_count == 0``) each
+    UAV aims at the nearer end of its snake. Every step the UAV takes the 8-neighbour move whose
+    (dx, dy) is the sign of (waypoint - position); such a move never leaves the grid.
+    """
+
+    def __init__(self, config: EnvConfig, seed: int = 0) -> None:
+        super().__init__(config, seed)
+        first, width = strip_bounds(config)
+        dev = torch.device(config.device)
+        self.strip_first = first.to(dev)
+        self.strip_width = width.to(dev)
+        self.path_length = (width * config.height).to(dev)  # P per UAV
+        self.cycle = (2 * self.path_length - 2).clamp(min=1)
+        # MOVE_LOOKUP[dx + 1, dy + 1] = action with that (dx, dy); -1 for (0, 0), which has no action.
+        lookup = torch.full((3, 3), -1, dtype=torch.int64)
+        for action, (dx, dy) in enumerate(MOVES):
+            lookup[dx + 1, dy + 1] = action
+        self.move_lookup = lookup.to(dev)
+        self.pointer: torch.Tensor | None = None  # [E, N] position in the ping-pong cycle
+
+    def waypoint(self, pointer: torch.Tensor) -> torch.Tensor:
+        """``[E, N, 2]`` cell of the snake at each pointer (broadcast over envs)."""
+        p = self.path_length
+        k = torch.where(pointer < p, pointer, 2 * p - 2 - pointer)  # index along the snake
+        column, row = k // self.config.height, k % self.config.height
+        y = torch.where(column % 2 == 0, row, self.config.height - 1 - row)
+        return torch.stack([self.strip_first + column, y], dim=-1)
+
+    def _start_pointer(self, position: torch.Tensor) -> torch.Tensor:
+        """Pointer to the nearer (in moves) end of each UAV's snake."""
+        start = torch.zeros_like(position[..., 0])
+        end = (self.path_length - 1).expand_as(start)
+        moves_to = [(self.waypoint(s) - position).abs().amax(-1) for s in (start, end)]
+        return torch.where(moves_to[1] < moves_to[0], end, start)
+
+    def act(self, tensordict: TensorDictBase) -> torch.Tensor:
+        obs = tensordict.get(OBSERVATION)
+        mask = tensordict.get(ACTION_MASK)
+        position = self.layout.cell(obs)  # [E, N, 2]
+        new_episode = (tensordict.get("step_count").reshape(-1) == 0).view(-1, 1)
+        start = self._start_pointer(position)
+        if self.pointer is None or self.pointer.shape != start.shape or self.pointer.device != start.device:
+            self.pointer = start
+        else:
+            self.pointer = torch.where(new_episode, start, self.pointer)
+        arrived = (self.waypoint(self.pointer) == position).all(-1)
+        self.pointer = torch.where(arrived, (self.pointer + 1) % self.cycle, self.pointer)
+        step = (self.waypoint(self.pointer) - position).sign()
+        action = self.move_lookup[step[..., 0] + 1, step[..., 1] + 1]
+        # Only a one-cell strip can leave the UAV on its waypoint; then any allowed move will do.
+        return torch.where(action >= 0, action, mask.to(torch.int64).argmax(-1))

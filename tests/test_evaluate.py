@@ -1,0 +1,134 @@
+"""mcrs-eval: the pure evaluation function, the table and the Hydra command line."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from mcrs.env import METRICS, scenario
+from mcrs.env.config import from_mapping
+from mcrs.evaluate import CONFIG_DIR, episode_metrics, evaluate_policy, format_table, policy_names, run
+
+TINY = ["episodes=2", "figures=false", "env.max_steps=5"]
+
+
+@pytest.mark.parametrize("policy", ["random", "lawnmower", "greedy"])
+def test_evaluate_policy_returns_every_metric(policy: str) -> None:
+    cfg = scenario("map10", max_steps=20)
+    result = evaluate_policy(cfg, policy, episodes=5, seed=1)
+    assert list(result) == list(METRICS)
+    for name, (mean, std) in result.items():
+        assert math.isfinite(mean) and math.isfinite(std) and std >= 0, name
+    assert 0 < result["coverage"][0] <= 1
+    assert result["uncertainty"][0] < cfg.n_cells  # sensing removed some uncertainty
+    assert result == evaluate_policy(cfg, policy, episodes=5, seed=1)  # reproducible
+
+
+def test_episode_metrics_chunks_and_single_episode() -> None:
+    cfg = scenario("map10", max_steps=6)
+    values = episode_metrics(cfg, "random", episodes=7, seed=0, max_batch=3)
+    assert all(v.shape == (7,) for v in values.values())
+    assert values["episode_reward"].unique().numel() > 1  # chunks are different episodes
+    assert evaluate_policy(cfg, "greedy", episodes=1, seed=0)["coverage"][1] == 0.0
+    with pytest.raises(ValueError, match="episodes"):
+        episode_metrics(cfg, "random", episodes=0, seed=0)
+
+
+def test_format_table_is_aligned_markdown() -> None:
+    results = {
+        "random": {m: (1.0, 0.5) for m in METRICS},
+        "lawnmower": {m: (123.456, 10.0) for m in METRICS},
+    }
+    lines = format_table(results).splitlines()
+    assert len(lines) == 4 and len({len(line) for line in lines}) == 1
+    assert lines[0].startswith("| policy") and "episode reward" in lines[0] and "coverage" in lines[0]
+    assert set(lines[1]) <= set("|-:")
+    assert "123.46 ± 10.00" in lines[3]
+
+
+def test_policy_names() -> None:
+    assert policy_names("all") == ["random", "lawnmower", "greedy"]
+    assert policy_names("greedy") == ["greedy"]
+    with pytest.raises(
+        ValueError, match=r"unknown policy 'bogus'; allowed: .*greedy.*lawnmower.*random.*all"
+    ):
+        policy_names("bogus")
+
+
+def _compose(overrides: list[str]):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        return compose("eval", overrides=overrides)
+
+
+def test_hydra_config_composes_with_overrides() -> None:
+    cfg = _compose([])
+    assert (cfg.policy, cfg.episodes, cfg.seed, cfg.figures) == ("greedy", 32, 0, True)
+    assert from_mapping(cfg.env) == scenario("map10")
+    cfg = _compose(["env=map20", "env.comm_range=0", "policy=lawnmower", "episodes=8"])
+    env = from_mapping(cfg.env)
+    assert (env.name, env.n_uavs, env.comm_range, cfg.policy, cfg.episodes) == (
+        "map20",
+        10,
+        0.0,
+        "lawnmower",
+        8,
+    )
+
+
+def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
+    cfg = _compose(["policy=all", "env.max_steps=4", "episodes=3", "figures=true"])
+    results = run(cfg, tmp_path)
+    assert list(results) == ["random", "lawnmower", "greedy"]
+    printed = capsys.readouterr().out
+    assert "| policy" in printed and "| greedy" in printed and "false discoveries" in printed
+    with open(tmp_path / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["policy"] for r in rows] == ["random", "lawnmower", "greedy"]
+    assert float(rows[2]["episode_reward_mean"]) == pytest.approx(
+        results["greedy"]["episode_reward"][0], rel=1e-5
+    )
+    with open(tmp_path / "episodes.csv") as f:
+        assert len(list(csv.DictReader(f))) == 3 * 3
+    assert "| lawnmower" in (tmp_path / "summary.md").read_text()
+    for policy in results:
+        for name in ("scene.png", "uncertainty_contours.png", "episode.gif"):
+            assert (tmp_path / policy / name).stat().st_size > 1000
+
+
+def test_run_rejects_unknown_policy(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"allowed: .*greedy"):
+        run(_compose(["policy=bogus", *TINY]), tmp_path)
+    assert not (tmp_path / "metrics.csv").exists()
+
+
+def _cli(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    return subprocess.run(
+        [sys.executable, "-m", "mcrs.evaluate", f"hydra.run.dir={tmp_path}", *overrides],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+        cwd=tmp_path,
+    )
+
+
+def test_cli_runs_and_prints_table(tmp_path: Path) -> None:
+    done = _cli(tmp_path, *TINY, "policy=lawnmower", "env=map15", "env.comm_range=0")
+    assert done.returncode == 0, done.stderr
+    assert "map15" in done.stdout and "R_c=0" in done.stdout and "| lawnmower" in done.stdout
+    assert (tmp_path / "metrics.csv").is_file() and (tmp_path / "summary.md").is_file()
+    assert not (tmp_path / "scene.png").exists()  # figures=false
+
+
+def test_cli_unknown_policy_lists_allowed_names(tmp_path: Path) -> None:
+    done = _cli(tmp_path, *TINY, "policy=bogus")
+    assert done.returncode != 0
+    assert "unknown policy 'bogus'" in done.stderr and "lawnmower" in done.stderr

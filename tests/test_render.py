@@ -1,0 +1,138 @@
+"""Episode pictures: right file formats, and figure 4's data shows what communication buys."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mcrs.env import scenario
+from mcrs.env.render import (
+    episode_frames,
+    plot_scene,
+    plot_uncertainty_contours,
+    rollout_comm_pair,
+    rollout_episode,
+    save_episode_gif,
+    uncertainty_contour_data,
+)
+from mcrs.render_episode import main as render_main
+
+SHORT = scenario("map10", max_steps=8)
+
+
+@pytest.fixture(scope="module")
+def short_episode():
+    return rollout_episode(SHORT, "greedy", seed=3)
+
+
+@pytest.fixture(scope="module")
+def comm_pair():
+    """A full map10 episode with R_c = 5 and the same seed without communication."""
+    return rollout_comm_pair(scenario("map10"), "greedy", seed=0)
+
+
+def _assert_image(path: Path, fmt: str) -> Image.Image:
+    assert path.is_file() and path.stat().st_size > 2000
+    image = Image.open(path)
+    assert image.format == fmt
+    assert image.size[0] > 200 and image.size[1] > 200
+    return image
+
+
+def test_rollout_episode_is_one_full_episode_with_beliefs(short_episode) -> None:
+    cfg = SHORT
+    assert short_episode.batch_size == (1, cfg.max_steps)
+    assert short_episode.get(("agents", "belief_map")).shape == (1, cfg.max_steps, cfg.n_uavs, 2, 10, 10)
+    assert short_episode.get(("next", "truncated"))[0, -1].all()
+    frames = episode_frames(short_episode, cfg)
+    assert frames.positions.shape == (cfg.max_steps + 1, cfg.n_uavs, 2)
+    # Consecutive positions differ by one 8-neighbour move.
+    step = np.abs(np.diff(frames.positions, axis=0)).max(-1)
+    assert (step == 1).all()
+    assert len(frames.no_fly) == cfg.n_no_fly and len(frames.targets) == cfg.n_targets
+
+
+def test_episode_without_beliefs_is_refused() -> None:
+    from mcrs.env import MCRSEnv
+    from mcrs.policies import make_policy
+
+    env = MCRSEnv(SHORT)
+    td = env.rollout(3, make_policy("random", SHORT, 0), break_when_any_done=False)
+    with pytest.raises(ValueError, match="expose_beliefs=True"):
+        episode_frames(td, SHORT)
+
+
+def test_plot_scene_writes_png(short_episode, tmp_path: Path) -> None:
+    path = tmp_path / "scene.png"
+    fig = plot_scene(short_episode, SHORT, path)
+    image = _assert_image(path, "PNG")
+    assert len(np.unique(np.asarray(image.convert("RGB")).reshape(-1, 3), axis=0)) > 20  # not blank
+    assert "targets found" in fig.axes[0].get_title()
+
+
+def test_plot_uncertainty_contours_writes_png(short_episode, tmp_path: Path) -> None:
+    without = rollout_episode(SHORT.replace(comm_range=0.0), "greedy", seed=3)
+    path = tmp_path / "contours.png"
+    fig = plot_uncertainty_contours(short_episode, without, SHORT, path, uav=1, steps=(2, 8))
+    _assert_image(path, "PNG")
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    assert sum("with communication" in t for t in titles) == 2
+    assert sum("without communication" in t for t in titles) == 2
+
+
+def test_save_episode_gif_has_one_frame_per_step(short_episode, tmp_path: Path) -> None:
+    path = save_episode_gif(short_episode, SHORT, tmp_path / "episode.gif", background=2)
+    image = _assert_image(path, "GIF")
+    assert image.n_frames == SHORT.max_steps + 1
+    first, last = (np.asarray(image.convert("RGB")) for image in _frames(image, [0, SHORT.max_steps]))
+    assert not np.array_equal(first, last)  # it is animated
+    with pytest.raises(ValueError, match="background"):
+        save_episode_gif(short_episode, SHORT, tmp_path / "bad.gif", background=99)
+
+
+def _frames(image: Image.Image, indices: list[int]) -> list[Image.Image]:
+    out = []
+    for k in indices:
+        image.seek(k)
+        out.append(image.copy())
+    return out
+
+
+def test_contours_with_communication_are_less_uncertain(comm_pair) -> None:
+    cfg = scenario("map10")
+    with_comm, without = comm_pair
+    steps = (0, 25, 50)
+    for uav in range(cfg.n_uavs):
+        a = uncertainty_contour_data(with_comm, cfg, uav, steps)
+        b = uncertainty_contour_data(without, cfg, uav, steps)
+        assert a.shape == (3, cfg.width, cfg.height)
+        assert np.array_equal(a[0], b[0])  # same seed, same start; no exchange happens at reset
+        assert a[2].mean() < b[2].mean()  # by the end, what the others sensed is known too
+    with pytest.raises(ValueError, match="steps"):
+        uncertainty_contour_data(with_comm, cfg, 0, (51,))
+
+
+def test_mcrs_render_cli_writes_the_pictures(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "render"
+    render_main(
+        [
+            "--env",
+            "map10",
+            "--policy",
+            "lawnmower",
+            "--seed",
+            "2",
+            "--out",
+            str(out),
+            "--no-gif",
+            "--set",
+            "max_steps=6",
+        ]
+    )
+    _assert_image(out / "scene.png", "PNG")
+    _assert_image(out / "uncertainty_contours.png", "PNG")
+    assert not (out / "episode.gif").exists()
+    assert "scene.png" in capsys.readouterr().out
