@@ -1,0 +1,338 @@
+"""Environment throughput and memory benchmark (``mcrs-bench-env``, ``python -m mcrs.benchmarks.env_throughput``).
+
+Why: training speed is bounded by how fast the batched simulator steps, and the design promises three
+figures, printed here next to the measurements with PASS/FAIL:
+
+* map20 with 1024 parallel environments: >= 50,000 env-steps/s (500,000 agent-steps/s) through ``MCRSEnv``;
+* >= 100x the classic loop that steps one PettingZoo environment at a time (``MCRSParallelEnv``);
+* 10,000 parallel map20 environments fit in <= 2 GiB.
+
+The TorchRL path is timed the way a collector drives it: ``env.step_and_maybe_reset(td)`` in a loop, with
+uniformly random *allowed* actions drawn for all environments at once from ``("agents", "action_mask")``.
+Drawing the actions is inside the timed loop, as a policy would be. The PettingZoo reference steps one
+environment at a time on the CPU (one torch thread, its fastest setting) with random allowed actions,
+resetting at episode end. Each row is the fastest of ``REPEATS`` timed runs after a warm-up, because
+other processes on a shared machine only ever slow a run down; a run is a whole number of episodes, so
+the cost of resets is always included.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from mcrs.env.config import SCENARIOS, scenario
+from mcrs.env.core import MCRSCore
+from mcrs.env.pettingzoo_env import MCRSParallelEnv
+from mcrs.env.torchrl_env import MCRSEnv
+
+GOAL_MAP = "map20"
+GOAL_NUM_ENVS = 1024
+GOAL_ENV_STEPS = 50_000
+GOAL_AGENT_STEPS = 500_000
+GOAL_RATIO = 100.0
+MEMORY_NUM_ENVS = 10_000
+GOAL_GIB = 2.0
+GIB = 2**30
+REPEATS = 3  # timed runs per row; the fastest is reported
+
+
+@dataclass
+class Row:
+    """One measured throughput figure."""
+
+    map_name: str
+    path: str  # "MCRSEnv" or "PettingZoo"
+    num_envs: int
+    steps: int  # environment steps timed (summed over the batch)
+    seconds: float
+    n_uavs: int
+
+    @property
+    def env_steps(self) -> float:
+        return self.steps / self.seconds
+
+    @property
+    def agent_steps(self) -> float:
+        return self.env_steps * self.n_uavs
+
+
+def random_allowed_actions(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """A uniformly random allowed action per UAV, for the whole batch at once: argmax of masked noise."""
+    noise = torch.rand(mask.shape, generator=generator, device=mask.device)
+    return noise.masked_fill_(~mask, -1.0).argmax(-1)
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _calibrated_run(
+    run: Callable[[int], None], seconds: float, device: torch.device, episode_steps: int
+) -> tuple[int, float]:
+    """Warm up (which also measures the rate), then time ``REPEATS`` runs of a fixed number of steps that
+    together last about ``seconds`` (one run when an episode is longer); return (steps, elapsed) of the
+    fastest run.
+
+    The fastest run is the figure least disturbed by other processes on a shared machine (as ``timeit``
+    recommends). Each run is a whole number of episodes long, so that every run pays for the same number
+    of resets (all environments of a batch end together) and picking the fastest cannot skip them.
+    """
+    warm_steps, warm_time, budget = 0, 0.0, min(0.5, max(seconds / 4, 0.05))
+    while warm_steps < 3 or warm_time < budget:
+        start = time.perf_counter()
+        run(1)
+        _synchronize(device)
+        warm_time += time.perf_counter() - start
+        warm_steps += 1
+    episode_seconds = episode_steps * warm_time / warm_steps
+    # Runs of whole episodes: when one episode alone takes longer than the budget, a single run.
+    repeats = REPEATS if episode_seconds <= seconds else 1
+    n_steps = episode_steps * max(1, round(seconds / repeats / episode_seconds))
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run(n_steps)
+        _synchronize(device)
+        best = min(best, time.perf_counter() - start)
+    return n_steps, best
+
+
+def measure_torchrl(map_name: str, num_envs: int, seconds: float, device: torch.device) -> Row:
+    """Env-steps/s of ``MCRSEnv`` driven by ``step_and_maybe_reset``, as a TorchRL collector does."""
+    env = MCRSEnv(map_name, device=device, num_envs=num_envs)
+    env.set_seed(0)
+    generator = torch.Generator(device=device)
+    generator.manual_seed(0)
+    td = env.reset()
+
+    def run(n: int) -> None:
+        nonlocal td
+        for _ in range(n):
+            td["agents", "action"] = random_allowed_actions(td["agents", "action_mask"], generator)
+            _, td = env.step_and_maybe_reset(td)
+
+    n_steps, elapsed = _calibrated_run(run, seconds, device, env.config.max_steps)
+    return Row(map_name, "MCRSEnv", num_envs, n_steps * num_envs, elapsed, env.config.n_uavs)
+
+
+def measure_pettingzoo(map_name: str, seconds: float) -> Row:
+    """Env-steps/s of the classic loop: one ``MCRSParallelEnv`` on the CPU (one torch thread), stepped
+    through its dict API."""
+    env = MCRSParallelEnv(map_name)
+    rng = np.random.default_rng(0)
+    observations, _ = env.reset(seed=0)
+
+    def run(n: int) -> None:
+        nonlocal observations
+        for _ in range(n):
+            agents = env.agents
+            mask = np.stack([observations[agent]["action_mask"] for agent in agents])
+            noise = rng.random(mask.shape)
+            noise[mask == 0] = -1.0
+            observations, *_ = env.step(dict(zip(agents, noise.argmax(1).tolist(), strict=True)))
+            if not env.agents:
+                observations, _ = env.reset()
+
+    # One intra-op thread: a single small environment gains nothing from more, and on a busy machine
+    # their synchronisation makes every tiny op wait for a descheduled thread. The reference is the
+    # loop at its best, so that the ratio is not flattered.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        n_steps, elapsed = _calibrated_run(run, seconds, torch.device("cpu"), env.config.max_steps)
+    finally:
+        torch.set_num_threads(threads)
+    return Row(map_name, "PettingZoo", 1, n_steps, elapsed, env.config.n_uavs)
+
+
+def state_bytes_per_env(map_name: str) -> float:
+    """Episode-state bytes per environment (``core.state_nbytes() / num_envs``); exact, it is linear in E."""
+    num_envs = 8
+    return MCRSCore(scenario(map_name, num_envs=num_envs), device="cpu").state_nbytes() / num_envs
+
+
+def resident_bytes() -> int | None:
+    """This process's resident memory (VmRSS of /proc/self/status), or None where there is no /proc."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def measure_memory(map_name: str, num_envs: int, device: torch.device, steps: int = 3) -> int | None:
+    """Memory added by building, resetting and stepping ``num_envs`` environments (VmRSS, or CUDA bytes)."""
+
+    def used() -> int | None:
+        if device.type == "cuda":
+            _synchronize(device)
+            return torch.cuda.memory_allocated(device)
+        return resident_bytes()
+
+    gc.collect()
+    before = used()
+    if before is None:
+        return None
+    env = MCRSEnv(map_name, device=device, num_envs=num_envs)
+    generator = torch.Generator(device=device)
+    generator.manual_seed(0)
+    td = env.reset()
+    for _ in range(steps):
+        td["agents", "action"] = random_allowed_actions(td["agents", "action_mask"], generator)
+        _, td = env.step_and_maybe_reset(td)
+    after = used()
+    del env, td
+    gc.collect()
+    return None if after is None else after - before
+
+
+def _load_average() -> str:
+    """The 1-minute load average: other processes on the machine skew every figure, so show it."""
+    try:
+        return f"{os.getloadavg()[0]:.2f}"
+    except OSError:
+        return "n/a"
+
+
+def _verdict(ok: bool) -> str:
+    return "PASS" if ok else "FAIL"
+
+
+def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="mcrs-bench-env",
+        description="Throughput (env-steps/s, agent-steps/s) and memory of the MCRS environment, with goals.",
+    )
+    parser.add_argument("--maps", nargs="+", choices=SCENARIOS, default=list(SCENARIOS), help="presets")
+    parser.add_argument(
+        "--num-envs", nargs="+", type=int, default=[1, 64, GOAL_NUM_ENVS], help="batch sizes of MCRSEnv"
+    )
+    parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per MCRSEnv row")
+    parser.add_argument(
+        "--threads", type=int, default=0, help="torch intra-op threads for MCRSEnv (0: torch's default)"
+    )
+    parser.add_argument("--device", default="cpu", help="torch device of MCRSEnv (PettingZoo runs on cpu)")
+    parser.add_argument(
+        "--skip-memory", action="store_true", help=f"skip the {MEMORY_NUM_ENVS}-environment memory check"
+    )
+    args = parser.parse_args(argv)
+    if any(n < 1 for n in args.num_envs):
+        parser.error(f"--num-envs must be >= 1, got {args.num_envs}")
+    if args.threads < 0:
+        parser.error(f"--threads must be >= 0, got {args.threads}")
+    if args.seconds <= 0:
+        parser.error(f"--seconds must be > 0, got {args.seconds}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the benchmark and print the table, the PettingZoo ratios, memory and the goals."""
+    args = _parse_args(argv)
+    threads = torch.get_num_threads()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        _run(args)
+    finally:
+        torch.set_num_threads(threads)  # main() also runs in-process (tests): leave the process as found
+    return 0
+
+
+def _run(args: argparse.Namespace) -> None:
+    """Memory first, then the throughput rows, the ratios, and the goals with PASS/FAIL."""
+    device = torch.device(args.device)
+    num_envs_list = sorted(set(args.num_envs))
+    largest = num_envs_list[-1]
+    goals: list[str] = []
+    print(
+        f"MCRS environment benchmark: device={device}, torch threads={torch.get_num_threads()}, "
+        f"cpus={os.cpu_count()}, load average {_load_average()}\n"
+        f"each row: best of up to {REPEATS} timed runs of whole episodes, ~{args.seconds:g} s in all per MCRSEnv row; "
+        "PettingZoo loop: one env at a time, 1 torch thread",
+        flush=True,
+    )
+
+    # Memory first, while the process is small, so that the resident-memory difference is not hidden by
+    # memory that earlier rows freed but the allocator kept.
+    if not args.skip_memory:
+        print("\nmemory (episode state held by the core, core.state_nbytes() / num_envs):", flush=True)
+        per_env = {name: state_bytes_per_env(name) for name in SCENARIOS}
+        for name, nbytes in per_env.items():
+            print(f"  {name:<6} {nbytes:>10,.0f} bytes/env", flush=True)
+        projected = per_env[GOAL_MAP] * MEMORY_NUM_ENVS / GIB
+        print(f"  projection, {MEMORY_NUM_ENVS:,} {GOAL_MAP} envs: {projected:.3f} GiB", flush=True)
+        measured = measure_memory(GOAL_MAP, MEMORY_NUM_ENVS, device)
+        what = "CUDA memory_allocated" if device.type == "cuda" else "VmRSS"
+        if measured is None:
+            print(f"  measured: n/a ({what} not readable here)", flush=True)
+            measured_text = "measured n/a"
+        else:
+            print(
+                f"  measured, {GOAL_MAP} MCRSEnv num_envs={MEMORY_NUM_ENVS:,} built, reset and stepped 3 times: "
+                f"{what} {measured / GIB:+.3f} GiB",
+                flush=True,
+            )
+            measured_text = f"measured {measured / GIB:+.3f} GiB {_verdict(measured / GIB <= GOAL_GIB)}"
+        goals.append(
+            f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs <= {GOAL_GIB:g} GiB: projected {projected:.3f} GiB "
+            f"{_verdict(projected <= GOAL_GIB)}; {measured_text}"
+        )
+
+    print(f"\n{'map':<6} {'path':<10} {'num_envs':>8} {'env-steps/s':>13} {'agent-steps/s':>14}", flush=True)
+    rows: dict[tuple[str, str, int], Row] = {}
+    for name in args.maps:
+        for num_envs in num_envs_list:
+            rows[name, "MCRSEnv", num_envs] = row = measure_torchrl(name, num_envs, args.seconds, device)
+            _print_row(row)
+        rows[name, "PettingZoo", 1] = row = measure_pettingzoo(name, max(args.seconds / 2, 0.1))
+        _print_row(row)
+
+    print(flush=True)
+    for name in args.maps:
+        ratio = rows[name, "MCRSEnv", largest].env_steps / rows[name, "PettingZoo", 1].env_steps
+        verdict = _verdict(ratio >= GOAL_RATIO)
+        judged = largest == GOAL_NUM_ENVS
+        note = f"goal >= {GOAL_RATIO:g}x: {verdict}" if judged else f"goal judged at {GOAL_NUM_ENVS}"
+        print(f"ratio {name}: MCRSEnv@{largest} / PettingZoo loop = {ratio:,.1f}x  ({note})", flush=True)
+        if judged:
+            goals.append(
+                f"{name} MCRSEnv@{largest} >= {GOAL_RATIO:g}x PettingZoo loop: {ratio:,.1f}x {verdict}"
+            )
+
+    goal_row = rows.get((GOAL_MAP, "MCRSEnv", GOAL_NUM_ENVS))
+    if goal_row is None:
+        goals.insert(0, f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s: n/a (not measured)")
+    else:
+        ok = goal_row.env_steps >= GOAL_ENV_STEPS and goal_row.agent_steps >= GOAL_AGENT_STEPS
+        goals.insert(
+            0,
+            f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s ({GOAL_AGENT_STEPS:,} agent-steps/s): "
+            f"{goal_row.env_steps:,.0f} env-steps/s, {goal_row.agent_steps:,.0f} agent-steps/s {_verdict(ok)}",
+        )
+    print("\ngoals:", flush=True)
+    for line in goals:
+        print(f"  {line}", flush=True)
+
+
+def _print_row(row: Row) -> None:
+    print(
+        f"{row.map_name:<6} {row.path:<10} {row.num_envs:>8} {row.env_steps:>13,.0f} {row.agent_steps:>14,.0f}",
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
