@@ -373,3 +373,28 @@ def test_runs_on_every_available_device(device):
     td = env.rollout(12, break_when_any_done=False)
     assert td.device.type == device and td["next", "reward"].device.type == device
     assert torch.isfinite(td["next", "reward"]).all()
+
+
+def test_two_uavs_discovering_one_target_together_count_once():
+    core, _ = scene_core([[4, 5], [6, 5], [0, 0]], [], [[5, 5]], comm_range=0.0)
+    result = core.step(torch.tensor([[1, 0, 1]]))  # both onto the target (5, 5): two "F" readings at once
+    assert result.reward_terms[0, 1].item() == 1.0
+    assert result.metrics["targets_found"].item() == 1
+    assert core.discovered[0, 5 * 10 + 5]
+    result = core.step(torch.tensor([[0, 1, 3]]))  # away
+    result = core.step(torch.tensor([[1, 0, 2]]))  # back: no second reward
+    assert result.reward_terms[0, 1].item() == 0.0 and result.metrics["targets_found"].item() == 1
+
+
+def test_discovery_counters_match_the_discovered_map_every_step():
+    core = MCRSCore(scenario("map10", num_envs=64, p_detect=0.9, p_false_alarm=0.3))
+    core.seed(5)
+    generator = torch.Generator().manual_seed(5)
+    result = core.reset()
+    for _ in range(core.config.max_steps):
+        result = core.step(random_allowed(result.action_mask, generator))
+        found = (core.discovered & core.is_target).sum(-1).float()
+        false = (core.discovered & ~core.is_target).sum(-1).float()
+        assert torch.equal(result.metrics["targets_found"], found)
+        assert torch.equal(result.metrics["false_discoveries"], false)
+    assert result.metrics["targets_found"].max() <= core.config.n_targets

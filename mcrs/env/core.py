@@ -15,7 +15,7 @@ import torch
 
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
-from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_from_distance, reachable_within
+from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
 # 6 upper-right, 7 upper-left.
@@ -36,12 +36,15 @@ METRICS = (
 
 @dataclass
 class Geometry:
-    """Offsets and distances from each UAV to the other UAVs and to the no-fly zones, once per step."""
+    """Offsets and squared distances from each UAV to the others and to the no-fly zones, once per step.
 
-    uav_delta: torch.Tensor  # [E, N, N, 2]: u_j - u_i
-    uav_distance: torch.Tensor  # [E, N, N]
-    no_fly_delta: torch.Tensor  # [E, N, Z, 2]: z_k - u_i
-    no_fly_distance: torch.Tensor  # [E, N, Z]
+    Squared distances of integer cells are exact, so every range test (``< R_c``, ``<= d1``, ...) is done on them.
+    """
+
+    uav_delta: torch.Tensor  # [E, N, N, 2] float32: u_j - u_i
+    uav_squared: torch.Tensor  # [E, N, N] float32
+    no_fly_delta: torch.Tensor  # [E, N, Z, 2] float32: z_k - u_i
+    no_fly_squared: torch.Tensor  # [E, N, Z] float32
 
 
 @dataclass
@@ -77,10 +80,21 @@ class MCRSCore:
 
         dev, E, N, C = self.device, c.num_envs, c.n_uavs, c.n_cells
         self._moves = torch.tensor(MOVES, dtype=torch.int64, device=dev)
-        self._surrounding = torch.tensor(SURROUNDING, dtype=torch.int64, device=dev)
         self._grid_max = torch.tensor([c.width - 1, c.height - 1], dtype=torch.int64, device=dev)
         self._pos_scale = self._grid_max.clamp(min=1).to(torch.float32)
-        self._diagonal_free = ~torch.eye(N, dtype=torch.bool, device=dev)  # picks j != i, in index order
+        # Per-cell lookup tables, so that masks and neighbourhoods are one gather per step.
+        xy = torch.stack(torch.meshgrid(torch.arange(c.width), torch.arange(c.height), indexing="ij"), -1)
+        xy = xy.reshape(C, 1, 2).to(dev)
+        after_move = xy + self._moves  # [C, 8, 2]
+        self._mask_of_cell = ((after_move >= 0) & (after_move <= self._grid_max)).all(-1)  # [C, 8]
+        around = xy + torch.tensor(SURROUNDING, dtype=torch.int64, device=dev)  # [C, 8, 2] in D_s order
+        self._around_on_grid = ((around >= 0) & (around <= self._grid_max)).all(-1).to(torch.float32)
+        around = torch.minimum(around.clamp(min=0), self._grid_max)
+        around_cell = around[..., 0] * c.height + around[..., 1]
+        self._around_counts = torch.stack([around_cell * 2, around_cell * 2 + 1], -1).view(C, 16)
+        # Flat (i, j) indices of the ordered pairs j != i, row by row: "every other UAV in index order".
+        pairs = torch.arange(N * N, device=dev).view(N, N)
+        self._other_pairs = pairs[~torch.eye(N, dtype=torch.bool, device=dev)]
         self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)
         self._env_index = torch.arange(E, device=dev)
         count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
@@ -188,7 +202,7 @@ class MCRSCore:
         known_before = self.known.clone()
         self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
         geometry = self._geometry()
-        neighbours = neighbours_from_distance(geometry.uav_distance, c.comm_range)
+        neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
         self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
         apply_new_detections(self.counts, known_before, self.known, self.log)
 
@@ -256,14 +270,15 @@ class MCRSCore:
 
     def _reset_envs(self, envs: torch.Tensor) -> None:
         c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
-        # No-fly and target cells: one random permutation of the cells, without replacement.
-        order = torch.rand(M, C, generator=self.generator, device=dev).argsort(dim=1)
-        no_fly = order[:, : c.n_no_fly]
-        targets = order[:, c.n_no_fly : c.n_no_fly + c.n_targets]
+        # No-fly and target cells: the cells of the largest random keys, a uniform draw without
+        # replacement (topk is a partial sort: cheaper than a full permutation).
+        keys = torch.rand(M, C, generator=self.generator, device=dev)
+        chosen = keys.topk(c.n_no_fly + c.n_targets, dim=1).indices
+        no_fly, targets = chosen[:, : c.n_no_fly], chosen[:, c.n_no_fly :]
         # UAV starts: distinct cells outside no-fly zones (a UAV may start on a target).
         keys = torch.rand(M, C, generator=self.generator, device=dev)
-        keys.scatter_(1, no_fly, 2.0)
-        starts = keys.argsort(dim=1)[:, :N]
+        keys.scatter_(1, no_fly, -1.0)
+        starts = keys.topk(N, dim=1).indices
         self._start_episodes(envs, no_fly, targets, starts)
 
     def _start_episodes(
@@ -332,8 +347,11 @@ class MCRSCore:
         drop = ((old_unknown - unknown) * first).sum(-1)
         self.total_uncertainty -= drop
         self.cells_sensed += (first & (before.sum(-1) == 0)).sum(-1)
-        newly = first & (full >= c.target_threshold) & ~self.discovered.gather(1, cell)
-        self.discovered.scatter_(1, cell, newly | self.discovered.gather(1, cell))
+        # UAVs on one cell write identical values (same counts), so duplicate indices are harmless here.
+        was_discovered = self.discovered.gather(1, cell)
+        reached = full >= c.target_threshold
+        self.discovered.scatter_(1, cell, reached | was_discovered)
+        newly = first & reached & ~was_discovered
         on_target = self.is_target.gather(1, cell)
         new_targets = (newly & on_target).sum(-1).to(torch.float32)
         self.targets_found += new_targets
@@ -341,45 +359,48 @@ class MCRSCore:
         return drop, new_targets
 
     def _geometry(self) -> Geometry:
-        uav_delta = (self.uav_pos.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)
-        no_fly_delta = (self.no_fly_pos.unsqueeze(1) - self.uav_pos.unsqueeze(2)).to(torch.float32)
-        return Geometry(uav_delta, uav_delta.norm(dim=-1), no_fly_delta, no_fly_delta.norm(dim=-1))
+        # float32 holds these small integer offsets and their squares exactly, and is cheaper than int64.
+        uav = self.uav_pos.to(torch.float32)
+        uav_delta = uav.unsqueeze(1) - uav.unsqueeze(2)
+        no_fly_delta = self.no_fly_pos.to(torch.float32).unsqueeze(1) - uav.unsqueeze(2)
+        return Geometry(uav_delta, uav_delta.square().sum(-1), no_fly_delta, no_fly_delta.square().sum(-1))
 
     def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
         """(UAV, no-fly zone) pairs within d1 and UAV pairs i < j within d2, per environment."""
         c = self.config
-        no_fly = (geometry.no_fly_distance <= c.no_fly_safety).sum((-1, -2)).to(torch.float32)
-        close = (geometry.uav_distance <= c.uav_safety) & self._pair_upper
+        no_fly = (geometry.no_fly_squared <= c.no_fly_safety**2).sum((-1, -2)).to(torch.float32)
+        close = (geometry.uav_squared <= c.uav_safety**2) & self._pair_upper
         return no_fly, close.sum((-1, -2)).to(torch.float32)
 
-    def _action_mask(self) -> torch.Tensor:
-        target = self.uav_pos.unsqueeze(-2) + self._moves  # [E, N, 8, 2]
-        return ((target >= 0) & (target <= self._grid_max)).all(-1)
+    def _uav_cells(self) -> torch.Tensor:
+        return self.uav_pos[..., 0] * self.config.height + self.uav_pos[..., 1]
 
-    def _relative(self, delta: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+    def _action_mask(self) -> torch.Tensor:
+        return self._mask_of_cell[self._uav_cells()]
+
+    def _relative(self, delta: torch.Tensor, squared: torch.Tensor) -> torch.Tensor:
         """(d, dx, dy) / R_sight from each UAV to each other object ``[E, N, K, 2]``, zero beyond sight."""
-        distance = distance.unsqueeze(-1)
-        features = torch.cat([distance, delta], dim=-1) / self.config.sight_range
-        return features * (distance <= self.config.sight_range)
+        sight = self.config.sight_range
+        scale = (squared <= sight**2).to(torch.float32).unsqueeze(-1) / sight
+        return torch.cat([squared.sqrt().unsqueeze(-1), delta], dim=-1) * scale
 
     def _observation(self, geometry: Geometry) -> torch.Tensor:
         c = self.config
         E, N = self.num_envs, self.n_uavs
-        around = self.uav_pos.unsqueeze(-2) + self._surrounding  # [E, N, 8, 2]
-        on_grid = ((around >= 0) & (around <= self._grid_max)).all(-1)
-        around = torch.minimum(around.clamp(min=0), self._grid_max)
-        cell = around[..., 0] * c.height + around[..., 1]
-        index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(E, N, 16)
-        pair = self.counts.gather(2, index).view(E, N, 8, 2)
+        cell = self._uav_cells()
+        pair = self.counts.gather(2, self._around_counts[cell].view(E, N, 16)).view(E, N, 8, 2)
+        on_grid = self._around_on_grid[cell]
         _, full, unknown = belief_masses(pair[..., 0], pair[..., 1], c.m_f, c.m_e)
-        others = self._relative(geometry.uav_delta, geometry.uav_distance)[:, self._diagonal_free]
+        others = self._other_pairs
+        other_delta = geometry.uav_delta.view(E, N * N, 2).index_select(1, others)
+        other_squared = geometry.uav_squared.view(E, N * N).index_select(1, others)
         return torch.cat(
             [
                 self.uav_pos.to(torch.float32) / self._pos_scale,
                 unknown * on_grid,
                 full * on_grid,
-                others.reshape(E, N, -1),
-                self._relative(geometry.no_fly_delta, geometry.no_fly_distance).reshape(E, N, -1),
+                self._relative(other_delta, other_squared).view(E, N, -1),
+                self._relative(geometry.no_fly_delta, geometry.no_fly_squared).view(E, N, -1),
             ],
             dim=-1,
         )
@@ -391,7 +412,7 @@ class MCRSCore:
         E = self.num_envs
         geometry = geometry if geometry is not None else self._geometry()
         if neighbours is None:
-            neighbours = neighbours_from_distance(geometry.uav_distance, c.comm_range)
+            neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
         self._mask = self._action_mask()
         positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
         state = torch.cat(

@@ -16,16 +16,19 @@ from __future__ import annotations
 import torch
 
 
-def neighbours_from_distance(distance: torch.Tensor, comm_range: float) -> torch.Tensor:
-    """Neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` (strict) and ``j != i``."""
-    eye = torch.eye(distance.shape[-1], dtype=torch.bool, device=distance.device)
-    return (distance < comm_range) & ~eye
+def neighbours_within(squared_distance: torch.Tensor, comm_range: float) -> torch.Tensor:
+    """Neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` (strict) and ``j != i``.
+
+    Takes squared distances (exact for integer cells): ``d < R`` is ``d^2 < R^2`` for ``d, R >= 0``.
+    """
+    eye = torch.eye(squared_distance.shape[-1], dtype=torch.bool, device=squared_distance.device)
+    return (squared_distance < comm_range**2) & ~eye
 
 
 def neighbour_graph(positions: torch.Tensor, comm_range: float) -> torch.Tensor:
-    """Neighbours ``[..., i, j]`` of UAVs at ``positions`` ``[..., N, 2]``."""
-    delta = (positions.unsqueeze(-2) - positions.unsqueeze(-3)).to(torch.float32)
-    return neighbours_from_distance(delta.norm(dim=-1), comm_range)
+    """Neighbours ``[..., i, j]`` of UAVs at integer cells ``positions`` ``[..., N, 2]``."""
+    delta = positions.unsqueeze(-2) - positions.unsqueeze(-3)
+    return neighbours_within(delta.square().sum(-1).to(torch.float32), comm_range)
 
 
 def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
@@ -74,24 +77,24 @@ def apply_new_detections(
     under full connectivity), never to N^2 L1 L2.
     """
     n_uavs = known_before.shape[-1]
+    log_steps = log_channel_cell.shape[1]
     gained = (known_after - known_before).reshape(-1).long()
     pairs = gained.nonzero().squeeze(-1)
     if pairs.numel() == 0:
         return
     lengths = gained[pairs]
-    pair_of_item = torch.repeat_interleave(pairs, lengths)
-    starts = torch.cumsum(lengths, 0) - lengths
-    offset = torch.arange(pair_of_item.numel(), device=counts.device) - torch.repeat_interleave(
-        starts, lengths
-    )
-    step = known_before.reshape(-1)[pair_of_item] + offset
-    env = pair_of_item // (n_uavs * n_uavs)
-    learner = (pair_of_item // n_uavs) % n_uavs
-    source = pair_of_item % n_uavs
-    flat_cell = log_channel_cell[env, step, source].long()
-    target = (env * n_uavs + learner) * counts.shape[-1] + flat_cell
-    flat = counts.view(-1)
-    flat.index_put_((target,), torch.ones_like(target, dtype=counts.dtype), accumulate=True)
+    # Per (env, learner i, source q) pair: where its new detections start in the log, and where they go.
+    env, learner, source = pairs // (n_uavs * n_uavs), (pairs // n_uavs) % n_uavs, pairs % n_uavs
+    first_step = known_before.reshape(-1)[pairs].long()
+    item_start = torch.cumsum(lengths, 0) - lengths  # position of each pair's first item
+    log_base = (env * log_steps + first_step) * n_uavs + source - item_start * n_uavs
+    count_base = (env * n_uavs + learner) * counts.shape[-1]
+    # One item per newly learned detection; item k of a pair reads log step first_step + k.
+    item_pair = torch.repeat_interleave(lengths)
+    item = torch.arange(item_pair.numel(), device=counts.device)
+    flat_cell = log_channel_cell.reshape(-1)[log_base[item_pair] + item * n_uavs].long()
+    target = count_base[item_pair] + flat_cell
+    counts.view(-1).scatter_add_(0, target, torch.ones_like(target, dtype=counts.dtype))
 
 
 class DirectFusion:
