@@ -181,7 +181,10 @@ def main(cfg: DictConfig) -> None:
     """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
     from hydra.core.hydra_config import HydraConfig
 
-    run(cfg, Path(HydraConfig.get().runtime.output_dir))
+    try:
+        run(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except ValueError as error:  # bad input: one clear message, no traceback
+        raise SystemExit(f"mcrs-eval: error: {error}") from None
 
 
 if __name__ == "__main__":

@@ -132,3 +132,11 @@ def test_cli_unknown_policy_lists_allowed_names(tmp_path: Path) -> None:
     done = _cli(tmp_path, *TINY, "policy=bogus")
     assert done.returncode != 0
     assert "unknown policy 'bogus'" in done.stderr and "lawnmower" in done.stderr
+
+
+def test_cli_bad_env_field_is_one_clear_message_without_traceback(tmp_path: Path) -> None:
+    done = _cli(tmp_path, *TINY, "env.comm_range=-1", "env.p_detect=2")
+    assert done.returncode != 0
+    assert "mcrs-eval: error: invalid environment config" in done.stderr
+    assert "comm_range=-1.0: must be a distance >= 0" in done.stderr and "p_detect=2" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -2,6 +2,7 @@
 
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import METRICS, MOVES, N_ACTIONS, SURROUNDING, MCRSCore, StepResult
+from mcrs.env.pettingzoo_env import MCRSParallelEnv
 from mcrs.env.torchrl_env import MCRSEnv
 
 __all__ = [
@@ -13,6 +14,7 @@ __all__ = [
     "EnvConfig",
     "MCRSCore",
     "MCRSEnv",
+    "MCRSParallelEnv",
     "StepResult",
     "scenario",
 ]

@@ -55,7 +55,7 @@ def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
 
 def fuse_known(known: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
     """``known[..., i, q] <- max over j reachable from i of known[..., j, q]`` (counts are >= 0)."""
-    spread = reach.unsqueeze(-1).to(known.dtype) * known.unsqueeze(-3)  # [..., i, j, q]
+    spread = torch.where(reach.unsqueeze(-1), known.unsqueeze(-3), 0)  # [..., i, j, q]
     return spread.amax(dim=-2)
 
 
