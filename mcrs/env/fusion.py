@@ -55,8 +55,10 @@ def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
 
 def fuse_known(known: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
     """``known[..., i, q] <- max over j reachable from i of known[..., j, q]`` (counts are >= 0)."""
-    spread = torch.where(reach.unsqueeze(-1), known.unsqueeze(-3), 0)  # [..., i, j, q]
-    return spread.amax(dim=-2)
+    # [..., i, q, j]: the reduction runs over the last, contiguous dimension; a product of non-negative
+    # counts with 0/1 is cheaper than torch.where here.
+    spread = reach.unsqueeze(-2).to(known.dtype) * known.transpose(-1, -2).unsqueeze(-3)
+    return spread.amax(dim=-1)
 
 
 def apply_new_detections(
@@ -78,21 +80,23 @@ def apply_new_detections(
     """
     n_uavs = known_before.shape[-1]
     log_steps = log_channel_cell.shape[1]
-    gained = (known_after - known_before).reshape(-1).long()
-    pairs = gained.nonzero().squeeze(-1)
-    if pairs.numel() == 0:
+    gained = known_after - known_before
+    # (env, learner i, source q) of every pair that learned something: nonzero gives the coordinates
+    # directly, which is cheaper than dividing flat indices.
+    env, learner, source = gained.nonzero().unbind(-1)
+    if env.numel() == 0:
         return
-    lengths = gained[pairs]
-    # Per (env, learner i, source q) pair: where its new detections start in the log, and where they go.
-    env, learner, source = pairs // (n_uavs * n_uavs), (pairs // n_uavs) % n_uavs, pairs % n_uavs
+    pairs = (env * n_uavs + learner) * n_uavs + source
+    lengths = gained.reshape(-1)[pairs].long()
+    # Per pair: where its new detections start in the log, and where they are counted.
     first_step = known_before.reshape(-1)[pairs].long()
     item_start = torch.cumsum(lengths, 0) - lengths  # position of each pair's first item
     log_base = (env * log_steps + first_step) * n_uavs + source - item_start * n_uavs
     count_base = (env * n_uavs + learner) * counts.shape[-1]
     # One item per newly learned detection; item k of a pair reads log step first_step + k.
     item_pair = torch.repeat_interleave(lengths)
-    item = torch.arange(item_pair.numel(), device=counts.device)
-    flat_cell = log_channel_cell.reshape(-1)[log_base[item_pair] + item * n_uavs].long()
+    item_offset = torch.arange(0, item_pair.numel() * n_uavs, n_uavs, device=counts.device)  # item * N
+    flat_cell = log_channel_cell.reshape(-1)[log_base[item_pair] + item_offset].long()
     target = count_base[item_pair] + flat_cell
     counts.view(-1).scatter_add_(0, target, torch.ones_like(target, dtype=counts.dtype))
 
