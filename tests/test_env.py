@@ -398,3 +398,14 @@ def test_discovery_counters_match_the_discovered_map_every_step():
         assert torch.equal(result.metrics["targets_found"], found)
         assert torch.equal(result.metrics["false_discoveries"], false)
     assert result.metrics["targets_found"].max() <= core.config.n_targets
+
+
+def test_stepping_past_the_time_limit_asks_for_a_reset():
+    core = MCRSCore(scenario("map10", num_envs=2, max_steps=3, invalid_action="clip"))
+    core.reset()
+    for _ in range(3):
+        core.step(torch.zeros(2, 4, dtype=torch.int64))
+    with pytest.raises(RuntimeError, match=r"environment\(s\) \[0, 1\] reached the time limit max_steps=3"):
+        core.step(torch.zeros(2, 4, dtype=torch.int64))
+    core.reset(torch.tensor([True, True]))
+    assert core.step(torch.zeros(2, 4, dtype=torch.int64)).step_count.tolist() == [1, 1]

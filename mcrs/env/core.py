@@ -105,7 +105,7 @@ class MCRSCore:
         count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
         log_dtype = torch.int16 if 2 * C < 2**15 else torch.int32
 
-        # Episode state. Everything a step needs; ~40 kB per map20 environment.
+        # Episode state: everything a step needs, about 24 kB per map20 environment (state_nbytes()).
         self.uav_pos = torch.zeros(E, N, 2, dtype=torch.int64, device=dev)
         self.no_fly_pos = torch.zeros(E, c.n_no_fly, 2, dtype=torch.int64, device=dev)
         self.target_pos = torch.zeros(E, c.n_targets, 2, dtype=torch.int64, device=dev)
@@ -192,6 +192,13 @@ class MCRSCore:
         """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
         c = self.config
         action = self._check_action(action)
+        finished = self.step_count >= c.max_steps
+        if finished.any():
+            raise RuntimeError(
+                f"environment(s) {finished.nonzero().squeeze(-1).tolist()[:10]} reached the time limit "
+                f"max_steps={c.max_steps}: reset them before stepping (TorchRL: step_and_maybe_reset)"
+            )
+        # 1. Move.
         target = self.uav_pos + self._moves[action]
         if c.invalid_action == "clip":
             target = torch.minimum(target.clamp(min=0), self._grid_max)
