@@ -100,7 +100,8 @@ class MCRSCore:
         # Flat (i, j) indices of the ordered pairs j != i, row by row: "every other UAV in index order".
         pairs = torch.arange(N * N, device=dev).view(N, N)
         self._other_pairs = pairs[~torch.eye(N, dtype=torch.bool, device=dev)]
-        self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)
+        self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)  # i < j
+        self._earlier = self._pair_upper.transpose(0, 1).contiguous()  # [i, j]: j < i
         self._env_index = torch.arange(E, device=dev)
         count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
         log_dtype = torch.int16 if 2 * C < 2**15 else torch.int32
@@ -274,7 +275,7 @@ class MCRSCore:
         return action
 
     def _sense(self, cell: torch.Tensor) -> torch.Tensor:
-        """Draw each UAV's reading of ``cell`` ``[M, N]``; return the flat ``cell * 2 + channel``."""
+        """Draw each UAV's reading of its ``cell`` ``[E, N]``; return the flat ``cell * 2 + channel``."""
         c = self.config
         p_positive = torch.where(self.is_target.gather(1, cell), c.p_detect, c.p_false_alarm)
         self.reading = torch.rand(cell.shape, generator=self.generator, device=self.device) < p_positive
@@ -347,7 +348,7 @@ class MCRSCore:
         """
         c = self.config
         same_cell = cell.unsqueeze(-1) == cell.unsqueeze(-2)  # [E, i, j]
-        first = ~(same_cell & self._pair_upper.transpose(0, 1)).any(-1)  # no j < i on the same cell
+        first = ~(same_cell & self._earlier).any(-1)  # no j < i on the same cell
         pair_index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(self.num_envs, -1)
         before = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
         self.global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype))
