@@ -318,6 +318,8 @@ def test_state_memory_per_map20_environment_is_small():
         ({"max_steps": 2.5}, "max_steps"),
         ({"num_envs": 0}, "num_envs"),
         ({"w_collision": float("inf")}, "w_collision"),
+        ({"device": "tpu"}, "device='tpu': is not a torch device"),
+        ({"device": "meta"}, "device='meta': device type 'meta' is not supported"),
     ],
 )
 def test_bad_config_is_refused_naming_the_field(overrides, message):
@@ -409,3 +411,12 @@ def test_stepping_past_the_time_limit_asks_for_a_reset():
         core.step(torch.zeros(2, 4, dtype=torch.int64))
     core.reset(torch.tensor([True, True]))
     assert core.step(torch.zeros(2, 4, dtype=torch.int64)).step_count.tolist() == [1, 1]
+
+
+def test_missing_cuda_is_refused_at_construction():
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"device='cuda:\d+': there are \d+ CUDA device"):
+            scenario("map10", device=f"cuda:{torch.cuda.device_count()}")
+    else:
+        with pytest.raises(ValueError, match="device='cuda': CUDA is not available on this machine"):
+            MCRSEnv("map10", device="cuda")

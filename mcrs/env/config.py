@@ -131,8 +131,9 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
     if not isinstance(cfg.expose_beliefs, bool):
         errors.append(f"expose_beliefs={cfg.expose_beliefs!r}: must be true or false")
-    if not isinstance(cfg.device, str):
-        errors.append(f"device={cfg.device!r}: must be a torch device string such as 'cpu' or 'cuda:0'")
+    device_problem = _device_problem(cfg.device)
+    if device_problem:
+        errors.append(f"device={cfg.device!r}: {device_problem}")
     if not errors:
         cells = cfg.width * cfg.height
         if cfg.n_targets + cfg.n_no_fly > cells:
@@ -146,6 +147,27 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
                 "UAVs start on distinct cells outside no-fly zones"
             )
     return errors
+
+
+def _device_problem(device: Any) -> str | None:
+    """Why ``device`` cannot hold the environment here, or None when it can."""
+    import torch
+
+    allowed = "a torch device string such as 'cpu', 'cuda' or 'cuda:0'"
+    if not isinstance(device, str):
+        return f"must be {allowed}"
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        return f"is not a torch device: use {allowed}"
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            return "CUDA is not available on this machine: use 'cpu'"
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            return f"there are {torch.cuda.device_count()} CUDA device(s): use cuda:0..cuda:{torch.cuda.device_count() - 1}"
+    elif parsed.type not in ("cpu", "mps"):
+        return f"device type {parsed.type!r} is not supported: use {allowed}"
+    return None
 
 
 def _preset_values(name: str) -> dict[str, Any]:

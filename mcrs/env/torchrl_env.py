@@ -48,7 +48,9 @@ class MCRSEnv(EnvBase):
             config = scenario(config, **overrides)
         elif overrides:
             config = config.replace(**overrides)
-        device = torch.device(device if device is not None else config.device)
+        if device is not None:
+            config = config.replace(device=str(device))  # one source of truth for policies and the core
+        device = torch.device(config.device)
         super().__init__(device=device, batch_size=torch.Size([config.num_envs]))
         self.config = config
         self.core = MCRSCore(config, device=device)
