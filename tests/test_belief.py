@@ -54,7 +54,7 @@ def test_counts_form_equals_sequential_dempster_in_any_order(readings, m_f, m_e,
     in_other_order = dempster_sequence(shuffled, m_f, m_e)
     got = masses(sum(readings), len(readings) - sum(readings), m_f, m_e)
     for a, b, c in zip(expected, in_other_order, got, strict=True):
-        assert math.isclose(a, b, abs_tol=1e-7)
+        assert math.isclose(a, b, abs_tol=1e-6)  # double rounding grows with the conflict
         assert math.isclose(a, c, abs_tol=2e-5)
 
 
