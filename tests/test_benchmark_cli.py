@@ -6,9 +6,12 @@ import re
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 from mcrs.benchmarks import env_throughput
-from mcrs.benchmarks.env_throughput import main, random_allowed_actions
+from mcrs.benchmarks.env_throughput import main
+from mcrs.env import scenario
+from mcrs.policies import RandomPolicy
 
 NUMBER = r"([\d,]+(?:\.\d+)?)"
 
@@ -53,12 +56,13 @@ def test_memory_section_reports_bytes_per_env_and_projection(
     assert re.search(r"16 map20 envs <= 2 GiB: projected [\d.]+ GiB PASS", out), out
 
 
-def test_random_allowed_actions_respect_the_mask() -> None:
-    generator = torch.Generator().manual_seed(0)
+def test_the_benchmark_policy_draws_only_allowed_actions() -> None:
+    policy = RandomPolicy(scenario("map10", n_uavs=3), seed=0)
     mask = torch.zeros(256, 3, 8, dtype=torch.bool)
     mask[..., 2] = mask[..., 5] = True
     mask[0, 0] = True
-    actions = random_allowed_actions(mask, generator)
+    td = TensorDict({"agents": TensorDict({"action_mask": mask}, batch_size=[256, 3])}, batch_size=[256])
+    actions = policy(td)["agents", "action"]
     assert actions.shape == (256, 3)
     assert mask.gather(-1, actions.unsqueeze(-1)).all()
     assert set(actions[1:].unique().tolist()) == {2, 5}  # both allowed moves are drawn

@@ -420,3 +420,15 @@ def test_missing_cuda_is_refused_at_construction():
     else:
         with pytest.raises(ValueError, match="device='cuda': CUDA is not available on this machine"):
             MCRSEnv("map10", device="cuda")
+
+
+def test_torchrl_env_resets_to_a_scene_and_steps_on():
+    env = MCRSEnv("map10", n_uavs=2, n_no_fly=1, n_targets=1, **EXACT_SENSOR)
+    td = env.reset_to(torch.tensor([[0, 0], [5, 5]]), torch.tensor([[9, 9]]), torch.tensor([[1, 1]]))
+    assert td["agents", "position"][0].tolist() == [[0, 0], [5, 5]]
+    assert td["step_count"].item() == 0 and not td["done"].any()
+    assert set(td["agents", "action_mask"][0, 0].nonzero().squeeze(-1).tolist()) == {1, 3, 6}
+    td["agents", "action"] = torch.tensor([[6, 0]])  # upper-right onto the target (1, 1), left
+    nxt = env.step(td)["next"]
+    assert nxt["agents", "position"][0].tolist() == [[1, 1], [4, 5]]
+    assert nxt["agents", "reading"][0].tolist() == [True, False]

@@ -33,6 +33,7 @@ from mcrs.env.config import SCENARIOS, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.policies import RandomPolicy
 
 GOAL_MAP = "map20"
 GOAL_NUM_ENVS = 1024
@@ -63,12 +64,6 @@ class Row:
     @property
     def agent_steps(self) -> float:
         return self.env_steps * self.n_uavs
-
-
-def random_allowed_actions(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """A uniformly random allowed action per UAV, for the whole batch at once: argmax of masked noise."""
-    noise = torch.rand(mask.shape, generator=generator, device=mask.device)
-    return noise.masked_fill_(~mask, -1.0).argmax(-1)
 
 
 def _synchronize(device: torch.device) -> None:
@@ -111,15 +106,13 @@ def measure_torchrl(map_name: str, num_envs: int, seconds: float, device: torch.
     """Env-steps/s of ``MCRSEnv`` driven by ``step_and_maybe_reset``, as a TorchRL collector does."""
     env = MCRSEnv(map_name, device=device, num_envs=num_envs)
     env.set_seed(0)
-    generator = torch.Generator(device=device)
-    generator.manual_seed(0)
+    policy = RandomPolicy(env.config, seed=0)  # uniform over allowed moves, batched
     td = env.reset()
 
     def run(n: int) -> None:
         nonlocal td
         for _ in range(n):
-            td["agents", "action"] = random_allowed_actions(td["agents", "action_mask"], generator)
-            _, td = env.step_and_maybe_reset(td)
+            _, td = env.step_and_maybe_reset(policy(td))
 
     n_steps, elapsed = _calibrated_run(run, seconds, device, env.config.max_steps)
     return Row(map_name, "MCRSEnv", num_envs, n_steps * num_envs, elapsed, env.config.n_uavs)
@@ -187,12 +180,10 @@ def measure_memory(map_name: str, num_envs: int, device: torch.device, steps: in
     if before is None:
         return None
     env = MCRSEnv(map_name, device=device, num_envs=num_envs)
-    generator = torch.Generator(device=device)
-    generator.manual_seed(0)
+    policy = RandomPolicy(env.config, seed=0)
     td = env.reset()
     for _ in range(steps):
-        td["agents", "action"] = random_allowed_actions(td["agents", "action_mask"], generator)
-        _, td = env.step_and_maybe_reset(td)
+        _, td = env.step_and_maybe_reset(policy(td))
     after = used()
     del env, td
     gc.collect()

@@ -72,9 +72,7 @@ class EnvConfig:
         return int(self.comm_rounds)
 
     def replace(self, **overrides: Any) -> EnvConfig:
-        unknown = set(overrides) - {f.name for f in fields(self)}
-        if unknown:
-            raise ValueError(f"unknown environment field(s) {sorted(unknown)}; allowed: {field_names()}")
+        _check_known_fields(overrides)
         return replace(self, **overrides)
 
     def to_dict(self) -> dict[str, Any]:
@@ -83,6 +81,12 @@ class EnvConfig:
 
 def field_names() -> list[str]:
     return [f.name for f in fields(EnvConfig)]
+
+
+def _check_known_fields(names: Any) -> None:
+    unknown = set(names) - set(field_names())
+    if unknown:
+        raise ValueError(f"unknown environment field(s) {sorted(unknown)}; allowed: {field_names()}")
 
 
 def _is_int(value: Any) -> bool:
@@ -191,9 +195,7 @@ def from_mapping(values: Any) -> EnvConfig:
     if isinstance(values, DictConfig):
         values = OmegaConf.to_container(values, resolve=True)
     values = dict(values)
-    unknown = set(values) - set(field_names())
-    if unknown:
-        raise ValueError(f"unknown environment field(s) {sorted(unknown)}; allowed: {field_names()}")
+    _check_known_fields(values)
     for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
         if _is_int(values.get(name)):
             values[name] = float(values[name])

@@ -207,7 +207,7 @@ class MCRSCore:
         self.step_count += 1
 
         # 2. Sense: each UAV reads its own cell and logs the reading.
-        cell = self.uav_pos[..., 0] * c.height + self.uav_pos[..., 1]
+        cell = self._uav_cells()
         flat = self._sense(cell)
         self.log[self._env_index, self.step_count] = flat.to(self.log.dtype)
 
@@ -399,10 +399,9 @@ class MCRSCore:
     def _action_mask(self) -> torch.Tensor:
         return self._mask_of_cell[self._uav_cells()]
 
-    def _observation(self, geometry: Geometry) -> torch.Tensor:
+    def _observation(self, geometry: Geometry, cell: torch.Tensor) -> torch.Tensor:
         c = self.config
         E, N = self.num_envs, self.n_uavs
-        cell = self._uav_cells()
         around = self.counts.gather(2, self._around_counts[cell]).view(E, N, 2, 8)
         on_grid = self._around_on_grid[cell]
         _, full, unknown = belief_masses(around[:, :, 0], around[:, :, 1], c.m_f, c.m_e)
@@ -440,7 +439,8 @@ class MCRSCore:
         geometry = geometry if geometry is not None else self._geometry()
         if neighbours is None:
             neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
-        self._mask = self._action_mask()
+        cell = self._uav_cells()
+        self._mask = self._mask_of_cell[cell]
         positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
         state = torch.cat(
             [self.global_belief.view(E, -1)]
@@ -457,7 +457,7 @@ class MCRSCore:
             "coverage": self.cells_sensed / self.n_cells,
         }
         result = StepResult(
-            observation=self._observation(geometry),
+            observation=self._observation(geometry, cell),
             action_mask=self._mask.clone(),
             state=state,
             state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy

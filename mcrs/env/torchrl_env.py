@@ -116,6 +116,17 @@ class MCRSEnv(EnvBase):
             mask = tensordict.get("_reset").reshape(self.config.num_envs)
         return self._to_tensordict(self.core.reset(mask), with_reward=False)
 
+    def reset_to(
+        self, uav_positions: torch.Tensor, no_fly_positions: torch.Tensor, target_positions: torch.Tensor
+    ) -> TensorDictBase:
+        """Start every environment from a given scene (cells ``(x, y)``) and return the reset tensordict.
+
+        Shapes and rules as :meth:`MCRSCore.reset_to`; step on from the returned tensordict as usual.
+        """
+        return self._to_tensordict(
+            self.core.reset_to(uav_positions, no_fly_positions, target_positions), with_reward=False
+        )
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         result = self.core.step(tensordict.get(("agents", "action")))
         return self._to_tensordict(result)
