@@ -7,6 +7,7 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
 
     mcrs-eval policy=all episodes=32
     mcrs-eval env=map20 env.comm_range=0 policy=lawnmower episodes=8
+    mcrs-eval policy=outputs/map10/qmix/<run>/checkpoints/model_000500000.pt    (a trained agent)
 """
 
 from __future__ import annotations
@@ -45,6 +46,10 @@ def policy_names(policy: str) -> list[str]:
     """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
     if policy == ALL:
         return list(POLICIES)
+    from mcrs.policies.trained import looks_like_checkpoint
+
+    if policy not in POLICIES and looks_like_checkpoint(policy):
+        return [policy]
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; allowed: {[*sorted(POLICIES), ALL]}")
     return [policy]

@@ -2,6 +2,7 @@
 
 mcrs-render --env map20 --policy lawnmower --seed 3 --out outputs/render --no-gif
 mcrs-render --env map10 --set comm_range=3 --uav 2
+mcrs-render --env map10 --policy outputs/map10/qmix/<run>      (a trained agent's episode)
 """
 
 from __future__ import annotations
@@ -47,7 +48,11 @@ def render(
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mcrs-render", description=__doc__.split("\n")[0])
     parser.add_argument("--env", default="map10", choices=SCENARIOS, help="map preset (default map10)")
-    parser.add_argument("--policy", default="greedy", choices=sorted(POLICIES), help="default greedy")
+    parser.add_argument(
+        "--policy",
+        default="greedy",
+        help=f"{', '.join(sorted(POLICIES))} (default greedy), or an mcrs-train checkpoint / run directory",
+    )
     parser.add_argument("--seed", type=int, default=0, help="episode and policy seed (default 0)")
     parser.add_argument("--out", type=Path, default=Path("outputs/render"), help="output folder")
     parser.add_argument(
@@ -70,6 +75,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         env_config = scenario(args.env, **parse_overrides(args.overrides))
+        if args.policy not in POLICIES:
+            from mcrs.policies import make_policy
+
+            make_policy(args.policy, env_config)  # fails early, naming the problem
         if not 0 <= args.uav < env_config.n_uavs:
             raise ValueError(f"--uav {args.uav}: must be in 0..{env_config.n_uavs - 1}")
     except (ValueError, argparse.ArgumentTypeError) as error:

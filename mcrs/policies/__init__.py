@@ -16,9 +16,19 @@ POLICIES: dict[str, type[Policy]] = {
 
 
 def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
-    """Build the named policy for ``env_config``; its random choices follow ``seed``."""
+    """Build the named policy for ``env_config``; its random choices follow ``seed``.
+
+    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``) or the path of an ``mcrs-train``
+    checkpoint (a ``.pt`` file or a run directory), whose agent then acts greedily.
+    """
+    from mcrs.policies.trained import TrainedPolicy, looks_like_checkpoint
+
+    if name not in POLICIES and looks_like_checkpoint(name):
+        return TrainedPolicy.from_checkpoint(name, env_config, seed)
     if name not in POLICIES:
-        raise ValueError(f"unknown policy {name!r}; allowed: {sorted(POLICIES)}")
+        raise ValueError(
+            f"unknown policy {name!r}; allowed: {sorted(POLICIES)} or a checkpoint (.pt file or run directory)"
+        )
     return POLICIES[name](env_config, seed)
 
 

@@ -1,0 +1,1 @@
+"""Experiments: validated configs, the training loop, evaluation, checkpoints and logging."""

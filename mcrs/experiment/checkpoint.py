@@ -1,0 +1,68 @@
+"""Checkpoints: written atomically, read with ``weights_only=True`` (no code runs while loading).
+
+A checkpoint is a plain dict of tensors, numbers, strings and nested dicts; ``FORMAT`` and ``VERSION``
+mark it as ours so a foreign or truncated file is refused with a clear error instead of a crash later.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+FORMAT = "mcrs-checkpoint"
+VERSION = 1
+LAST = "last.pt"
+
+
+class CheckpointError(ValueError):
+    """A file that is not a usable mcrs checkpoint."""
+
+
+def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
+    """Write ``payload`` to ``path`` so that a crash leaves either the old file or the new one, never half."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save({"format": FORMAT, "version": VERSION, **payload}, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read a checkpoint without executing code; refuse anything that is not ours."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # truncated, corrupt or carrying objects that need code to load
+        raise CheckpointError(
+            f"checkpoint {path} cannot be read safely: {type(error).__name__}: {error}"
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not an mcrs checkpoint (no '{FORMAT}' marker)")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(
+            f"{path} has checkpoint version {payload.get('version')}; this mcrs reads {VERSION}"
+        )
+    return payload
+
+
+def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:
+    return Path(run_dir) / "checkpoints" / name

@@ -1,0 +1,178 @@
+"""Typed schemas of the training config, registered in Hydra's ConfigStore, and their validation.
+
+The schemas make Hydra refuse unknown keys and wrong types while composing (``algo.lrr=1`` or
+``train.lr=abc`` fail before anything runs); :func:`validate` then checks values, with one message per
+problem naming the field, the value and what is allowed. ``env`` is checked by
+:class:`mcrs.env.EnvConfig`, which owns its own rules.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from mcrs.env.config import _device_problem, from_mapping
+from mcrs.models.mixers import MIXERS
+
+OPTIMIZERS = ("rmsprop", "adam")
+LOGGERS = ("csv", "wandb", "tensorboard")
+WANDB_MODES = ("offline", "online")
+
+
+class ConfigError(ValueError):
+    """A config that cannot run; the message lists every problem."""
+
+
+@dataclass
+class AlgoConfig:
+    """The value-factorisation algorithm: which mixer, and the TD target."""
+
+    name: str = "qmix"  # label of the algorithm (run names, reports)
+    mixer: str = "qmix"  # qmix | vdn | qplex
+    mixing_embed_dim: int = 32  # QMIX mixing width
+    hypernet_embed: int = 64  # hidden width of the hypernetworks (QMIX, QPLEX)
+    hypernet_layers: int = 2  # QMIX hypernetwork depth: 1 (TorchRL) or 2 (pymarl)
+    qplex_kernels: int = 4  # QPLEX attention heads of the advantage weights
+    gamma: float = 0.99
+    td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
+    double_q: bool = True
+
+
+@dataclass
+class ModelConfig:
+    """The shared recurrent agent network."""
+
+    name: str = "gru"
+    hidden_dim: int = 64
+    agent_id: bool = True  # one-hot agent id as input
+    last_action: bool = True  # one-hot last action as input
+
+
+@dataclass
+class LoggerConfig:
+    """Where metrics go (TorchRL loggers). Nothing leaves the machine unless wandb_mode=online."""
+
+    backend: str = "csv"  # csv | wandb | tensorboard
+    project: str = "mcrs"  # wandb project
+    wandb_mode: str = "offline"  # offline | online
+    log_interval: int = 2000  # env steps between train/ and time/ log rows (means over the interval)
+    progress_bar: bool = True
+
+
+@dataclass
+class TrainConfig:
+    """The training loop. Intervals count env steps (agent-team transitions), as in pymarl."""
+
+    total_env_steps: int = 2_000_000
+    num_envs: int = 1  # episodes collected in parallel per collector batch
+    batch_episodes: int = 32  # episodes per learner update
+    replay_episodes: int = 5000  # replay capacity in episodes
+    updates_per_episode: float = 1.0  # learner updates per collected episode
+    optimizer: str = "rmsprop"  # rmsprop | adam
+    lr: float = 5e-4
+    rmsprop_alpha: float = 0.99
+    optim_eps: float = 1e-5
+    grad_clip: float = 10.0
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    eps_anneal_steps: int = 50_000
+    target_update_episodes: int = 200  # hard target update period, in collected episodes
+    eval_interval: int = 10_000
+    eval_episodes: int = 32
+    eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
+    checkpoint_interval: int = 100_000
+    save_replay: bool = True  # checkpoints carry the replay buffer, so a resumed run is identical
+
+
+@dataclass
+class Config:
+    """The whole ``mcrs-train`` config (``conf/config.yaml``)."""
+
+    env: dict[str, Any] = field(default_factory=dict)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    preset: str = "pymarl"  # label of the hyper-parameter preset (conf/preset/)
+    seed: int = 0
+    device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ...
+    threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    resume: str | None = None  # a run directory to continue
+
+
+def register_configs() -> None:
+    """Register the schemas (``config.yaml`` names ``mcrs_config`` in its defaults)."""
+    cs = ConfigStore.instance()
+    cs.store(name="mcrs_config", node=Config)
+
+
+def _positive(errors: list[str], name: str, value: float, allow_zero: bool = False) -> None:
+    ok = value >= 0 if allow_zero else value > 0
+    if not ok or (isinstance(value, float) and not math.isfinite(value)):
+        errors.append(f"{name}={value}: must be {'>= 0' if allow_zero else '> 0'}")
+
+
+def _choice(errors: list[str], name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        errors.append(f"{name}={value!r}: allowed values are {', '.join(allowed)}")
+
+
+def validation_errors(cfg: DictConfig) -> list[str]:
+    """Every problem of a composed config, one message each (empty when it can run)."""
+    errors: list[str] = []
+    try:
+        from_mapping(cfg.env)
+    except (ValueError, TypeError) as error:
+        errors.append(f"env: {error}")
+    a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
+    _choice(errors, "algo.mixer", a.mixer, MIXERS)
+    _choice(errors, "train.optimizer", t.optimizer, OPTIMIZERS)
+    _choice(errors, "logger.backend", lg.backend, LOGGERS)
+    _choice(errors, "logger.wandb_mode", lg.wandb_mode, WANDB_MODES)
+    if a.hypernet_layers not in (1, 2):
+        errors.append(f"algo.hypernet_layers={a.hypernet_layers}: allowed values are 1, 2")
+    for name in ("mixing_embed_dim", "hypernet_embed", "qplex_kernels"):
+        _positive(errors, f"algo.{name}", getattr(a, name))
+    for name in ("gamma", "td_lambda"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
+    _positive(errors, "model.hidden_dim", m.hidden_dim)
+    _positive(errors, "logger.log_interval", lg.log_interval)
+    for name in (
+        "total_env_steps", "num_envs", "batch_episodes", "replay_episodes", "lr", "optim_eps",
+        "grad_clip", "eps_anneal_steps", "target_update_episodes", "eval_interval", "eval_episodes",
+        "checkpoint_interval",
+    ):  # fmt: skip
+        _positive(errors, f"train.{name}", getattr(t, name))
+    _positive(errors, "train.updates_per_episode", t.updates_per_episode, allow_zero=True)
+    for name in ("eps_start", "eps_end", "rmsprop_alpha"):
+        if not 0.0 <= getattr(t, name) <= 1.0:
+            errors.append(f"train.{name}={getattr(t, name)}: must be in [0, 1]")
+    if t.eps_end > t.eps_start:
+        errors.append(f"train.eps_end={t.eps_end} > train.eps_start={t.eps_start}: epsilon only decays")
+    if t.replay_episodes < t.batch_episodes:
+        errors.append(
+            f"train.replay_episodes={t.replay_episodes} < train.batch_episodes={t.batch_episodes}: "
+            "the buffer must hold a whole batch"
+        )
+    problem = _device_problem(cfg.device)
+    if problem:
+        errors.append(f"device={cfg.device!r}: {problem}")
+    _positive(errors, "threads", cfg.threads, allow_zero=True)
+    return errors
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` listing every problem of ``cfg``."""
+    errors = validation_errors(cfg)
+    if errors:
+        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
+
+
+def to_container(cfg: DictConfig) -> dict[str, Any]:
+    """A plain, resolved dict of the config (for checkpoints and loggers)."""
+    return OmegaConf.to_container(cfg, resolve=True)

@@ -1,0 +1,43 @@
+"""Greedy evaluation of a trained agent on separate, fixed-seed environments."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mcrs.env.config import EnvConfig
+from mcrs.env.core import METRICS
+from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.models.acting import recurrent_primer
+
+
+def make_eval_env(
+    env_config: EnvConfig, episodes: int, hidden_dim: int, device: str | torch.device
+) -> TransformedEnv:
+    """``episodes`` environments run as one batch, carrying the agents' recurrent state."""
+    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=False), device=str(device))
+    return TransformedEnv(env, recurrent_primer(episodes, env_config.n_uavs, hidden_dim, device=device))
+
+
+@torch.no_grad()
+def rollout_greedy(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> TensorDictBase:
+    """One episode in every environment of ``env`` from seed ``seed``, greedy actions: ``[E, T]``."""
+    env.set_seed(seed)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        return env.rollout(env.base_env.config.max_steps, policy, break_when_any_done=False)
+
+
+def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
+    """Final value of every metric per episode: ``{name: [E]}``."""
+    return {name: rollout.get(("next", "metrics", name))[:, -1].float() for name in METRICS}
+
+
+def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> dict[str, float]:
+    """Mean (and std of the episode reward) of every metric over the batch of episodes."""
+    metrics = episode_metrics(rollout_greedy(env, policy, seed))
+    out = {name: values.mean().item() for name, values in metrics.items()}
+    out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
+    return out

@@ -1,0 +1,58 @@
+"""Metric logging through TorchRL's loggers, with grouped names (``train/``, ``eval/``, ``time/``).
+
+``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``; ``tensorboard`` writes ``<run>/logs/``;
+``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from torchrl.record.loggers import Logger
+
+
+def make_logger(
+    backend: str, run_dir: Path, config: dict[str, Any], project: str = "mcrs", mode: str = "offline"
+) -> Logger:
+    """A TorchRL logger for the run; the resolved config is logged as hyper-parameters."""
+    name = run_dir.name
+    if backend == "csv":
+        from torchrl.record.loggers import CSVLogger
+
+        logger = CSVLogger(exp_name="logs", log_dir=str(run_dir))
+    elif backend == "tensorboard":
+        from torchrl.record.loggers import TensorboardLogger
+
+        logger = TensorboardLogger(exp_name="logs", log_dir=str(run_dir))
+    elif backend == "wandb":
+        from torchrl.record.loggers import WandbLogger
+
+        if mode not in ("offline", "online"):
+            raise ValueError(f"logger.wandb_mode={mode!r}: allowed values are offline, online")
+        os.environ.setdefault("WANDB_SILENT", "true")
+        logger = WandbLogger(
+            exp_name=name, save_dir=str(run_dir), project=project, offline=mode == "offline", config=config
+        )
+        return logger
+    else:
+        raise ValueError(f"logger.backend={backend!r}: allowed values are csv, wandb, tensorboard")
+    logger.log_hparams(_flatten(config))
+    return logger
+
+
+def _flatten(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{name}."))
+        else:
+            out[name] = value if isinstance(value, (int, float, str, bool)) else str(value)
+    return out
+
+
+def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
+    for name, value in values.items():
+        logger.log_scalar(name, float(value), step=step)

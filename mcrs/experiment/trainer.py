@@ -1,0 +1,359 @@
+"""Training a value-factorisation learner on MCRS-LCR, top to bottom.
+
+    collector (TorchRL, masked epsilon-greedy)  ->  whole episodes  ->  replay buffer (TorchRL)
+        ->  ValueFactorisationLoss (TorchRL LossModule, TorchRL mixers)  ->  optimiser, HardUpdate
+    every eval_interval env steps: greedy evaluation on fixed-seed environments
+    every checkpoint_interval env steps and at the end: an atomic checkpoint of everything
+
+Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments
+from ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in
+every checkpoint. So a run resumed from a checkpoint repeats the straight run exactly on the CPU.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import TransformedEnv
+from torchrl.objectives import HardUpdate
+
+from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.core import METRICS, N_ACTIONS
+from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import to_container, validate
+from mcrs.experiment.evaluation import evaluate, make_eval_env
+from mcrs.experiment.logging import log_scalars, make_logger
+from mcrs.experiment.replay import (
+    episodes_from_rollout,
+    load_replay_state_dict,
+    make_episode_buffer,
+    replay_state_dict,
+)
+from mcrs.models.acting import make_acting_policy, recurrent_primer
+from mcrs.models.agent import RecurrentAgent
+from mcrs.models.mixers import make_mixer
+from mcrs.objectives import ValueFactorisationLoss
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss or gradient became NaN or infinite."""
+
+
+@dataclass
+class Counters:
+    """Progress of a run; saved in every checkpoint."""
+
+    env_steps: int = 0
+    episodes: int = 0
+    updates: int = 0
+    iteration: int = 0  # collector batches
+    update_credit: float = 0.0  # fractional learner updates owed (updates_per_episode < 1)
+    last_target_update: int = 0  # episode count at the last target update
+    next_eval: int = 0
+    next_checkpoint: int = 0
+    next_log: int = 0
+
+
+def batch_seed(seed: int, iteration: int) -> int:
+    """Seed of the environments of collector batch ``iteration`` (a run-local, reproducible stream)."""
+    return (seed * 1_000_003 + iteration) % (2**63)
+
+
+def build_agent(cfg: DictConfig, env_config: EnvConfig) -> RecurrentAgent:
+    m = cfg.model
+    return RecurrentAgent(
+        env_config.obs_dim, N_ACTIONS, env_config.n_uavs, m.hidden_dim, m.agent_id, m.last_action
+    )
+
+
+def build_mixer(cfg: DictConfig, env_config: EnvConfig) -> nn.Module:
+    a = cfg.algo
+    return make_mixer(
+        a.mixer,
+        env_config.n_uavs,
+        (env_config.state_dim,),
+        N_ACTIONS,
+        mixing_embed_dim=a.mixing_embed_dim,
+        hypernet_embed=a.hypernet_embed,
+        hypernet_layers=a.hypernet_layers,
+        n_kernels=a.qplex_kernels,
+    )
+
+
+class Learner:
+    """Networks, loss, optimiser and target updates: one :meth:`update` per sampled batch of episodes."""
+
+    def __init__(self, cfg: DictConfig, env_config: EnvConfig, device: torch.device) -> None:
+        t = cfg.train
+        self.agent = build_agent(cfg, env_config).to(device)
+        self.mixer = build_mixer(cfg, env_config).to(device)
+        self.loss = ValueFactorisationLoss(
+            self.agent,
+            self.mixer,
+            gamma=cfg.algo.gamma,
+            td_lambda=cfg.algo.td_lambda,
+            double_q=cfg.algo.double_q,
+        )
+        self.params = [*self.agent.parameters(), *self.mixer.parameters()]
+        if t.optimizer == "adam":
+            self.optimizer = torch.optim.Adam(self.params, lr=t.lr, eps=t.optim_eps)
+        else:
+            self.optimizer = torch.optim.RMSprop(self.params, lr=t.lr, alpha=t.rmsprop_alpha, eps=t.optim_eps)
+        # interval 0: every step() copies; the trainer calls it every target_update_episodes episodes.
+        self.target_updater = HardUpdate(self.loss, value_network_update_interval=0)
+        self.grad_clip = t.grad_clip
+
+    def update(self, batch, step: int) -> dict[str, torch.Tensor]:
+        """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
+        out = self.loss(batch)
+        if not torch.isfinite(out["loss"]):
+            raise TrainingDiverged(f"non-finite loss_td={out['loss'].item()} at env step {step}")
+        self.optimizer.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.params, self.grad_clip)
+        if not torch.isfinite(grad_norm):
+            raise TrainingDiverged(f"non-finite gradient norm={grad_norm.item()} at env step {step}")
+        self.optimizer.step()
+        return {**{k: v.detach() for k, v in out.items() if k != "loss"}, "grad_norm": grad_norm.detach()}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "agent": self.agent.state_dict(),
+            "mixer": self.mixer.state_dict(),
+            "target_agent": self.loss.target_agent_network_params.state_dict(),
+            "target_mixer": self.loss.target_mixer_params.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.mixer.load_state_dict(state["mixer"])
+        self.loss.target_agent_network_params.load_state_dict(state["target_agent"])
+        self.loss.target_mixer_params.load_state_dict(state["target_mixer"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+
+class Trainer:
+    """Everything a run needs, built from a validated config; :meth:`train` runs it.
+
+    Args:
+        cfg: the composed config (``conf/config.yaml``).
+        run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
+        resume: continue from ``run_dir/checkpoints/last.pt``.
+    """
+
+    def __init__(self, cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> None:
+        validate(cfg)
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))
+        self.device = torch.device(cfg.device)
+        torch.manual_seed(int(cfg.seed))
+        t = cfg.train
+        self.env_config = from_mapping(cfg.env).replace(num_envs=t.num_envs, device=str(self.device))
+        self.T = self.env_config.max_steps
+        self.learner = Learner(cfg, self.env_config, self.device)
+        self.greedy, self.exploring, self.epsilon = make_acting_policy(
+            self.learner.agent,
+            N_ACTIONS,
+            eps_start=t.eps_start,
+            eps_end=t.eps_end,
+            eps_anneal_steps=t.eps_anneal_steps,
+        )
+        self.env = TransformedEnv(
+            MCRSEnv(self.env_config),
+            recurrent_primer(t.num_envs, self.env_config.n_uavs, cfg.model.hidden_dim, device=self.device),
+        )
+        self.eval_env = make_eval_env(self.env_config, t.eval_episodes, cfg.model.hidden_dim, self.device)
+        self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
+        self.counters = Counters(next_checkpoint=t.checkpoint_interval)
+        self.last_eval: dict[str, float] = {}
+        if resume:
+            self._load(ckpt.checkpoint_path(self.run_dir))
+        else:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        self.logger = make_logger(
+            cfg.logger.backend, self.run_dir, to_container(cfg), cfg.logger.project, cfg.logger.wandb_mode
+        )
+        self.collector = Collector(
+            self.env,
+            self.exploring,
+            frames_per_batch=t.num_envs * self.T,  # whole episodes: every batch row is one episode
+            total_frames=-1,
+            device=self.device,
+            trust_policy=True,
+            auto_register_policy_transforms=False,
+        )
+        if resume:  # last: building the collector may draw random numbers
+            rng = self._resume_state.pop("rng")
+            torch.set_rng_state(rng["torch"].cpu())
+            if "cuda" in rng and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
+
+    # ------------------------------------------------------------------ the loop
+    def train(self) -> dict[str, float]:
+        """Run until ``train.total_env_steps``; returns the last evaluation's metrics."""
+        t, c = self.cfg.train, self.counters
+        self._session_start_steps = c.env_steps
+        progress = self._progress_bar()
+        train_stats: dict[str, list[torch.Tensor]] = {}
+        timer = {"collect": 0.0, "update": 0.0, "eval": 0.0}
+        collector_iter = iter(self.collector)
+        try:
+            while c.env_steps < t.total_env_steps:
+                if c.env_steps >= c.next_eval:
+                    self._evaluate(timer)
+                    c.next_eval += t.eval_interval
+
+                # Collect num_envs whole episodes with the exploring policy.
+                start = time.perf_counter()
+                self.epsilon.set_env_steps(c.env_steps)
+                self.env.set_seed(batch_seed(int(self.cfg.seed), c.iteration))
+                self.collector.reset()
+                batch = next(collector_iter)
+                self.replay.extend(episodes_from_rollout(batch))
+                for name in METRICS:
+                    train_stats.setdefault(f"train/{name}", []).append(
+                        batch.get(("next", "metrics", name))[:, -1].mean()
+                    )
+                c.iteration += 1
+                c.episodes += t.num_envs
+                c.env_steps += batch.numel()
+                timer["collect"] += time.perf_counter() - start
+
+                # Learn: updates_per_episode updates per collected episode, once a batch can be sampled.
+                start = time.perf_counter()
+                if len(self.replay) >= t.batch_episodes:
+                    c.update_credit += t.num_envs * t.updates_per_episode
+                    while c.update_credit >= 1.0:
+                        stats = self._update()
+                        for key, value in stats.items():
+                            train_stats.setdefault(f"train/{key}", []).append(value)
+                        c.update_credit -= 1.0
+                if c.episodes - c.last_target_update >= t.target_update_episodes:
+                    self.learner.target_updater.step()
+                    c.last_target_update = c.episodes
+                timer["update"] += time.perf_counter() - start
+
+                if c.env_steps >= c.next_log:
+                    self._log_train(train_stats, timer)
+                    train_stats = {}
+                    c.next_log = c.env_steps + self.cfg.logger.log_interval
+                if c.env_steps >= c.next_checkpoint and c.env_steps > 0:
+                    self.save()
+                    c.next_checkpoint += t.checkpoint_interval
+                progress.update(batch.numel())
+                progress.set_postfix(self._postfix(), refresh=False)
+            self._evaluate(timer)
+            self._log_train(train_stats, timer)
+            self.save()
+        finally:
+            progress.close()
+            self.collector.shutdown()
+        return dict(self.last_eval)
+
+    def _update(self) -> dict[str, torch.Tensor]:
+        c = self.counters
+        try:
+            stats = self.learner.update(self.replay.sample(), c.env_steps)
+        except TrainingDiverged as error:
+            path = self.save(name="last_good.pt")
+            raise TrainingDiverged(
+                f"{error} (update {c.updates + 1}); the last good state is saved in {path}"
+            ) from None
+        c.updates += 1
+        return stats
+
+    # ------------------------------------------------------------------ evaluation and logging
+    def _evaluate(self, timer: dict[str, float]) -> None:
+        start = time.perf_counter()
+        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.cfg.train.eval_seed))
+        timer["eval"] += time.perf_counter() - start
+        log_scalars(self.logger, {f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
+
+    def _log_train(self, stats: dict[str, list[torch.Tensor]], timer: dict[str, float]) -> None:
+        c = self.counters
+        values = {name: torch.stack(v).float().mean().item() for name, v in stats.items() if v}
+        values["train/epsilon"] = float(self.epsilon.eps)
+        values["train/episodes"] = c.episodes
+        values["train/updates"] = c.updates
+        values["train/replay_episodes"] = len(self.replay)
+        elapsed = sum(timer.values())
+        values.update({f"time/{k}_s": v for k, v in timer.items()})
+        if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
+            values["time/env_steps_per_s"] = (c.env_steps - self._session_start_steps) / elapsed
+        log_scalars(self.logger, values, c.env_steps)
+
+    def _progress_bar(self):
+        from tqdm.auto import tqdm
+
+        return tqdm(
+            total=self.cfg.train.total_env_steps,
+            initial=self.counters.env_steps,
+            unit="step",
+            unit_scale=True,
+            dynamic_ncols=True,
+            mininterval=1.0,
+            disable=not self.cfg.logger.progress_bar,
+            desc=f"{self.cfg.algo.name} {self.env_config.name}",
+        )
+
+    def _postfix(self) -> dict[str, str]:
+        post = {"eps": f"{float(self.epsilon.eps):.3f}"}
+        if self.last_eval:
+            post["eval_reward"] = f"{self.last_eval['episode_reward']:.1f}"
+        return post
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        state = {
+            "config": to_container(self.cfg),
+            "counters": asdict(self.counters),
+            "learner": self.learner.state_dict(),
+            "last_eval": dict(self.last_eval),
+            "rng": {"torch": torch.get_rng_state()},
+        }
+        if torch.cuda.is_available():
+            state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
+        if self.cfg.train.save_replay:
+            state["replay"] = replay_state_dict(self.replay)
+        return state
+
+    def save(self, name: str = ckpt.LAST) -> Path:
+        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step."""
+        path = ckpt.save_atomic(self.state_dict(), ckpt.checkpoint_path(self.run_dir, name))
+        if name == ckpt.LAST:
+            weights = {
+                "config": to_container(self.cfg),
+                "counters": asdict(self.counters),
+                "learner": {
+                    "agent": self.learner.agent.state_dict(),
+                    "mixer": self.learner.mixer.state_dict(),
+                },
+            }
+            ckpt.save_atomic(
+                weights, ckpt.checkpoint_path(self.run_dir, f"model_{self.counters.env_steps:09d}.pt")
+            )
+        return path
+
+    def _load(self, path: Path) -> None:
+        state = ckpt.load(path, map_location=self.device)
+        if "replay" not in state:
+            raise ckpt.CheckpointError(
+                f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
+            )
+        self._resume_state = state  # random state restored last, once everything is built
+        self.learner.load_state_dict(state["learner"])
+        load_replay_state_dict(self.replay, state["replay"])
+        self.counters = Counters(**state["counters"])
+        self.last_eval = dict(state.get("last_eval", {}))
+        self.epsilon.set_env_steps(self.counters.env_steps)

@@ -1,0 +1,196 @@
+"""Value mixers, all in TorchRL's :class:`~torchrl.modules.models.multiagent.Mixer` family.
+
+- :class:`VDNMixer` is TorchRL's, used as is.
+- :class:`QMixer` extends TorchRL's ``QMixer`` with pymarl's two-layer hypernetworks (``hypernet_layers=2``,
+  the paper's default); with ``hypernet_layers=1`` it is TorchRL's mixer unchanged.
+- :class:`DMAQMixer` is QPLEX's ``dmaq`` mixer (duplex dueling with the multi-head attention advantage
+  weights). Besides the chosen values and the state it needs the joint action (one-hot) and each agent's
+  greedy value, so ``forward`` takes four inputs.
+
+Every mixer maps chosen values ``[*B, N, 1]`` (and the state ``[*B, *state_shape]``) to ``[*B, 1]``.
+Wrapped in a :class:`~tensordict.nn.TensorDictModule` they read and write these keys (see
+:func:`mixer_in_keys`)::
+
+    ("agents", "chosen_action_value")   [*B, N, 1]  every mixer
+    "state"                             [*B, S]     QMixer, DMAQMixer
+    ("agents", "action_one_hot")        [*B, N, A]  DMAQMixer
+    ("agents", "max_action_value")      [*B, N, 1]  DMAQMixer
+    "chosen_action_value"               [*B, 1]     output
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.modules.models.multiagent import Mixer, VDNMixer
+from torchrl.modules.models.multiagent import QMixer as TorchRLQMixer
+
+MIXERS = ("qmix", "vdn", "qplex")
+
+
+def _hypernet(in_dim: int, out_dim: int, hidden: int, layers: int, device) -> nn.Module:
+    if layers == 1:
+        return nn.Linear(in_dim, out_dim, device=device)
+    if layers == 2:
+        return nn.Sequential(
+            nn.Linear(in_dim, hidden, device=device), nn.ReLU(), nn.Linear(hidden, out_dim, device=device)
+        )
+    raise ValueError(f"hypernet_layers must be 1 or 2, got {layers}")
+
+
+class QMixer(TorchRLQMixer):
+    """QMIX with pymarl's hypernetworks: ``hyper_w_1`` and ``hyper_w_final`` get ``hypernet_layers`` layers.
+
+    Monotonicity (``dQ_tot/dQ_i >= 0``) comes from TorchRL's ``mix``: absolute hypernetwork weights.
+    """
+
+    def __init__(
+        self,
+        state_shape: tuple[int, ...] | torch.Size,
+        mixing_embed_dim: int,
+        n_agents: int,
+        device=None,
+        hypernet_embed: int = 64,
+        hypernet_layers: int = 2,
+    ) -> None:
+        super().__init__(state_shape, mixing_embed_dim, n_agents, device)
+        self.hypernet_layers = hypernet_layers
+        if hypernet_layers != 1:
+            self.hyper_w_1 = _hypernet(
+                self.state_dim, mixing_embed_dim * n_agents, hypernet_embed, hypernet_layers, device
+            )
+            self.hyper_w_final = _hypernet(
+                self.state_dim, mixing_embed_dim, hypernet_embed, hypernet_layers, device
+            )
+
+
+class DMAQMixer(Mixer):
+    """QPLEX's ``dmaq`` mixer: ``Q_tot = V_tot + A_tot`` with ``V_tot = sum_i Q_i`` after a weighted head and
+    ``A_tot = sum_i (Q_i - maxQ_i).detach() * (lambda_i(s, a) - 1)``.
+
+    The joint argmax of ``Q_tot`` is the agents' own argmaxes (IGM): at greedy actions every advantage is
+    zero and elsewhere it is at most zero, because ``lambda_i > 0`` and the weighted head is increasing.
+
+    Args:
+        state_shape: shape of the global state.
+        n_agents: number of agents.
+        n_actions: number of actions (for the joint-action input of the advantage weights).
+        device: torch device.
+        hypernet_embed: hidden width of the weighted head's hypernetworks.
+        n_kernels: attention heads of the advantage weights.
+    """
+
+    def __init__(
+        self,
+        state_shape: tuple[int, ...] | torch.Size,
+        n_agents: int,
+        n_actions: int,
+        device=None,
+        hypernet_embed: int = 64,
+        n_kernels: int = 4,
+    ) -> None:
+        super().__init__(n_agents=n_agents, needs_state=True, state_shape=tuple(state_shape), device=device)
+        self.n_actions, self.n_kernels = n_actions, n_kernels
+        self.state_dim = int(math.prod(state_shape))
+        # Weighted head: Q_i <- w_i(s) Q_i + v_i(s), w_i > 0.
+        self.hyper_w = _hypernet(self.state_dim, n_agents, hypernet_embed, 2, device)
+        self.hyper_v = _hypernet(self.state_dim, n_agents, hypernet_embed, 2, device)
+        # Advantage weights lambda_i(s, a), n_kernels heads.
+        joint = self.state_dim + n_agents * n_actions
+        self.key_extractors = nn.Linear(self.state_dim, n_kernels, device=device)
+        self.agents_extractors = nn.Linear(self.state_dim, n_kernels * n_agents, device=device)
+        self.action_extractors = nn.Linear(joint, n_kernels * n_agents, device=device)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        if len(inputs) != 4:
+            raise ValueError(
+                "DMAQMixer takes 4 inputs: chosen_action_value [*B, N, 1], state [*B, *state_shape], "
+                f"action_one_hot [*B, N, A], max_action_value [*B, N, 1]; got {len(inputs)}"
+            )
+        chosen, state, action_one_hot, max_value = inputs
+        if state.shape[len(state.shape) - len(self.state_shape) :] != self.state_shape:
+            raise ValueError(
+                f"DMAQMixer expected a state ending in {self.state_shape}, got {tuple(state.shape)}"
+            )
+        for name, value, tail in (
+            ("chosen_action_value", chosen, (self.n_agents, 1)),
+            ("action_one_hot", action_one_hot, (self.n_agents, self.n_actions)),
+            ("max_action_value", max_value, (self.n_agents, 1)),
+        ):
+            if tuple(value.shape[-2:]) != tail:
+                raise ValueError(f"DMAQMixer expected {name} ending in {tail}, got {tuple(value.shape)}")
+        return self.mix(chosen, state, action_one_hot, max_value)
+
+    def advantage_weights(self, state: torch.Tensor, action_one_hot: torch.Tensor) -> torch.Tensor:
+        """``lambda_i(s, a)`` ``[M, N]`` (> 0) for flat ``state [M, S]`` and ``action_one_hot [M, N * A]``."""
+        M, K, N = state.shape[0], self.n_kernels, self.n_agents
+        key = self.key_extractors(state).abs().unsqueeze(-1) + 1e-10  # [M, K, 1]
+        agents = torch.sigmoid(self.agents_extractors(state)).view(M, K, N)
+        action = torch.sigmoid(self.action_extractors(torch.cat([state, action_one_hot], dim=-1))).view(
+            M, K, N
+        )
+        return (key * agents * action).sum(dim=1)
+
+    def mix(
+        self,
+        chosen_action_value: torch.Tensor,
+        state: torch.Tensor,
+        action_one_hot: torch.Tensor | None = None,
+        max_action_value: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        batch = chosen_action_value.shape[:-2]
+        N = self.n_agents
+        s = state.reshape(-1, self.state_dim)
+        q = chosen_action_value.reshape(-1, N)
+        q_max = max_action_value.reshape(-1, N)
+        w = self.hyper_w(s).abs() + 1e-10
+        v = self.hyper_v(s)
+        q = w * q + v
+        q_max = w * q_max + v
+        v_tot = q.sum(dim=-1)
+        lam = self.advantage_weights(s, action_one_hot.reshape(-1, N * self.n_actions))
+        a_tot = ((q - q_max).detach() * (lam - 1.0)).sum(dim=-1)
+        return (v_tot + a_tot).view(*batch, 1)
+
+
+def make_mixer(
+    name: str,
+    n_agents: int,
+    state_shape: Sequence[int],
+    n_actions: int,
+    mixing_embed_dim: int = 32,
+    hypernet_embed: int = 64,
+    hypernet_layers: int = 2,
+    n_kernels: int = 4,
+    device=None,
+) -> Mixer:
+    """Build a mixer by name (``qmix``, ``vdn``, ``qplex``)."""
+    if name == "vdn":
+        return VDNMixer(n_agents=n_agents, device=device)
+    if name == "qmix":
+        return QMixer(tuple(state_shape), mixing_embed_dim, n_agents, device, hypernet_embed, hypernet_layers)
+    if name == "qplex":
+        return DMAQMixer(tuple(state_shape), n_agents, n_actions, device, hypernet_embed, n_kernels)
+    raise ValueError(f"unknown mixer {name!r}; allowed: {', '.join(MIXERS)}")
+
+
+def mixer_in_keys(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> list[NestedKey]:
+    """The tensordict keys a mixer reads, in ``forward``'s order (see the module docstring)."""
+    keys: list[NestedKey] = [(group, "chosen_action_value")]
+    if mixer.needs_state:
+        keys.append(state_key)
+    if isinstance(mixer, DMAQMixer):
+        keys += [(group, "action_one_hot"), (group, "max_action_value")]
+    return keys
+
+
+def mixer_module(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> TensorDictModule:
+    """Wrap a mixer as a TensorDictModule writing the root ``"chosen_action_value"``."""
+    return TensorDictModule(
+        mixer, in_keys=mixer_in_keys(mixer, group, state_key), out_keys=["chosen_action_value"]
+    )

@@ -1,0 +1,193 @@
+"""The value-factorisation TD loss over whole episodes, as a TorchRL :class:`LossModule`.
+
+TorchRL's ``QMixerLoss`` works on single transitions with a feed-forward value network and no double-Q
+target; pymarl-style learners need recurrent agents unrolled over whole episodes, masked greedy choices,
+double-Q targets and optionally TD(lambda). This module does that and reuses TorchRL for the rest: any
+TorchRL :class:`~torchrl.modules.models.multiagent.Mixer` (``VDNMixer``, our ``QMixer`` and ``DMAQMixer``),
+the target parameters of :meth:`LossModule.convert_to_functional` (so ``HardUpdate``/``SoftUpdate`` work),
+and the return estimators of :mod:`torchrl.objectives.value.functional`.
+
+Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.replay.episodes_from_rollout`)::
+
+    observation   [B, T+1, N, obs]   o_0 .. o_T (o_T is the final next observation)
+    action_mask   [B, T+1, N, A]     bool, allowed actions at every step (the last row masks the targets)
+    state         [B, T+1, *S]       s_0 .. s_T
+    action        [B, T+1, N]        a_0 .. a_{T-1}, last row padding
+    reward        [B, T+1, 1]        r_t of the transition t -> t+1, last row padding
+    done          [B, T+1, 1]        the transition ends the episode (truncation or termination)
+    terminated    [B, T+1, 1]        the transition ends in a terminal state (no bootstrap)
+    filled        [B, T+1]           the transition is real (False on padding and on the last row)
+
+Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
+``reward``, ``done``, ``terminated``, ``filled``), so the loss plugs into other TorchRL multi-agent tasks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch.nn import functional as F
+from torchrl.modules.models.multiagent import Mixer
+from torchrl.objectives import LossModule
+from torchrl.objectives.value.functional import td0_return_estimate, td_lambda_return_estimate
+
+from mcrs.models.agent import RecurrentAgent
+from mcrs.models.mixers import DMAQMixer
+
+NEG_INF = -1e10  # "minus infinity" that stays finite under arithmetic (masked actions)
+
+
+def mask_unavailable(q: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
+    """``q`` with unavailable actions set to a huge negative value: never chosen by any argmax."""
+    return q.masked_fill(~action_mask, NEG_INF)
+
+
+class ValueFactorisationLoss(LossModule):
+    """Double-Q TD loss of a mixed team value ``Q_tot = mixer(Q_1(a_1), ..., Q_N(a_N), s)``.
+
+    Args:
+        agent_network: the shared recurrent agent (:class:`RecurrentAgent`).
+        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer` or
+            :class:`~mcrs.models.mixers.DMAQMixer`.
+        gamma: discount factor.
+        td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
+        double_q: pick the bootstrap action with the online network (True) or the target network.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by the loss; change them with :meth:`set_keys`."""
+
+        observation: NestedKey = ("agents", "observation")
+        action: NestedKey = ("agents", "action")
+        action_mask: NestedKey = ("agents", "action_mask")
+        state: NestedKey = "state"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        filled: NestedKey = "filled"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys: tuple[str, ...] = ("loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs")
+
+    agent_network: RecurrentAgent
+    agent_network_params: TensorDictBase
+    target_agent_network_params: TensorDictBase
+    mixer: Mixer
+    mixer_params: TensorDictBase
+    target_mixer_params: TensorDictBase
+
+    def __init__(
+        self,
+        agent_network: RecurrentAgent,
+        mixer: Mixer,
+        *,
+        gamma: float = 0.99,
+        td_lambda: float = 0.0,
+        double_q: bool = True,
+    ) -> None:
+        super().__init__()
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if not 0.0 <= td_lambda <= 1.0:
+            raise ValueError(f"td_lambda must be in [0, 1], got {td_lambda}")
+        self.gamma, self.td_lambda, self.double_q = float(gamma), float(td_lambda), bool(double_q)
+        self.convert_to_functional(agent_network, "agent_network", create_target_params=True)
+        self.convert_to_functional(mixer, "mixer", create_target_params=True)
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        return [keys.observation, keys.action, keys.action_mask, keys.state, keys.reward, keys.done]
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """No TorchRL value estimator object: the returns come from its functional estimators."""
+
+    # ------------------------------------------------------------------ pieces, public for tests and reuse
+    def agent_values(self, episodes: TensorDictBase, target: bool = False) -> torch.Tensor:
+        """Per-agent action values ``[B, T+1, N, A]`` from a zero hidden state (online or target net)."""
+        keys = self.tensor_keys
+        actions = episodes.get(keys.action)
+        last_action = torch.cat([torch.full_like(actions[:, :1], -1), actions[:, :-1]], dim=1)
+        inputs = self.agent_network.build_inputs(episodes.get(keys.observation), last_action)
+        if not target:
+            return self.agent_network.unroll(inputs)
+        with (
+            torch.no_grad(),
+            self.target_agent_network_params.to_module(self.agent_network, preserve_module_state=False),
+        ):
+            return self.agent_network.unroll(inputs)
+
+    def mix(
+        self,
+        chosen: torch.Tensor,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        max_value: torch.Tensor,
+        target: bool = False,
+    ) -> torch.Tensor:
+        """``Q_tot [..., 1]`` from chosen values ``[..., N]`` (online or target mixer parameters)."""
+        args: list[torch.Tensor] = [chosen.unsqueeze(-1)]
+        if self.mixer.needs_state:
+            args.append(state.contiguous())  # TorchRL's mixers view() the state
+        if isinstance(self.mixer, DMAQMixer):
+            args += [F.one_hot(action, self.mixer.n_actions).to(chosen.dtype), max_value.unsqueeze(-1)]
+        if not target:
+            return self.mixer(*args)
+        with torch.no_grad(), self.target_mixer_params.to_module(self.mixer, preserve_module_state=False):
+            return self.mixer(*args)
+
+    def targets(self, reward: torch.Tensor, next_value: torch.Tensor, done, terminated) -> torch.Tensor:
+        """One-step or TD(lambda) targets ``[B, T, 1]`` with TorchRL's return estimators."""
+        if self.td_lambda == 0.0:
+            return td0_return_estimate(self.gamma, next_value, reward, terminated, done=done)
+        return td_lambda_return_estimate(
+            self.gamma, self.td_lambda, next_value, reward, done, terminated, time_dim=-2
+        )
+
+    # ------------------------------------------------------------------ the loss
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys = self.tensor_keys
+        action_mask = tensordict.get(keys.action_mask)
+        actions = tensordict.get(keys.action)[:, :-1]
+        state = tensordict.get(keys.state)
+        reward = tensordict.get(keys.reward)[:, :-1]
+        terminated = tensordict.get(keys.terminated)[:, :-1].bool()
+        done = tensordict.get(keys.done)[:, :-1].bool()
+        filled = tensordict.get(keys.filled, None)
+        filled = torch.ones_like(actions[..., 0], dtype=torch.bool) if filled is None else filled[:, :-1]
+        done = done.clone()
+        done[:, -1] = True  # the batch ends: bootstrap there, never run a lambda-return across it
+
+        q = self.agent_values(tensordict)  # [B, T+1, N, A]
+        chosen = q[:, :-1].gather(-1, actions.unsqueeze(-1)).squeeze(-1)  # [B, T, N]
+        greedy_q = mask_unavailable(q.detach(), action_mask)
+        q_tot = self.mix(chosen, state[:, :-1], actions, greedy_q[:, :-1].max(-1).values)
+
+        with torch.no_grad():
+            target_q = mask_unavailable(self.agent_values(tensordict, target=True)[:, 1:], action_mask[:, 1:])
+            chooser = greedy_q[:, 1:] if self.double_q else target_q
+            next_actions = chooser.argmax(-1)  # [B, T, N]
+            next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
+            # At the chosen actions, each agent's max is its chosen value: QPLEX's advantage vanishes.
+            next_q_tot = self.mix(next_chosen, state[:, 1:], next_actions, next_chosen, target=True)
+            y = self.targets(reward, next_q_tot, done, terminated)
+
+        weight = filled.unsqueeze(-1).to(q_tot.dtype)
+        n_valid = weight.sum().clamp(min=1.0)
+        td_error = (q_tot - y) * weight
+        loss_td = td_error.pow(2).sum() / n_valid
+        return TensorDict(
+            {
+                "loss": loss_td,
+                "loss_td": loss_td.detach(),
+                "q_taken_mean": (q_tot.detach() * weight).sum() / n_valid,
+                "target_mean": (y * weight).sum() / n_valid,
+                "td_error_abs": td_error.detach().abs().sum() / n_valid,
+            },
+            batch_size=[],
+        )

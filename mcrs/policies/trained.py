@@ -1,0 +1,78 @@
+"""A trained agent from an ``mcrs-train`` checkpoint, behind the same interface as the heuristics.
+
+The recurrent state lives in the policy and restarts wherever ``step_count == 0``, so ``env.rollout``,
+``mcrs-eval`` and ``mcrs-render`` run it like any heuristic. Actions are greedy among allowed moves.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+
+from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.core import N_ACTIONS
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.models.agent import RecurrentAgent
+from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint file, or a run directory (its ``checkpoints/last.pt``)."""
+    path = Path(path).expanduser()
+    return ckpt.checkpoint_path(path) if path.is_dir() else path
+
+
+def looks_like_checkpoint(name: str) -> bool:
+    return name.endswith(".pt") or "/" in name or Path(name).expanduser().is_dir()
+
+
+class TrainedPolicy(Policy):
+    """Greedy actions of a trained shared recurrent agent."""
+
+    def __init__(self, config: EnvConfig, agent: RecurrentAgent, seed: int = 0) -> None:
+        super().__init__(config, seed)
+        self.agent = agent.to(config.device).eval()
+        self._hidden: torch.Tensor | None = None
+        self._last_action: torch.Tensor | None = None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, env_config: EnvConfig, seed: int = 0) -> TrainedPolicy:
+        """Load the agent of ``path``; ``env_config`` must have the map and team it was trained on."""
+        path = resolve_checkpoint(path)
+        state = ckpt.load(path)
+        trained = from_mapping(state["config"]["env"])
+        for field in ("width", "height", "n_uavs", "obs_dim"):
+            if getattr(trained, field) != getattr(env_config, field):
+                raise ValueError(
+                    f"checkpoint {path} was trained on {trained.name} ({trained.width}x{trained.height}, "
+                    f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
+                    f"{env_config.height}, {env_config.n_uavs} UAVs): pass env={trained.name}"
+                )
+        model = state["config"]["model"]
+        agent = RecurrentAgent(
+            trained.obs_dim,
+            N_ACTIONS,
+            trained.n_uavs,
+            model["hidden_dim"],
+            model["agent_id"],
+            model["last_action"],
+        )
+        agent.load_state_dict(state["learner"]["agent"])
+        return cls(env_config, agent, seed)
+
+    @torch.no_grad()
+    def act(self, tensordict: TensorDictBase) -> torch.Tensor:
+        obs, mask = tensordict.get(OBSERVATION), tensordict.get(ACTION_MASK)
+        E, N = obs.shape[:2]
+        if self._hidden is None or self._hidden.shape[0] != E:
+            self._hidden = obs.new_zeros(E, N, self.agent.hidden_dim)
+            self._last_action = torch.full((E, N), -1, dtype=torch.int64, device=obs.device)
+        first = (tensordict.get("step_count").view(E) == 0).view(E, 1)
+        hidden = self._hidden.masked_fill(first.unsqueeze(-1), 0.0)
+        last_action = self._last_action.masked_fill(first, -1)
+        q, self._hidden = self.agent.step(self.agent.build_inputs(obs, last_action), hidden)
+        action = q.masked_fill(~mask, float("-inf")).argmax(-1)
+        self._last_action = action
+        return action

@@ -1,0 +1,126 @@
+"""``mcrs-train`` (also ``python -m mcrs.train``): train QMIX, VDN or QPLEX on MCRS-LCR.
+
+    mcrs-train algo=qmix env=map20 seed=3
+    mcrs-train -m algo=qmix,vdn,qplex seed=0,1,2
+    mcrs-train resume=outputs/map10/qmix/2026-11-21_10-00-00_seed0
+
+Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the resolved config),
+``logs/`` (metrics), ``checkpoints/last.pt`` (everything needed to resume) and ``model_<steps>.pt``
+(weights, for ``mcrs-eval checkpoint=...``). See docs/TRAINING.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import ConfigError, register_configs
+
+CONFIG_DIR = str(Path(__file__).parent / "conf")
+#: Fields a resumed run may change (how long, how it reports); everything else must match the run.
+RESUME_MUTABLE = (
+    "train.total_env_steps",
+    "logger",
+    "resume",
+    "threads",
+    "train.eval_interval",
+    "train.checkpoint_interval",
+)
+
+
+def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    if isinstance(saved, dict) and isinstance(current, dict):
+        out: list[str] = []
+        for key in sorted(set(saved) | set(current)):
+            out += _differences(saved.get(key, "<missing>"), current.get(key, "<missing>"), f"{prefix}{key}.")
+        return out
+    name = prefix[:-1]
+    return [] if saved == current else [f"{name}: the run has {saved!r}, this command has {current!r}"]
+
+
+def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Path]:
+    """The config of the run in ``cfg.resume`` with the mutable fields of this command applied.
+
+    Refuses a directory that is not a run, and a command whose explicit overrides contradict the run.
+    """
+    run_dir = Path(str(cfg.resume)).expanduser()
+    saved_path = run_dir / "config.yaml"
+    if not run_dir.is_dir():
+        raise ConfigError(f"resume={cfg.resume}: no such directory")
+    if not saved_path.is_file() or not ckpt.checkpoint_path(run_dir).is_file():
+        raise ConfigError(
+            f"resume={cfg.resume}: not an mcrs-train run directory (needs config.yaml and checkpoints/{ckpt.LAST})"
+        )
+    saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
+    current = OmegaConf.to_container(cfg, resolve=True)
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    conflicts = []
+    for line in _differences(saved, current):
+        name = line.split(":", 1)[0]
+        mutable = any(name == m or name.startswith(m + ".") for m in RESUME_MUTABLE)
+        overridden = any(name == e or name.startswith(e + ".") for e in explicit)
+        if overridden and not mutable:
+            conflicts.append(line)
+    if conflicts:
+        raise ConfigError(
+            f"resume={cfg.resume}: the command contradicts the run's config:\n  - " + "\n  - ".join(conflicts)
+        )
+    merged = OmegaConf.merge(OmegaConf.structured(_schema()), saved)
+    for name in RESUME_MUTABLE:
+        if name in ("resume",):
+            continue
+        if any(name == e or e.startswith(name + ".") or name.startswith(e + ".") for e in explicit):
+            OmegaConf.update(merged, name, OmegaConf.select(cfg, name), merge=False)
+    merged.resume = str(run_dir)
+    return merged, run_dir
+
+
+def _schema():
+    from mcrs.experiment.config import Config
+
+    return Config
+
+
+def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
+    """Train as configured (or resume ``cfg.resume``) and print where the results are."""
+    from mcrs.experiment.trainer import Trainer
+
+    resume = cfg.resume is not None
+    if resume:
+        cfg, run_dir = resume_config(cfg, overrides or [])
+    trainer = Trainer(cfg, run_dir, resume=resume)
+    print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
+    result = trainer.train()
+    reward = result.get("episode_reward", float("nan"))
+    print(
+        f"final greedy evaluation ({cfg.train.eval_episodes} episodes): episode reward {reward:.2f}",
+        flush=True,
+    )
+    print(f"run directory: {run_dir}", flush=True)
+    return result
+
+
+register_configs()
+
+
+@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from mcrs.experiment.trainer import TrainingDiverged
+
+    hydra_cfg = HydraConfig.get()
+    try:
+        result = run(cfg, Path(hydra_cfg.runtime.output_dir), list(hydra_cfg.overrides.task))
+    except (ConfigError, ckpt.CheckpointError, TrainingDiverged) as error:  # one clear message, no traceback
+        raise SystemExit(f"mcrs-train: error: {error}") from None
+    return float(result.get("episode_reward", float("nan")))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""Whole episodes in the replay buffer: the episode layout and the buffer's saved state."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import TransformedEnv
+
+from mcrs.env import MCRSEnv
+from mcrs.experiment.replay import (
+    episodes_from_rollout,
+    load_replay_state_dict,
+    make_episode_buffer,
+    replay_state_dict,
+)
+from mcrs.models.acting import make_acting_policy, recurrent_primer
+from mcrs.models.agent import RecurrentAgent
+
+T = 7
+
+
+@pytest.fixture(scope="module")
+def batch():
+    env = MCRSEnv("map10", num_envs=3, max_steps=T)
+    c = env.config
+    env = TransformedEnv(env, recurrent_primer(3, c.n_uavs, 8))
+    _, exploring, _ = make_acting_policy(RecurrentAgent(c.obs_dim, 8, c.n_uavs, hidden_dim=8), 8)
+    collector = Collector(
+        env, exploring, frames_per_batch=3 * T, total_frames=-1, trust_policy=True,
+        auto_register_policy_transforms=False,
+    )  # fmt: skip
+    out = next(iter(collector))
+    collector.shutdown()
+    return out
+
+
+def test_episode_layout(batch) -> None:
+    ep = episodes_from_rollout(batch)
+    assert ep.batch_size == (3, T + 1)
+    obs = ep["agents", "observation"]
+    assert torch.equal(obs[:, :T], batch["agents", "observation"])
+    assert torch.equal(obs[:, T], batch["next", "agents", "observation"][:, -1])
+    assert torch.equal(ep["state"][:, 1:T], batch["next", "state"][:, :-1])
+    assert torch.equal(ep["reward"][:, :T], batch["next", "reward"])
+    assert torch.equal(ep["agents", "action"][:, :T], batch["agents", "action"])
+    assert ep["filled"][:, :T].all() and not ep["filled"][:, T].any()
+    assert ep["done"][:, T - 1].all() and not ep["done"][:, : T - 1].any()
+    assert ("agents", "rnn_hidden") not in ep.keys(include_nested=True)  # acting state is not stored
+
+
+def test_misaligned_batches_are_refused(batch) -> None:
+    with pytest.raises(ValueError, match="frames_per_batch"):
+        episodes_from_rollout(batch[:, :-1])
+    with pytest.raises(ValueError, match="reset"):
+        episodes_from_rollout(batch[:, 1:])
+    with pytest.raises(ValueError, match="batch_size"):
+        episodes_from_rollout(batch[0])
+
+
+def test_buffer_samples_whole_episodes_and_caps(batch) -> None:
+    buffer = make_episode_buffer(capacity=5, batch_size=4)
+    for _ in range(3):
+        buffer.extend(episodes_from_rollout(batch))
+    assert len(buffer) == 5  # 9 episodes written, the oldest overwritten
+    assert buffer.sample().batch_size == (4, T + 1)
+    with pytest.raises(ValueError, match="capacity"):
+        make_episode_buffer(0, 1)
+
+
+def test_replay_state_round_trip_after_wrap_around() -> None:
+    buffer = make_episode_buffer(capacity=4, batch_size=2)
+    for i in range(6):
+        buffer.extend(
+            TensorDict({"x": torch.full((1, 3), float(i)), ("a", "b"): torch.ones(1, 3, 2)}, [1, 3])
+        )
+    state = replay_state_dict(buffer)
+    restored = make_episode_buffer(capacity=4, batch_size=2)
+    load_replay_state_dict(restored, state)
+    assert len(restored) == 4
+    assert torch.equal(restored[:4]["x"], buffer[:4]["x"])
+    for i in (6, 7):  # the next writes land on the same slots
+        item = TensorDict({"x": torch.full((1, 3), float(i)), ("a", "b"): torch.ones(1, 3, 2)}, [1, 3])
+        buffer.extend(item)
+        restored.extend(item.clone())
+    assert torch.equal(restored[:4]["x"], buffer[:4]["x"])
+    assert state["episodes"]["x"].shape[0] == 4  # only the filled part is saved
+
+
+def test_empty_replay_state() -> None:
+    restored = make_episode_buffer(capacity=4, batch_size=2)
+    load_replay_state_dict(restored, replay_state_dict(make_episode_buffer(capacity=4, batch_size=2)))
+    assert len(restored) == 0

@@ -1,0 +1,156 @@
+"""The training config: every group composes, typos and wrong types fail at start, bad values are named."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from mcrs.experiment.config import ConfigError, validate, validation_errors
+from tests.train_helpers import compose_config
+
+ENVS, ALGOS, LOGGERS, PRESETS = (
+    ("map10", "map15", "map20"),
+    ("qmix", "vdn", "qplex"),
+    ("csv", "wandb", "tensorboard"),
+    ("pymarl", "pymarl2"),
+)
+
+
+COMBINATIONS = [
+    *((env, algo, "csv", "pymarl") for env, algo in itertools.product(ENVS, ALGOS)),
+    *(("map10", "qmix", logger, preset) for logger, preset in itertools.product(LOGGERS, PRESETS)),
+]
+
+
+@pytest.mark.parametrize(("env", "algo", "logger", "preset"), COMBINATIONS)
+def test_every_group_combination_composes_and_validates(
+    env: str, algo: str, logger: str, preset: str
+) -> None:
+    cfg = compose_config(f"env={env}", f"algo={algo}", f"logger={logger}", f"preset={preset}", tiny=False)
+    assert validation_errors(cfg) == []
+    assert (cfg.env.name, cfg.algo.mixer, cfg.logger.backend, cfg.preset) == (env, algo, logger, preset)
+
+
+def test_defaults_are_the_paper_setting() -> None:
+    cfg = compose_config(tiny=False)
+    assert (cfg.env.name, cfg.algo.name, cfg.preset, cfg.logger.backend) == ("map10", "qmix", "pymarl", "csv")
+    t = cfg.train
+    assert (t.batch_episodes, t.replay_episodes, t.optimizer, t.lr, t.eps_anneal_steps) == (
+        32,
+        5000,
+        "rmsprop",
+        5e-4,
+        50_000,
+    )
+    assert (t.target_update_episodes, t.eval_interval, t.eval_episodes, t.total_env_steps) == (
+        200,
+        10_000,
+        32,
+        2_000_000,
+    )
+    assert (cfg.algo.gamma, cfg.algo.td_lambda, cfg.algo.hypernet_layers) == (0.99, 0.0, 2)
+    assert cfg.logger.wandb_mode == "offline"
+
+
+def test_pymarl2_preset() -> None:
+    cfg = compose_config("preset=pymarl2", tiny=False)
+    assert (
+        cfg.train.optimizer,
+        cfg.train.lr,
+        cfg.algo.td_lambda,
+        cfg.train.batch_episodes,
+        cfg.train.num_envs,
+    ) == ("adam", 1e-3, 0.6, 128, 8)
+    cfg = compose_config("preset=pymarl2", "train.lr=0.01", tiny=False)  # the command line wins
+    assert cfg.train.lr == 0.01
+
+
+@pytest.mark.parametrize(
+    "override", ["algo.lrr=1", "train.batch=3", "loger.backend=csv", "model.hiden_dim=3"]
+)
+def test_unknown_keys_fail_at_compose(override: str) -> None:
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)):
+        compose_config(override)
+
+
+@pytest.mark.parametrize(
+    "override", ["train.lr=abc", "train.batch_episodes=1.5", "algo.double_q=maybe", "seed=x"]
+)
+def test_wrong_types_fail_at_compose(override: str) -> None:
+    with pytest.raises((ConfigCompositionException, ValidationError)):
+        compose_config(override)
+
+
+@pytest.mark.parametrize("group", ["algo=foo", "logger=mlflow", "preset=pymarl3", "env=map30"])
+def test_unknown_group_options_list_the_allowed_ones(group: str) -> None:
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config(group)
+    message = str(info.value) + str(info.value.__cause__)
+    assert "Available options" in message
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("algo.mixer=qtran", "algo.mixer='qtran': allowed values are qmix, vdn, qplex"),
+        ("train.optimizer=sgd", "train.optimizer='sgd': allowed values are rmsprop, adam"),
+        ("logger.backend=mlflow", "logger.backend='mlflow': allowed values are csv, wandb, tensorboard"),
+        ("logger.wandb_mode=cloud", "logger.wandb_mode='cloud': allowed values are offline, online"),
+        ("algo.gamma=1.5", "algo.gamma=1.5: must be in [0, 1]"),
+        ("algo.td_lambda=-0.1", "algo.td_lambda=-0.1: must be in [0, 1]"),
+        ("algo.hypernet_layers=3", "algo.hypernet_layers=3: allowed values are 1, 2"),
+        ("train.batch_episodes=0", "train.batch_episodes=0: must be > 0"),
+        ("train.lr=-1", "train.lr=-1.0: must be > 0"),
+        ("train.eval_interval=0", "train.eval_interval=0: must be > 0"),
+        ("train.updates_per_episode=-1", "train.updates_per_episode=-1.0: must be >= 0"),
+        ("train.eps_start=1.5", "train.eps_start=1.5: must be in [0, 1]"),
+        ("train.eps_start=0.01", "train.eps_end=0.05 > train.eps_start=0.01"),
+        ("train.replay_episodes=2", "train.replay_episodes=2 < train.batch_episodes=4"),
+        ("model.hidden_dim=0", "model.hidden_dim=0: must be > 0"),
+        ("device=cuda:7", "device='cuda:7'"),
+        ("device=tpu", "device='tpu'"),
+        ("env.n_uavs=0", "env:"),
+        ("env.comm_range=-1", "comm_range"),
+    ],
+)
+def test_bad_values_are_named(override: str, expected: str) -> None:
+    cfg = compose_config(override)
+    errors = validation_errors(cfg)
+    assert any(expected in e for e in errors), errors
+    with pytest.raises(ConfigError, match="invalid config"):
+        validate(cfg)
+
+
+def test_all_problems_are_reported_at_once() -> None:
+    cfg = compose_config("train.lr=-1", "algo.mixer=x", "model.hidden_dim=0")
+    assert len(validation_errors(cfg)) == 3
+
+
+def test_launcher_configs_compose() -> None:
+    import importlib.util
+
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import MissingConfigException
+
+    from mcrs.train import CONFIG_DIR
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        slurm = compose(config_name="config", overrides=["hydra/launcher=slurm"], return_hydra_config=True)
+        assert slurm.hydra.launcher._target_.endswith("SlurmLauncher")
+        assert slurm.hydra.launcher.cpus_per_task == 2
+        joblib = compose(config_name="config", overrides=["hydra/launcher=joblib"], return_hydra_config=True)
+        assert joblib.hydra.launcher._target_.endswith("JoblibLauncher")
+        if importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is None:
+            # Without `pip install mcrs[ray]` the config names the missing plugin config.
+            with pytest.raises(MissingConfigException, match="hydra/launcher/ray"):
+                compose(
+                    config_name="config", overrides=["hydra/launcher=ray_cluster"], return_hydra_config=True
+                )
+        else:
+            ray = compose(
+                config_name="config", overrides=["hydra/launcher=ray_cluster"], return_hydra_config=True
+            )
+            assert ray.hydra.launcher.ray.remote.num_cpus == 2

@@ -1,0 +1,58 @@
+"""A trained checkpoint as a policy: mcrs-eval and mcrs-render run it like a heuristic."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcrs.env import MCRSEnv, scenario
+from mcrs.evaluate import evaluate_policy
+from mcrs.experiment.trainer import Trainer
+from mcrs.models.acting import recurrent_primer
+from mcrs.policies import make_policy
+from mcrs.policies.trained import TrainedPolicy
+from mcrs.render_episode import render
+from tests.train_helpers import compose_config
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("run")
+    Trainer(compose_config("train.total_env_steps=80"), path).train()
+    return path
+
+
+def test_checkpoint_policy_matches_the_training_greedy_policy(run_dir: Path) -> None:
+    trainer = Trainer(compose_config("train.total_env_steps=80"), run_dir, resume=True)
+    env_config = scenario("map10", max_steps=10, num_envs=3)
+    policy = make_policy(str(run_dir), env_config)
+    assert isinstance(policy, TrainedPolicy)
+    env = MCRSEnv(env_config)
+    env.set_seed(5)
+    ours = env.rollout(10, policy, break_when_any_done=False)
+    from torchrl.envs import TransformedEnv
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    primed = TransformedEnv(MCRSEnv(env_config), recurrent_primer(3, env_config.n_uavs, 16))
+    primed.set_seed(5)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        reference = primed.rollout(10, trainer.greedy, break_when_any_done=False)
+    assert torch.equal(ours["agents", "action"], reference["agents", "action"])
+
+
+def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> None:
+    env_config = scenario("map10", max_steps=10)
+    model = sorted((run_dir / "checkpoints").glob("model_*.pt"))[-1]
+    result = evaluate_policy(env_config, str(model), episodes=3, seed=0)
+    assert result["episode_reward"][1] >= 0
+    paths = render(env_config, str(model), seed=0, out=tmp_path, gif=False)
+    assert all(p.is_file() for p in paths)
+
+
+def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:
+    with pytest.raises(ValueError, match=r"trained on map10.*pass env=map10"):
+        make_policy(str(run_dir), scenario("map20"))
+    with pytest.raises(ValueError, match="unknown policy"):
+        make_policy("greedyy", scenario("map10"))

@@ -1,0 +1,173 @@
+"""End-to-end training: every algorithm runs, logs, checkpoints, resumes identically and refuses bad input."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import ConfigError
+from mcrs.experiment.trainer import Trainer, TrainingDiverged
+from mcrs.train import resume_config, run
+from tests.train_helpers import TINY, compose_config
+
+
+def scalars(run_dir: Path, name: str) -> list[tuple[int, float]]:
+    with open(run_dir / "logs" / "scalars" / f"{name}.csv") as f:
+        return [(int(float(step)), float(value)) for step, value in csv.reader(f)]
+
+
+@pytest.mark.parametrize("algo", ["qmix", "vdn", "qplex"])
+def test_each_algorithm_trains_logs_and_checkpoints(algo: str, tmp_path: Path) -> None:
+    cfg = compose_config(f"algo={algo}")
+    result = Trainer(cfg, tmp_path).train()
+    assert math.isfinite(result["episode_reward"])
+    losses = scalars(tmp_path, "train/loss_td")
+    assert losses and all(math.isfinite(v) for _, v in losses)
+    assert scalars(tmp_path, "train/updates")[-1][1] > 0
+    assert [step for step, _ in scalars(tmp_path, "eval/episode_reward")] == [0, 120, 200]
+    for metric in ("targets_found", "uncertainty", "collisions", "coverage"):
+        assert scalars(tmp_path, f"eval/{metric}")
+    assert scalars(tmp_path, "time/env_steps_per_s")[-1][1] > 0
+    assert (tmp_path / "config.yaml").is_file()
+    state = ckpt.load(ckpt.checkpoint_path(tmp_path))
+    assert state["counters"]["env_steps"] == 200 and state["config"]["algo"]["mixer"] == algo
+    assert (tmp_path / "checkpoints" / "model_000000200.pt").is_file()
+
+
+def test_target_network_is_updated_on_schedule(tmp_path: Path) -> None:
+    trainer = Trainer(
+        compose_config("train.total_env_steps=40", "train.target_update_episodes=1000"), tmp_path
+    )
+    learner = trainer.learner
+    before = learner.loss.target_agent_network_params["fc1", "weight"].clone()
+    trainer.train()
+    after_training = learner.loss.target_agent_network_params["fc1", "weight"]
+    assert torch.equal(before, after_training)  # no target update within 1000 episodes
+    assert not torch.equal(after_training, learner.agent.fc1.weight)  # while the online net learned
+    learner.target_updater.step()
+    assert torch.equal(learner.loss.target_agent_network_params["fc1", "weight"], learner.agent.fc1.weight)
+
+
+def test_resume_gives_the_same_parameters_as_a_straight_run(tmp_path: Path) -> None:
+    straight = Trainer(compose_config("train.total_env_steps=200"), tmp_path / "straight")
+    straight.train()
+    half = Trainer(compose_config("train.total_env_steps=80"), tmp_path / "half")
+    half.train()
+    cfg, run_dir = resume_config(compose_config(f"resume={tmp_path / 'half'}", "train.total_env_steps=200"),
+                                 [f"resume={tmp_path / 'half'}", "train.total_env_steps=200"])  # fmt: skip
+    resumed = Trainer(cfg, run_dir, resume=True)
+    assert resumed.counters.env_steps == 80
+    resumed.train()
+    for name, value in straight.learner.agent.state_dict().items():
+        assert torch.equal(value, resumed.learner.agent.state_dict()[name]), name
+    for name, value in straight.learner.mixer.state_dict().items():
+        assert torch.equal(value, resumed.learner.mixer.state_dict()[name]), name
+    assert straight.counters == resumed.counters
+
+
+def test_resume_refuses_bad_directories_and_contradictions(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no such directory"):
+        resume_config(compose_config(f"resume={tmp_path / 'nope'}"), [])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ConfigError, match="not an mcrs-train run directory"):
+        resume_config(compose_config(f"resume={tmp_path / 'empty'}"), [])
+    Trainer(compose_config("train.total_env_steps=20"), tmp_path / "run").train()
+    overrides = [f"resume={tmp_path / 'run'}", "algo=vdn"]
+    with pytest.raises(ConfigError, match=r"algo\.mixer: the run has 'qmix', this command has 'vdn'"):
+        resume_config(compose_config(*overrides), overrides)
+    # Without explicit overrides the run's own config is used, whatever the defaults say.
+    cfg, _ = resume_config(
+        compose_config(f"resume={tmp_path / 'run'}", tiny=False), [f"resume={tmp_path / 'run'}"]
+    )
+    assert cfg.env.max_steps == 10 and cfg.train.num_envs == 4
+
+
+def test_corrupt_and_foreign_checkpoints_are_refused(tmp_path: Path) -> None:
+    Trainer(compose_config("train.total_env_steps=20"), tmp_path / "run").train()
+    good = ckpt.checkpoint_path(tmp_path / "run")
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[:1000])
+    with pytest.raises(ckpt.CheckpointError, match="cannot be read safely"):
+        ckpt.load(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(ckpt.CheckpointError, match="not an mcrs checkpoint"):
+        ckpt.load(foreign)
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, ("echo pwned",))
+
+    pickled = tmp_path / "evil.pt"
+    torch.save({"format": ckpt.FORMAT, "x": Evil()}, pickled)
+    with pytest.raises(ckpt.CheckpointError, match="cannot be read safely"):
+        ckpt.load(pickled)
+
+
+def test_non_finite_loss_stops_the_run_and_keeps_the_last_good_state(tmp_path: Path) -> None:
+    cfg = compose_config("env.w_uncertainty=1e38", "env.w_discovery=1e38")  # rewards overflow to inf
+    trainer = Trainer(cfg, tmp_path)
+    with pytest.raises(TrainingDiverged, match=r"non-finite loss_td=.* at env step \d+ \(update 1\)"):
+        trainer.train()
+    state = ckpt.load(tmp_path / "checkpoints" / "last_good.pt")
+    assert state["counters"]["updates"] == 0
+
+
+@pytest.mark.parametrize("logger", ["wandb", "tensorboard"])
+def test_other_loggers_write_locally(logger: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    Trainer(compose_config(f"logger={logger}", "train.total_env_steps=20"), tmp_path).train()
+    if logger == "wandb":
+        assert list((tmp_path / "wandb").glob("offline-run-*"))
+    else:
+        assert list((tmp_path / "logs").rglob("events.out.tfevents.*"))
+
+
+def test_run_prints_and_returns_the_final_evaluation(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    result = run(compose_config("train.total_env_steps=20"), tmp_path)
+    assert "episode_reward" in result
+    assert f"run directory: {tmp_path}" in capsys.readouterr().out
+
+
+def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    return subprocess.run(
+        [sys.executable, "-m", "mcrs.train", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_cli_trains_from_any_directory_and_sweeps(tmp_path: Path) -> None:
+    done = cli("-m", *TINY, "train.total_env_steps=20", "algo=qmix,vdn", "seed=0,1", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    runs = sorted(p.name for p in (tmp_path / "outputs" / "multirun").glob("*/*") if p.is_dir())
+    assert runs == ["0_map10_qmix_seed0", "1_map10_qmix_seed1", "2_map10_vdn_seed0", "3_map10_vdn_seed1"]
+
+
+def test_cli_joblib_launcher(tmp_path: Path) -> None:
+    done = cli("-m", *TINY, "train.total_env_steps=20", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+               "seed=0,1", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert len(list((tmp_path / "outputs" / "multirun").glob("*/*/checkpoints/last.pt"))) == 2
+
+
+def test_cli_bad_input_is_one_clear_message(tmp_path: Path) -> None:
+    done = cli(*TINY, "train.lr=-1", "algo.mixer=qtran", cwd=tmp_path)
+    assert done.returncode != 0
+    assert "mcrs-train: error: invalid config" in done.stderr
+    assert "algo.mixer='qtran': allowed values are qmix, vdn, qplex" in done.stderr
+    assert "Traceback" not in done.stderr
+    done = cli(f"resume={tmp_path / 'missing'}", cwd=tmp_path)
+    assert done.returncode != 0 and "no such directory" in done.stderr

@@ -1,0 +1,32 @@
+"""Shared by the training tests: compose the real Hydra config in-process, at a tiny size."""
+
+from __future__ import annotations
+
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from mcrs.train import CONFIG_DIR
+
+TINY = [
+    "env.max_steps=10",
+    "train.num_envs=4",
+    "train.batch_episodes=4",
+    "train.replay_episodes=20",
+    "train.total_env_steps=200",
+    "train.eval_interval=100",
+    "train.eval_episodes=2",
+    "train.checkpoint_interval=100",
+    "train.eps_anneal_steps=100",
+    "train.target_update_episodes=8",
+    "model.hidden_dim=16",
+    "algo.mixing_embed_dim=8",
+    "algo.hypernet_embed=16",
+    "logger.progress_bar=false",
+    "logger.log_interval=40",
+    "threads=1",
+]
+
+
+def compose_config(*overrides: str, tiny: bool = True) -> DictConfig:
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose(config_name="config", overrides=[*(TINY if tiny else []), *overrides])
