@@ -1,5 +1,5 @@
 # Two commands do all the set-up on a fresh machine (see README.md):
-#   make run    create .venv, install mcrs, run the main job (writes to outputs/)
+#   make run    create .venv, install mcrs, run the main job (writes to outputs/); make run ARGS="seed=1"
 #   make test   create .venv, install mcrs with the dev extra, lint and run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -14,8 +14,10 @@ $(BIN)/.installed: pyproject.toml
 
 install: $(BIN)/.installed
 
+ARGS ?=
+
 run: install
-	$(BIN)/mcrs-eval
+	$(BIN)/mcrs-train $(ARGS)
 
 lint: install
 	$(BIN)/ruff check .
@@ -26,6 +28,7 @@ test: install
 
 bench: install
 	$(BIN)/mcrs-bench-env
+	$(BIN)/mcrs-bench-learner
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

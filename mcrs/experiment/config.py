@@ -37,6 +37,7 @@ class AlgoConfig:
     hypernet_embed: int = 64  # hidden width of the hypernetworks (QMIX, QPLEX)
     hypernet_layers: int = 2  # QMIX hypernetwork depth: 1 (TorchRL) or 2 (pymarl)
     qplex_kernels: int = 4  # QPLEX attention heads of the advantage weights
+    qplex_adv_layers: int = 1  # depth of QPLEX's advantage-weight extractors: 1 (SMAC setting) to 3
     gamma: float = 0.99
     td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
     double_q: bool = True
@@ -135,6 +136,8 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     _choice(errors, "logger.wandb_mode", lg.wandb_mode, WANDB_MODES)
     if a.hypernet_layers not in (1, 2):
         errors.append(f"algo.hypernet_layers={a.hypernet_layers}: allowed values are 1, 2")
+    if a.qplex_adv_layers not in (1, 2, 3):
+        errors.append(f"algo.qplex_adv_layers={a.qplex_adv_layers}: allowed values are 1, 2, 3")
     for name in ("mixing_embed_dim", "hypernet_embed", "qplex_kernels"):
         _positive(errors, f"algo.{name}", getattr(a, name))
     for name in ("gamma", "td_lambda"):

@@ -85,6 +85,7 @@ def build_mixer(cfg: DictConfig, env_config: EnvConfig) -> nn.Module:
         hypernet_embed=a.hypernet_embed,
         hypernet_layers=a.hypernet_layers,
         n_kernels=a.qplex_kernels,
+        adv_hypernet_layers=a.qplex_adv_layers,
     )
 
 

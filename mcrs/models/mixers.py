@@ -40,7 +40,15 @@ def _hypernet(in_dim: int, out_dim: int, hidden: int, layers: int, device) -> nn
         return nn.Sequential(
             nn.Linear(in_dim, hidden, device=device), nn.ReLU(), nn.Linear(hidden, out_dim, device=device)
         )
-    raise ValueError(f"hypernet_layers must be 1 or 2, got {layers}")
+    if layers == 3:
+        return nn.Sequential(
+            nn.Linear(in_dim, hidden, device=device),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden, device=device),
+            nn.ReLU(),
+            nn.Linear(hidden, out_dim, device=device),
+        )
+    raise ValueError(f"hypernet_layers must be 1, 2 or 3, got {layers}")
 
 
 class QMixer(TorchRLQMixer):
@@ -83,6 +91,9 @@ class DMAQMixer(Mixer):
         device: torch device.
         hypernet_embed: hidden width of the weighted head's hypernetworks.
         n_kernels: attention heads of the advantage weights.
+        adv_hypernet_layers: depth of the advantage-weight extractors (1, 2 or 3). QPLEX uses 1 on SMAC
+            (``qplex_sc2.yaml``) and 3, with 10 heads, on its matrix games (``qplex.yaml``).
+        adv_hypernet_embed: hidden width of those extractors when deeper than 1.
     """
 
     def __init__(
@@ -93,6 +104,8 @@ class DMAQMixer(Mixer):
         device=None,
         hypernet_embed: int = 64,
         n_kernels: int = 4,
+        adv_hypernet_layers: int = 1,
+        adv_hypernet_embed: int = 64,
     ) -> None:
         super().__init__(n_agents=n_agents, needs_state=True, state_shape=tuple(state_shape), device=device)
         self.n_actions, self.n_kernels = n_actions, n_kernels
@@ -102,9 +115,10 @@ class DMAQMixer(Mixer):
         self.hyper_v = _hypernet(self.state_dim, n_agents, hypernet_embed, 2, device)
         # Advantage weights lambda_i(s, a), n_kernels heads.
         joint = self.state_dim + n_agents * n_actions
-        self.key_extractors = nn.Linear(self.state_dim, n_kernels, device=device)
-        self.agents_extractors = nn.Linear(self.state_dim, n_kernels * n_agents, device=device)
-        self.action_extractors = nn.Linear(joint, n_kernels * n_agents, device=device)
+        L, H = adv_hypernet_layers, adv_hypernet_embed
+        self.key_extractors = _hypernet(self.state_dim, n_kernels, H, L, device)
+        self.agents_extractors = _hypernet(self.state_dim, n_kernels * n_agents, H, L, device)
+        self.action_extractors = _hypernet(joint, n_kernels * n_agents, H, L, device)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         if len(inputs) != 4:
@@ -117,13 +131,22 @@ class DMAQMixer(Mixer):
             raise ValueError(
                 f"DMAQMixer expected a state ending in {self.state_shape}, got {tuple(state.shape)}"
             )
+        batch = chosen.shape[:-2]
+        if state.shape[: state.dim() - len(self.state_shape)] != batch:
+            raise ValueError(
+                f"DMAQMixer: the state's batch dims {tuple(state.shape[: state.dim() - len(self.state_shape)])} "
+                f"differ from chosen_action_value's {tuple(batch)}"
+            )
         for name, value, tail in (
             ("chosen_action_value", chosen, (self.n_agents, 1)),
             ("action_one_hot", action_one_hot, (self.n_agents, self.n_actions)),
             ("max_action_value", max_value, (self.n_agents, 1)),
         ):
-            if tuple(value.shape[-2:]) != tail:
-                raise ValueError(f"DMAQMixer expected {name} ending in {tail}, got {tuple(value.shape)}")
+            if tuple(value.shape[-2:]) != tail or value.shape[:-2] != batch:
+                raise ValueError(
+                    f"DMAQMixer expected {name} of shape {(*batch, *tail)} (batch dims as chosen_action_value), "
+                    f"got {tuple(value.shape)}"
+                )
         return self.mix(chosen, state, action_one_hot, max_value)
 
     def advantage_weights(self, state: torch.Tensor, action_one_hot: torch.Tensor) -> torch.Tensor:
@@ -167,6 +190,7 @@ def make_mixer(
     hypernet_embed: int = 64,
     hypernet_layers: int = 2,
     n_kernels: int = 4,
+    adv_hypernet_layers: int = 1,
     device=None,
 ) -> Mixer:
     """Build a mixer by name (``qmix``, ``vdn``, ``qplex``)."""
@@ -175,7 +199,16 @@ def make_mixer(
     if name == "qmix":
         return QMixer(tuple(state_shape), mixing_embed_dim, n_agents, device, hypernet_embed, hypernet_layers)
     if name == "qplex":
-        return DMAQMixer(tuple(state_shape), n_agents, n_actions, device, hypernet_embed, n_kernels)
+        return DMAQMixer(
+            tuple(state_shape),
+            n_agents,
+            n_actions,
+            device,
+            hypernet_embed,
+            n_kernels,
+            adv_hypernet_layers,
+            hypernet_embed,
+        )
     raise ValueError(f"unknown mixer {name!r}; allowed: {', '.join(MIXERS)}")
 
 

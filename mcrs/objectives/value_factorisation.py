@@ -173,8 +173,10 @@ class ValueFactorisationLoss(LossModule):
             chooser = greedy_q[:, 1:] if self.double_q else target_q
             next_actions = chooser.argmax(-1)  # [B, T, N]
             next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
-            # At the chosen actions, each agent's max is its chosen value: QPLEX's advantage vanishes.
-            next_q_tot = self.mix(next_chosen, state[:, 1:], next_actions, next_chosen, target=True)
+            # QPLEX's learner: the target mixer sees the double-Q actions and the target net's own maxima.
+            next_q_tot = self.mix(
+                next_chosen, state[:, 1:], next_actions, target_q.max(-1).values, target=True
+            )
             y = self.targets(reward, next_q_tot, done, terminated)
 
         weight = filled.unsqueeze(-1).to(q_tot.dtype)

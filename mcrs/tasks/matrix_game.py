@@ -1,0 +1,281 @@
+"""The one-step cooperative matrix game of the QTRAN and QPLEX papers, as a batched TorchRL ``EnvBase``.
+
+Two players pick one of three actions at once and share the payoff::
+
+              b=0   b=1   b=2
+        a=0     8   -12   -12
+        a=1   -12     0     0
+        a=2   -12     0     0
+
+The optimum (0, 0) is surrounded by penalties, so a monotonic mixer (QMIX, VDN) trained on uniformly random
+joint actions settles on a safe sub-optimal action, while QPLEX's duplex dueling mixer can represent the
+whole table and, with its matrix-game settings (:data:`QPLEX_MATRIX_GAME`), finds (0, 0) on most seeds
+(it is seed-sensitive here, as the reference implementations note). We use it as a second, independent TorchRL multi-agent task for our mixers and
+:class:`~mcrs.objectives.ValueFactorisationLoss`: another agent group, another state key, another episode
+length. Keys (``E = num_envs``, ``N`` players, ``A`` actions)::
+
+    ("players", "observation")   [E, N, N]  float32, the player's one-hot id (constant)
+    ("players", "action_mask")   [E, N, A]  bool, every action allowed
+    ("players", "action")        [E, N]     int64 in 0..A-1
+    "global_state"               [E, 2]     float32, one-hot phase: (1, 0) before the move, (0, 1) after
+    "reward"                     [E, 1]     float32, the shared payoff
+    "done" / "terminated" / "truncated"  [E, 1]  bool: every episode terminates after its single step
+
+The env has no ``step_count``: our acting policy needs one, and TorchRL's ``StepCounter`` transform adds it
+(see :func:`make_matrix_game`), as it would for any third-party task.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import Binary, Bounded, Categorical, Composite
+from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
+from torchrl.objectives import HardUpdate
+
+from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
+from mcrs.models.acting import make_acting_policy, recurrent_primer
+from mcrs.models.agent import RecurrentAgent
+from mcrs.models.mixers import make_mixer
+from mcrs.objectives import ValueFactorisationLoss
+
+#: The non-monotonic payoff of QTRAN (Son et al. 2019, table 1) and QPLEX (Wang et al. 2021, table 1).
+PAYOFF = torch.tensor([[8.0, -12.0, -12.0], [-12.0, 0.0, 0.0], [-12.0, 0.0, 0.0]])
+GROUP = "players"
+STATE_KEY = "global_state"
+STEP_KEYS = ((GROUP, "observation"), (GROUP, "action_mask"), STATE_KEY)
+#: QPLEX's own matrix-game mixer settings (``qplex.yaml`` of the QPLEX code): 10 heads of 3-layer advantage
+#: extractors. Our default (1 layer, 4 heads) is its SMAC setting (``qplex_sc2.yaml``), which does not find
+#: (0, 0) here.
+QPLEX_MATRIX_GAME: dict[str, int] = {"n_kernels": 10, "adv_hypernet_layers": 3}
+
+
+class MatrixGameEnv(EnvBase):
+    """A one-step cooperative matrix game for ``N`` players, batched over ``num_envs`` environments.
+
+    Args:
+        num_envs: number of independent games stepped at once.
+        payoff: the shared payoff, a tensor of shape ``[A] * N`` (``N >= 2`` players, ``A`` actions each);
+            entry ``payoff[a_1, ..., a_N]`` is paid for the joint action ``(a_1, ..., a_N)``.
+        device: torch device.
+
+    The dynamics are deterministic, so there is nothing to seed: ``_set_seed`` is a no-op. Random actions
+    (``rand_action``, exploration) come from torch's global generator, seeded with ``torch.manual_seed``.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self, num_envs: int = 1, payoff: torch.Tensor = PAYOFF, device: str | torch.device | None = None
+    ) -> None:
+        payoff = torch.as_tensor(payoff, dtype=torch.float32)
+        if payoff.ndim < 2 or len(set(payoff.shape)) != 1:
+            raise ValueError(f"payoff must have shape [A] * N with N >= 2 players, got {tuple(payoff.shape)}")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self.num_envs, self.n_players, self.n_actions = num_envs, payoff.ndim, payoff.shape[0]
+        self.payoff = payoff.contiguous().to(self.device)
+        # payoff.flatten()[(a * strides).sum()] == payoff[a_1, ..., a_N]: one gather for all envs and players.
+        self._strides = torch.tensor(self.payoff.stride(), dtype=torch.int64, device=self.device)
+        self._make_specs()
+
+    def _make_specs(self) -> None:
+        E, N, A, dev = self.num_envs, self.n_players, self.n_actions, self.device
+        self.observation_spec = Composite(
+            {
+                GROUP: Composite(
+                    observation=Bounded(0.0, 1.0, shape=(E, N, N), dtype=torch.float32, device=dev),
+                    action_mask=Binary(n=A, shape=(E, N, A), dtype=torch.bool, device=dev),
+                    shape=(E, N),
+                    device=dev,
+                ),
+                STATE_KEY: Bounded(0.0, 1.0, shape=(E, 2), dtype=torch.float32, device=dev),
+            },
+            shape=(E,),
+            device=dev,
+        )
+        self.action_spec = Composite(
+            {
+                GROUP: Composite(
+                    action=Categorical(A, shape=(E, N), dtype=torch.int64, device=dev),
+                    shape=(E, N),
+                    device=dev,
+                )
+            },
+            shape=(E,),
+            device=dev,
+        )
+        low, high = self.payoff.min().item(), self.payoff.max().item()
+        self.reward_spec = Composite(
+            reward=Bounded(low, high, shape=(E, 1), dtype=torch.float32, device=dev), shape=(E,), device=dev
+        )
+        done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(
+            done=done, terminated=done.clone(), truncated=done.clone(), shape=(E,), device=dev
+        )
+
+    # ------------------------------------------------------------------ EnvBase hooks
+    def _set_seed(self, seed: int | None) -> None:
+        """Nothing to seed: the game is deterministic."""
+
+    def _observe(self, after_move: bool) -> TensorDict:
+        E, N, A, dev = self.num_envs, self.n_players, self.n_actions, self.device
+        players = TensorDict(
+            {
+                "observation": torch.eye(N, device=dev).expand(E, N, N).clone(),
+                "action_mask": torch.ones(E, N, A, dtype=torch.bool, device=dev),
+            },
+            batch_size=[E, N],
+            device=dev,
+        )
+        phase = torch.zeros(E, 2, device=dev)
+        phase[:, int(after_move)] = 1.0
+        ended = torch.full((E, 1), after_move, dtype=torch.bool, device=dev)
+        return TensorDict(
+            {
+                GROUP: players,
+                STATE_KEY: phase,
+                "done": ended,
+                "terminated": ended.clone(),
+                "truncated": torch.zeros_like(ended),
+            },
+            batch_size=[E],
+            device=dev,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        # Every env is either being reset or has not moved yet (an episode is one step), so the start
+        # observation is right for the whole batch, whatever the "_reset" mask says.
+        return self._observe(after_move=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get((GROUP, "action"))  # [E, N]
+        out = self._observe(after_move=True)
+        out.set("reward", self.payoff.flatten()[(action * self._strides).sum(-1)].unsqueeze(-1))
+        return out
+
+
+def make_matrix_game(
+    num_envs: int = 1, hidden_dim: int = 32, payoff: torch.Tensor = PAYOFF, device: str | torch.device = "cpu"
+) -> TransformedEnv:
+    """The matrix game with what our recurrent acting policy needs: ``step_count`` and its carried state."""
+    base = MatrixGameEnv(num_envs, payoff, device)
+    return TransformedEnv(
+        base,
+        Compose(
+            StepCounter(),
+            recurrent_primer(num_envs, base.n_players, hidden_dim, group=GROUP, device=base.device),
+        ),
+    )
+
+
+def joint_action_values(loss: ValueFactorisationLoss, episodes: TensorDictBase) -> torch.Tensor:
+    """``Q_tot`` of every joint action at the first step of ``episodes[0]``, as a table of shape ``[A] * N``.
+
+    The per-agent values come from the loss's agent network, the maxima from each agent's own argmax (what
+    QPLEX's advantage is measured against), so the table is what greedy acting maximises.
+    """
+    with torch.no_grad():
+        q = loss.agent_values(episodes[:1])[0, 0]  # [N, A]
+        N, A = q.shape
+        joint = torch.stack(torch.unravel_index(torch.arange(A**N, device=q.device), (A,) * N), dim=-1)
+        chosen = q.expand(A**N, N, A).gather(-1, joint.unsqueeze(-1)).squeeze(-1)  # [A^N, N]
+        best = q.max(-1).values.expand(A**N, N)
+        state = episodes.get(loss.tensor_keys.state)[0, 0].expand(A**N, -1)
+        return loss.mix(chosen, state, joint, best).view((A,) * N)
+
+
+def train_on_matrix_game(
+    mixer: str = "qplex",
+    updates: int = 800,
+    seed: int = 0,
+    *,
+    mixer_kwargs: dict[str, Any] | None = None,
+    num_envs: int = 32,
+    batch_episodes: int = 128,
+    updates_per_batch: int = 4,
+    lr: float = 5e-3,
+    grad_clip: float = 10.0,
+    hidden_dim: int = 32,
+    target_update_interval: int = 50,
+    device: str | torch.device = "cpu",
+) -> dict[str, Any]:
+    """Train a value-factorisation learner on the matrix game with uniformly random exploration.
+
+    The whole MCRS pipeline, pointed at other keys: TorchRL ``Collector`` with our acting policy (group
+    ``"players"``, epsilon 1 throughout, the standard protocol for this game), :func:`episodes_from_rollout`,
+    a TorchRL replay buffer, :class:`ValueFactorisationLoss` with :meth:`~LossModule.set_keys`, ``HardUpdate``.
+    ``mixer_kwargs`` go to :func:`~mcrs.models.mixers.make_mixer` (e.g. :data:`QPLEX_MATRIX_GAME`).
+
+    Returns a dict with the greedy joint action of the trained agents (``greedy_action``), its ``Q_tot``
+    (``greedy_q_tot``) and payoff (``greedy_payoff``), the whole ``q_tot`` table, its mean squared error to
+    the payoff (``table_mse``: what uniform exploration makes the loss estimate), the last batch's ``loss``
+    and the wall-clock ``seconds``.
+    """
+    start = time.perf_counter()
+    torch.manual_seed(seed)
+    env = make_matrix_game(num_envs, hidden_dim, device=device)
+    base: MatrixGameEnv = env.base_env
+    N, A = base.n_players, base.n_actions
+    agent = RecurrentAgent(N, A, N, hidden_dim, agent_id=False, last_action=True).to(device)  # obs = id
+    state_shape = base.observation_spec[STATE_KEY].shape[1:]
+    mix = make_mixer(mixer, N, state_shape, A, device=device, **(mixer_kwargs or {}))
+    loss = ValueFactorisationLoss(agent, mix, gamma=0.99, td_lambda=0.0, double_q=True)
+    loss.set_keys(
+        observation=(GROUP, "observation"),
+        action=(GROUP, "action"),
+        action_mask=(GROUP, "action_mask"),
+        state=STATE_KEY,
+    )
+    greedy, exploring, _ = make_acting_policy(agent, A, eps_start=1.0, eps_end=1.0, group=GROUP)
+    params = [*agent.parameters(), *mix.parameters()]
+    optimizer = torch.optim.Adam(params, lr=lr)
+    target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval)
+    replay = make_episode_buffer(capacity=4096, batch_size=batch_episodes, device=device)
+    collector = Collector(
+        env,
+        exploring,
+        frames_per_batch=num_envs,  # one step per env: every batch row is one whole episode
+        total_frames=-1,
+        device=device,
+        trust_policy=True,
+        auto_register_policy_transforms=False,
+    )
+
+    def to_episodes(batch: TensorDictBase) -> TensorDictBase:
+        return episodes_from_rollout(batch, step_keys=STEP_KEYS, action_key=(GROUP, "action"))
+
+    last = torch.tensor(float("nan"))
+    try:
+        batches = iter(collector)
+        for update in range(updates):
+            if update % updates_per_batch == 0:
+                replay.extend(to_episodes(next(batches)))
+            out = loss(replay.sample())
+            optimizer.zero_grad(set_to_none=True)
+            out["loss"].backward()
+            nn.utils.clip_grad_norm_(params, grad_clip)
+            optimizer.step()
+            target_updater.step()
+            last = out["loss"].detach()
+    finally:
+        collector.shutdown()
+
+    with torch.no_grad():
+        rollout = env.rollout(1, greedy)  # [E, 1]: the trained agents' greedy move
+    q_tot = joint_action_values(loss, to_episodes(rollout))
+    greedy_action = tuple(rollout.get((GROUP, "action"))[0, 0].tolist())
+    return {
+        "mixer": mixer,
+        "greedy_action": greedy_action,
+        "greedy_q_tot": float(q_tot[greedy_action]),
+        "greedy_payoff": float(base.payoff[greedy_action]),
+        "q_tot": q_tot,
+        "table_mse": float((q_tot - base.payoff).pow(2).mean()),
+        "loss": float(last),
+        "seconds": time.perf_counter() - start,
+    }
