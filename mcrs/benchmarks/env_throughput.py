@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from mcrs.benchmarks.common import load_average, pass_fail
 from mcrs.env.config import SCENARIOS, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
@@ -190,18 +191,6 @@ def measure_memory(map_name: str, num_envs: int, device: torch.device, steps: in
     return None if after is None else after - before
 
 
-def _load_average() -> str:
-    """The 1-minute load average: other processes on the machine skew every figure, so show it."""
-    try:
-        return f"{os.getloadavg()[0]:.2f}"
-    except OSError:
-        return "n/a"
-
-
-def _verdict(ok: bool) -> str:
-    return "PASS" if ok else "FAIL"
-
-
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="mcrs-bench-env",
@@ -250,7 +239,7 @@ def _run(args: argparse.Namespace) -> None:
     goals: list[str] = []
     print(
         f"MCRS environment benchmark: device={device}, torch threads={torch.get_num_threads()}, "
-        f"cpus={os.cpu_count()}, load average {_load_average()}\n"
+        f"cpus={os.cpu_count()}, load average {load_average()}\n"
         f"each row: best of up to {REPEATS} timed runs of whole episodes, ~{args.seconds:g} s in all per MCRSEnv row; "
         "PettingZoo loop: one env at a time, 1 torch thread",
         flush=True,
@@ -276,10 +265,10 @@ def _run(args: argparse.Namespace) -> None:
                 f"{what} {measured / GIB:+.3f} GiB",
                 flush=True,
             )
-            measured_text = f"measured {measured / GIB:+.3f} GiB {_verdict(measured / GIB <= GOAL_GIB)}"
+            measured_text = f"measured {measured / GIB:+.3f} GiB {pass_fail(measured / GIB <= GOAL_GIB)}"
         goals.append(
             f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs <= {GOAL_GIB:g} GiB: projected {projected:.3f} GiB "
-            f"{_verdict(projected <= GOAL_GIB)}; {measured_text}"
+            f"{pass_fail(projected <= GOAL_GIB)}; {measured_text}"
         )
 
     print(f"\n{'map':<6} {'path':<10} {'num_envs':>8} {'env-steps/s':>13} {'agent-steps/s':>14}", flush=True)
@@ -294,7 +283,7 @@ def _run(args: argparse.Namespace) -> None:
     print(flush=True)
     for name in args.maps:
         ratio = rows[name, "MCRSEnv", largest].env_steps / rows[name, "PettingZoo", 1].env_steps
-        verdict = _verdict(ratio >= GOAL_RATIO)
+        verdict = pass_fail(ratio >= GOAL_RATIO)
         judged = largest == GOAL_NUM_ENVS
         note = f"goal >= {GOAL_RATIO:g}x: {verdict}" if judged else f"goal judged at {GOAL_NUM_ENVS}"
         print(f"ratio {name}: MCRSEnv@{largest} / PettingZoo loop = {ratio:,.1f}x  ({note})", flush=True)
@@ -311,7 +300,7 @@ def _run(args: argparse.Namespace) -> None:
         goals.insert(
             0,
             f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s ({GOAL_AGENT_STEPS:,} agent-steps/s): "
-            f"{goal_row.env_steps:,.0f} env-steps/s, {goal_row.agent_steps:,.0f} agent-steps/s {_verdict(ok)}",
+            f"{goal_row.env_steps:,.0f} env-steps/s, {goal_row.agent_steps:,.0f} agent-steps/s {pass_fail(ok)}",
         )
     print("\ngoals:", flush=True)
     for line in goals:

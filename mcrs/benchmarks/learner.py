@@ -43,6 +43,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torch.nn import functional as F
 
+from mcrs.benchmarks.common import load_average, pass_fail
 from mcrs.env.config import SCENARIOS, EnvConfig, from_mapping
 from mcrs.env.core import N_ACTIONS
 
@@ -458,15 +459,6 @@ def measure_loop(map_name: str, quick: bool, loop_steps: int, threads: int) -> L
 
 
 # ---------------------------------------------------------------------------------------- the command
-def _load_average() -> str:
-    try:
-        return f"{os.getloadavg()[0]:.2f}"
-    except OSError:
-        return "n/a"
-
-
-def _verdict(ok: bool) -> str:
-    return "PASS" if ok else "FAIL"
 
 
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -524,7 +516,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
     goals: list[str] = []
     print(
         f"MCRS learner benchmark: device=cpu, torch threads={torch.get_num_threads()}, cpus={os.cpu_count()}, "
-        f"load average {_load_average()}\n"
+        f"load average {load_average()}\n"
         f"command: {command}\n"
         "preset pymarl: QMIX (2-layer hypernets), 32-episode batches, RMSprop lr 5e-4, double Q, one-step "
         f"targets, grad clip 10{QUICK_NOTE if args.quick else ''}\n"
@@ -553,7 +545,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
                 f"{name:<6} {label:<10} {sample * 1e3:>10.2f} {update * 1e3:>10.2f} {(sample + update) * 1e3:>10.2f}"
             )
         verdict = (
-            _verdict(times.ratio <= GOAL_RATIO and agreement.agree) if judged else "not judged (--quick)"
+            pass_fail(times.ratio <= GOAL_RATIO and agreement.agree) if judged else "not judged (--quick)"
         )
         print(
             f"ratio {name}: ours / reference = {times.ratio:.2f}x per update (median of {times.pairs} "
@@ -596,7 +588,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
             if name == GOAL_MAP and judged:
                 goals.append(
                     f"{name} {GOAL_STEPS / 1e6:g}M env steps <= {GOAL_HOURS:g} h: {hours_eval:.2f} h "
-                    f"{_verdict(hours_eval <= GOAL_HOURS)} (loop {hours:.2f} h + evaluation every "
+                    f"{pass_fail(hours_eval <= GOAL_HOURS)} (loop {hours:.2f} h + evaluation every "
                     f"{r.eval_interval:,} steps; checkpoints not included)"
                 )
     if judged:
