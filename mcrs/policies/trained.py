@@ -19,9 +19,13 @@ from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint file, or a run directory (its ``checkpoints/last.pt``)."""
+    """A checkpoint file, or a run directory: its latest ``model_<steps>.pt`` (weights only, small),
+    else ``last.pt``."""
     path = Path(path).expanduser()
-    return ckpt.checkpoint_path(path) if path.is_dir() else path
+    if not path.is_dir():
+        return path
+    weights = sorted((path / "checkpoints").glob("model_*.pt"))
+    return weights[-1] if weights else ckpt.checkpoint_path(path)
 
 
 def looks_like_checkpoint(name: str) -> bool:
