@@ -108,12 +108,18 @@ class ValueFactorisationLoss(LossModule):
         """No TorchRL value estimator object: the returns come from its functional estimators."""
 
     # ------------------------------------------------------------------ pieces, public for tests and reuse
-    def agent_values(self, episodes: TensorDictBase, target: bool = False) -> torch.Tensor:
-        """Per-agent action values ``[B, T+1, N, A]`` from a zero hidden state (online or target net)."""
+    def agent_inputs(self, episodes: TensorDictBase) -> torch.Tensor:
+        """The agents' inputs ``[B, T+1, N, in]``: observations with the previous actions (and ids)."""
         keys = self.tensor_keys
         actions = episodes.get(keys.action)
         last_action = torch.cat([torch.full_like(actions[:, :1], -1), actions[:, :-1]], dim=1)
-        inputs = self.agent_network.build_inputs(episodes.get(keys.observation), last_action)
+        return self.agent_network.build_inputs(episodes.get(keys.observation), last_action)
+
+    def agent_values(
+        self, episodes: TensorDictBase, target: bool = False, inputs: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Per-agent action values ``[B, T+1, N, A]`` from a zero hidden state (online or target net)."""
+        inputs = self.agent_inputs(episodes) if inputs is None else inputs
         if not target:
             return self.agent_network.unroll(inputs)
         with (
@@ -153,31 +159,34 @@ class ValueFactorisationLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
         action_mask = tensordict.get(keys.action_mask)
-        actions = tensordict.get(keys.action)[:, :-1]
         state = tensordict.get(keys.state)
         reward = tensordict.get(keys.reward)[:, :-1]
         terminated = tensordict.get(keys.terminated)[:, :-1].bool()
         done = tensordict.get(keys.done)[:, :-1].bool()
         filled = tensordict.get(keys.filled, None)
-        filled = torch.ones_like(actions[..., 0], dtype=torch.bool) if filled is None else filled[:, :-1]
+        filled = torch.ones_like(reward[..., 0], dtype=torch.bool) if filled is None else filled[:, :-1]
         done = done.clone()
         done[:, -1] = True  # the batch ends: bootstrap there, never run a lambda-return across it
 
-        q = self.agent_values(tensordict)  # [B, T+1, N, A]
-        chosen = q[:, :-1].gather(-1, actions.unsqueeze(-1)).squeeze(-1)  # [B, T, N]
+        # Both mixers run over all T+1 states (the online one uses rows 0..T-1, the target one rows 1..T):
+        # slicing [B, T+1, S] would make TorchRL's mixers copy the state, which costs more than one row.
+        all_actions = tensordict.get(keys.action)  # [B, T+1, N], the last row is padding
+        inputs = self.agent_inputs(tensordict)  # built once for the online and the target network
+        q = self.agent_values(tensordict, inputs=inputs)  # [B, T+1, N, A]
+        chosen = q.gather(-1, all_actions.unsqueeze(-1)).squeeze(-1)
         greedy_q = mask_unavailable(q.detach(), action_mask)
-        q_tot = self.mix(chosen, state[:, :-1], actions, greedy_q[:, :-1].max(-1).values)
+        q_tot = self.mix(chosen, state, all_actions, greedy_q.max(-1).values)[:, :-1]  # [B, T, 1]
 
         with torch.no_grad():
-            target_q = mask_unavailable(self.agent_values(tensordict, target=True)[:, 1:], action_mask[:, 1:])
-            chooser = greedy_q[:, 1:] if self.double_q else target_q
-            next_actions = chooser.argmax(-1)  # [B, T, N]
+            target_q = mask_unavailable(
+                self.agent_values(tensordict, target=True, inputs=inputs), action_mask
+            )
+            chooser = greedy_q if self.double_q else target_q
+            next_actions = chooser.argmax(-1)  # [B, T+1, N]: the bootstrap action at every state
             next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
             # QPLEX's learner: the target mixer sees the double-Q actions and the target net's own maxima.
-            next_q_tot = self.mix(
-                next_chosen, state[:, 1:], next_actions, target_q.max(-1).values, target=True
-            )
-            y = self.targets(reward, next_q_tot, done, terminated)
+            next_q_tot = self.mix(next_chosen, state, next_actions, target_q.max(-1).values, target=True)
+            y = self.targets(reward, next_q_tot[:, 1:], done, terminated)
 
         weight = filled.unsqueeze(-1).to(q_tot.dtype)
         n_valid = weight.sum().clamp(min=1.0)
