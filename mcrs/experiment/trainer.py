@@ -195,7 +195,8 @@ class Trainer:
             auto_register_policy_transforms=False,
         )
         if resume:  # last: building the collector may draw random numbers
-            rng = self._resume_state.pop("rng")
+            rng = self._resume_rng
+            del self._resume_rng
             torch.set_rng_state(rng["torch"].cpu())
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
@@ -352,7 +353,8 @@ class Trainer:
             raise ckpt.CheckpointError(
                 f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
             )
-        self._resume_state = state  # random state restored last, once everything is built
+        self._resume_rng = state["rng"]  # restored last, once everything is built (not the whole state:
+        # it holds a copy of the replay buffer)
         self.learner.load_state_dict(state["learner"])
         load_replay_state_dict(self.replay, state["replay"])
         self.counters = Counters(**state["counters"])
