@@ -18,7 +18,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.config import ConfigError, register_configs
+from mcrs.experiment.config import Config, ConfigError, register_configs
 
 CONFIG_DIR = str(Path(__file__).parent / "conf")
 #: Fields a resumed run may change (how long, how it reports); everything else must match the run.
@@ -30,6 +30,10 @@ RESUME_MUTABLE = (
     "train.eval_interval",
     "train.checkpoint_interval",
 )
+
+
+def _is_mutable(name: str) -> bool:
+    return any(name == m or name.startswith(m + ".") for m in RESUME_MUTABLE)
 
 
 def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
@@ -61,28 +65,19 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
     conflicts = []
     for line in _differences(saved, current):
         name = line.split(":", 1)[0]
-        mutable = any(name == m or name.startswith(m + ".") for m in RESUME_MUTABLE)
         overridden = any(name == e or name.startswith(e + ".") for e in explicit)
-        if overridden and not mutable:
+        if overridden and not _is_mutable(name):
             conflicts.append(line)
     if conflicts:
         raise ConfigError(
             f"resume={cfg.resume}: the command contradicts the run's config:\n  - " + "\n  - ".join(conflicts)
         )
-    merged = OmegaConf.merge(OmegaConf.structured(_schema()), saved)
-    for name in RESUME_MUTABLE:
-        if name in ("resume",):
-            continue
-        if any(name == e or e.startswith(name + ".") or name.startswith(e + ".") for e in explicit):
-            OmegaConf.update(merged, name, OmegaConf.select(cfg, name), merge=False)
+    merged = OmegaConf.merge(OmegaConf.structured(Config), saved)
+    for key in explicit:  # exactly what the command line set, e.g. logger.progress_bar, not all of logger
+        if _is_mutable(key) and key != "resume":
+            OmegaConf.update(merged, key, OmegaConf.select(cfg, key), merge=False)
     merged.resume = str(run_dir)
     return merged, run_dir
-
-
-def _schema():
-    from mcrs.experiment.config import Config
-
-    return Config
 
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:

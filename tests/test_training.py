@@ -83,6 +83,10 @@ def test_resume_refuses_bad_directories_and_contradictions(tmp_path: Path) -> No
     overrides = [f"resume={tmp_path / 'run'}", "algo=vdn"]
     with pytest.raises(ConfigError, match=r"algo\.mixer: the run has 'qmix', this command has 'vdn'"):
         resume_config(compose_config(*overrides), overrides)
+    # A mutable override changes exactly its own field.
+    overrides = [f"resume={tmp_path / 'run'}", "logger.log_interval=7", "train.total_env_steps=40"]
+    cfg, _ = resume_config(compose_config(*overrides, "logger.progress_bar=true", tiny=False), overrides)
+    assert (cfg.logger.log_interval, cfg.logger.progress_bar, cfg.train.total_env_steps) == (7, False, 40)
     # Without explicit overrides the run's own config is used, whatever the defaults say.
     cfg, _ = resume_config(
         compose_config(f"resume={tmp_path / 'run'}", tiny=False), [f"resume={tmp_path / 'run'}"]
