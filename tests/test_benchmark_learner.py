@@ -29,6 +29,8 @@ def test_quick_run_prints_agreement_update_rows_ratio_and_loop(capsys: pytest.Ca
         rf"^ratio map10: ours / reference = {NUMBER}x per update .*goal <= 1.15x", out, flags=re.M
     )
     assert ratio is not None and float(ratio.group(1)) > 0, out
+    collect = re.search(rf"^map10  1 env {NUMBER} ms/step, 32 envs {NUMBER} ms/step", out, flags=re.M)
+    assert collect is not None and float(collect.group(1)) > 0 and float(collect.group(2)) > 0, out
     loop = re.search(
         rf"^map10\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}", out, flags=re.M
     )

@@ -461,6 +461,35 @@ def measure_loop(map_name: str, quick: bool, loop_steps: int, threads: int) -> L
 # ---------------------------------------------------------------------------------------- the command
 
 
+def collector_step_seconds(env_config: EnvConfig, num_envs: int, batches: int) -> float:
+    """Seconds per collector step (env step, recurrent policy, exploration, TorchRL bookkeeping) for
+    ``num_envs`` environments at once: why the presets collect many episodes per batch."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import TransformedEnv
+
+    from mcrs.env.torchrl_env import MCRSEnv
+    from mcrs.models.acting import make_acting_policy, recurrent_primer
+    from mcrs.models.agent import RecurrentAgent
+
+    cfg = env_config.replace(num_envs=num_envs)
+    env = TransformedEnv(MCRSEnv(cfg), recurrent_primer(num_envs, cfg.n_uavs, 64))
+    agent = RecurrentAgent(cfg.obs_dim, N_ACTIONS, cfg.n_uavs)
+    _, exploring, _ = make_acting_policy(agent, N_ACTIONS)
+    collector = Collector(
+        env, exploring, frames_per_batch=num_envs * cfg.max_steps, total_frames=-1, trust_policy=True,
+        auto_register_policy_transforms=False,
+    )  # fmt: skip
+    try:
+        batches_iter = iter(collector)
+        next(batches_iter)  # warm-up
+        start = time.perf_counter()
+        for _ in range(batches):
+            next(batches_iter)
+        return (time.perf_counter() - start) / (batches * cfg.max_steps)
+    finally:
+        collector.shutdown()
+
+
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="mcrs-bench-learner",
@@ -559,6 +588,17 @@ def _run(args: argparse.Namespace, command: str) -> None:
             )
 
     if args.loop_steps:
+        print(
+            "\ncollector step (env + recurrent policy + exploration), 1 env vs 32 envs at once:", flush=True
+        )
+        for name in args.maps:
+            env_config = from_mapping(compose_config(name, args.quick).env)
+            one, many = (collector_step_seconds(env_config, e, 1 if args.quick else 3) for e in (1, 32))
+            print(
+                f"{name:<6} 1 env {one * 1e3:.2f} ms/step, 32 envs {many * 1e3:.2f} ms/step "
+                f"({many / 32 * 1e3:.3f} ms per env step)",
+                flush=True,
+            )
         print(
             "\ntraining loop (the real Trainer, pymarl preset, csv logger, no progress bar, no checkpoints): "
             "steady state from the end of the first collector batch to the end of the last;\n"
