@@ -42,6 +42,14 @@ def test_each_algorithm_trains_logs_and_checkpoints(algo: str, tmp_path: Path) -
     assert (tmp_path / "checkpoints" / "model_000000200.pt").is_file()
 
 
+@pytest.mark.parametrize(("per_episode", "expected"), [(0.25, 5), (0.0, 0), (2.0, 40)])
+def test_updates_per_collected_episode(per_episode: float, expected: int, tmp_path: Path) -> None:
+    # 200 steps of 10-step episodes in batches of 4 envs: 5 batches of 4 episodes, all of them trainable.
+    trainer = Trainer(compose_config(f"train.updates_per_episode={per_episode}"), tmp_path)
+    trainer.train()
+    assert trainer.counters.updates == expected
+
+
 def test_target_network_is_updated_on_schedule(tmp_path: Path) -> None:
     trainer = Trainer(
         compose_config("train.total_env_steps=40", "train.target_update_episodes=1000"), tmp_path

@@ -62,6 +62,26 @@ class Counters:
     next_log: int = 0
 
 
+def gradient_step(
+    loss: torch.Tensor,
+    optimizer: torch.optim.Optimizer,
+    params: list[nn.Parameter],
+    grad_clip: float,
+    step: int,
+) -> torch.Tensor:
+    """Backward, clip, step; returns the gradient norm. Raises :class:`TrainingDiverged` before the weights
+    change when the loss or the gradient norm is NaN or infinite (``step`` names where)."""
+    if not torch.isfinite(loss):
+        raise TrainingDiverged(f"non-finite loss_td={loss.item()} at env step {step}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = nn.utils.clip_grad_norm_(params, grad_clip)
+    if not torch.isfinite(grad_norm):
+        raise TrainingDiverged(f"non-finite gradient norm={grad_norm.item()} at env step {step}")
+    optimizer.step()
+    return grad_norm
+
+
 def batch_seed(seed: int, iteration: int) -> int:
     """Seed of the environments of collector batch ``iteration`` (a run-local, reproducible stream)."""
     return (seed * 1_000_003 + iteration) % (2**63)
@@ -115,14 +135,7 @@ class Learner:
     def update(self, batch, step: int) -> dict[str, torch.Tensor]:
         """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
         out = self.loss(batch)
-        if not torch.isfinite(out["loss"]):
-            raise TrainingDiverged(f"non-finite loss_td={out['loss'].item()} at env step {step}")
-        self.optimizer.zero_grad(set_to_none=True)
-        out["loss"].backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.params, self.grad_clip)
-        if not torch.isfinite(grad_norm):
-            raise TrainingDiverged(f"non-finite gradient norm={grad_norm.item()} at env step {step}")
-        self.optimizer.step()
+        grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step)
         return {**{k: v.detach() for k, v in out.items() if k != "loss"}, "grad_norm": grad_norm.detach()}
 
     def state_dict(self) -> dict[str, Any]:

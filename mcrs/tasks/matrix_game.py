@@ -32,13 +32,13 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import Binary, Bounded, Categorical, Composite
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from torchrl.objectives import HardUpdate
 
 from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
+from mcrs.experiment.trainer import gradient_step
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
@@ -256,10 +256,7 @@ def train_on_matrix_game(
             if update % updates_per_batch == 0:
                 replay.extend(to_episodes(next(batches)))
             out = loss(replay.sample())
-            optimizer.zero_grad(set_to_none=True)
-            out["loss"].backward()
-            nn.utils.clip_grad_norm_(params, grad_clip)
-            optimizer.step()
+            gradient_step(out["loss"], optimizer, params, grad_clip, step=update)
             target_updater.step()
             last = out["loss"].detach()
     finally:
