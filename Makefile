@@ -1,5 +1,5 @@
 # Two commands do all the set-up on a fresh machine (see README.md):
-#   make run    create .venv, install mcrs, run the main job (writes to outputs/); make run ARGS="seed=1"
+#   make run    create .venv, install mcrs, train CNN-SEMU on map10 (writes to outputs/); make run ARGS="seed=1"
 #   make test   create .venv, install mcrs with the dev extra, lint and run the test suite
 PYTHON ?= python3
 VENV ?= .venv

@@ -27,6 +27,20 @@ TINY = [
 ]
 
 
-def compose_config(*overrides: str, tiny: bool = True) -> DictConfig:
+#: Memory settings that fit the tiny runs (a small buffer, phi trained twice in 200 env steps).
+TINY_MEMORY = [
+    "algo.memory.capacity=500",
+    "algo.memory.embedding_interval=80",
+    "algo.memory.embedding_samples=64",
+    "algo.memory.embedding_batch=32",
+    "algo.memory.hidden_dim=16",
+    "algo.memory.cnn_channels=[2,4,4]",
+]
+
+
+def compose_config(*overrides: str, tiny: bool = True, algo: str = "qmix") -> DictConfig:
+    """The config of ``overrides``; ``algo`` is used unless an override picks one (the suite's default is
+    QMIX, the cheapest; ``mcrs-train``'s own default is CNN-SEMU)."""
+    chosen = [] if any(o.startswith("algo=") for o in overrides) else [f"algo={algo}"]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return compose(config_name="config", overrides=[*(TINY if tiny else []), *overrides])
+        return compose(config_name="config", overrides=[*chosen, *(TINY if tiny else []), *overrides])

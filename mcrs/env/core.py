@@ -59,6 +59,7 @@ class StepResult:
     action_mask: torch.Tensor  # [E, N, 8] bool
     state: torch.Tensor  # [E, state_dim]
     state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
+    state_counts: torch.Tensor  # [E, cells, 2] int: global (positive, negative) detection counts per cell
     position: torch.Tensor  # [E, N, 2] int64
     reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
     reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
@@ -461,6 +462,7 @@ class MCRSCore:
             action_mask=self._mask.clone(),
             state=state,
             state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
+            state_counts=self.global_counts.view(E, self.n_cells, 2).clone(),
             position=self.uav_pos.clone(),
             reading=self.reading.clone(),
             reward=terms.sum(-1),

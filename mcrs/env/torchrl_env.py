@@ -9,6 +9,9 @@ Keys (``E = num_envs``, ``N = n_uavs``)::
     ("agents", "position")      [E, N, 2]        int64 cell (x, y)
     "state"                     [E, state_dim]   float32, paper eq. 22 (table-2 dimension)
     "state_map"                 [E, 2, L1, L2]   float32, global m(U) and m(F) as an image
+    "state_counts"              [E, L1*L2, 2]    int16, global (positive, negative) detection counts per
+                                                 cell: the state's maps are a function of them (compact
+                                                 states of the episodic memory)
     "step_count"                [E, 1]           int64
     "reward"                    [E, 1]           float32 team reward (r1 + r2 + r3 + r4)
     "reward_terms"              [E, 4]           float32 (r1, r2, r3, r4), for analysis
@@ -75,6 +78,13 @@ class MCRSEnv(EnvBase):
         root = {
             "state": Bounded(-1.0, 1.0, shape=(E, c.state_dim), dtype=torch.float32, device=dev),
             "state_map": Bounded(0.0, 1.0, shape=(E, 2, c.width, c.height), dtype=torch.float32, device=dev),
+            "state_counts": Bounded(
+                0,
+                c.n_uavs * (c.max_steps + 1),
+                shape=(E, c.width * c.height, 2),
+                dtype=self.core.global_counts.dtype,
+                device=dev,
+            ),
             "step_count": Bounded(0, c.max_steps, shape=(E, 1), dtype=torch.int64, device=dev),
             "reward_terms": Unbounded(shape=(E, 4), dtype=torch.float32, device=dev),
             "metrics": Composite(
@@ -145,6 +155,7 @@ class MCRSEnv(EnvBase):
         root = {
             "state": result.state,
             "state_map": result.state_map,
+            "state_counts": result.state_counts,
             "step_count": result.step_count.unsqueeze(-1),
             "reward_terms": result.reward_terms,
             "metrics": TensorDict(result.metrics, batch_size=[E], device=self.device),

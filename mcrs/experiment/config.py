@@ -21,15 +21,40 @@ from mcrs.models.mixers import MIXERS
 OPTIMIZERS = ("rmsprop", "adam")
 LOGGERS = ("csv", "wandb", "tensorboard")
 WANDB_MODES = ("offline", "online")
+MODELS = ("gru",)
+COLLECTORS = ("single", "multiprocess")
+MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
 
 
 class ConfigError(ValueError):
     """A config that cannot run; the message lists every problem."""
 
 
+EMBEDDINGS = ("random", "fc", "cnn")
+INCENTIVES = ("none", "fixed", "change")
+
+
+@dataclass
+class MemoryConfig:
+    """The episodic buffer D_E and its state embedding phi (paper Algorithm 1, eq. 31; table 3)."""
+
+    enabled: bool = False
+    embedding: str = "cnn"  # random (EMC) | fc (SEMU, EMU's dCAE) | cnn (CNN-SEMU)
+    key_dim: int = 4  # dimension of the keys x = phi(s)
+    hidden_dim: int = 64  # width of the encoder and decoder layers
+    cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])  # the CNN's three conv layers
+    capacity: int = 1_000_000  # entries; the oldest are evicted when full
+    delta: float = 1.3e-3  # a stored key within delta (standardised keys) is "the same state"
+    embedding_interval: int = 10_000  # t_emb: env steps between trainings of the embedding
+    embedding_samples: int = 102_400  # memory entries drawn per training of the embedding
+    embedding_batch: int = 1024
+    embedding_lr: float = 5e-4
+    state_weight: float = 0.1  # lambda_1 of eq. 31: weight of the state reconstruction
+
+
 @dataclass
 class AlgoConfig:
-    """The value-factorisation algorithm: which mixer, and the TD target."""
+    """The value-factorisation algorithm: which mixer, the TD target and the episodic-memory terms."""
 
     name: str = "qmix"  # label of the algorithm (run names, reports)
     mixer: str = "qmix"  # qmix | vdn | qplex
@@ -41,6 +66,14 @@ class AlgoConfig:
     gamma: float = 0.99
     td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
     double_q: bool = True
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
+    memory_weight: float = 0.0  # lambda of eq. 32: weight of the one-step memory target (0: off)
+    incentive: str = "none"  # EMU's episodic incentive: none | fixed (return threshold) | change
+    incentive_threshold: float = 365.0  # "fixed": episodes with a return >= this are desirable
+    curiosity_scale: float = 0.0  # EMC's curiosity reward scale (0: off)
+    curiosity_decay_rate: float = 0.9  # the scale is multiplied by this ...
+    curiosity_decay_cycle: int = 100_000  # ... every this many env steps
+    curiosity_tau: float = 0.005  # soft target update of the curiosity's VDN learner
 
 
 @dataclass
@@ -87,6 +120,8 @@ class TrainConfig:
     eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
     checkpoint_interval: int = 100_000
     save_replay: bool = True  # checkpoints carry the replay buffer, so a resumed run is identical
+    collector: str = "single"  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
+    collector_workers: int = 2  # multiprocess: worker processes, each collecting num_envs / workers episodes
 
 
 @dataclass
@@ -143,6 +178,7 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     for name in ("gamma", "td_lambda"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
+    errors += _memory_errors(cfg)
     _positive(errors, "model.hidden_dim", m.hidden_dim)
     _positive(errors, "logger.log_interval", lg.log_interval)
     for name in (
@@ -162,11 +198,94 @@ def validation_errors(cfg: DictConfig) -> list[str]:
             f"train.replay_episodes={t.replay_episodes} < train.batch_episodes={t.batch_episodes}: "
             "the buffer must hold a whole batch"
         )
+    _choice(errors, "train.collector", t.collector, COLLECTORS)
+    if t.collector_workers < 1:
+        errors.append(f"train.collector_workers={t.collector_workers}: must be >= 1")
+    elif t.collector == "multiprocess" and t.num_envs % t.collector_workers:
+        errors.append(
+            f"train.num_envs={t.num_envs} is not divisible by train.collector_workers={t.collector_workers}: "
+            "each worker collects the same number of whole episodes"
+        )
+    if not 0 <= t.eval_seed <= MAX_SEED:
+        errors.append(f"train.eval_seed={t.eval_seed}: must be in [0, 2**63 - 1]")
+    if not 0 <= cfg.seed <= MAX_SEED:
+        errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
+    _choice(errors, "model.name", m.name, MODELS)
+    if not str(lg.project).strip():
+        errors.append(f"logger.project={lg.project!r}: must be a non-empty name")
+    if not str(a.name).strip() or "/" in str(a.name):
+        errors.append(f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)")
+    env_name = str(cfg.env.get("name", ""))
+    if not env_name.strip() or "/" in env_name:
+        errors.append(f"env.name={env_name!r}: must be a non-empty label without '/' (it names run directories)")
+    if not math.isfinite(a.incentive_threshold):
+        errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
     problem = _device_problem(cfg.device)
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
     _positive(errors, "threads", cfg.threads, allow_zero=True)
     return errors
+
+
+def _memory_errors(cfg: DictConfig) -> list[str]:
+    """Problems of the episodic-memory fields (only checked where they matter)."""
+    errors: list[str] = []
+    a, mem = cfg.algo, cfg.algo.memory
+    _choice(errors, "algo.incentive", a.incentive, INCENTIVES)
+    _choice(errors, "algo.memory.embedding", mem.embedding, EMBEDDINGS)
+    if a.memory_weight < 0 or not math.isfinite(a.memory_weight):
+        errors.append(f"algo.memory_weight={a.memory_weight}: must be >= 0 (lambda of eq. 32)")
+    _positive(errors, "algo.curiosity_scale", a.curiosity_scale, allow_zero=True)
+    _positive(errors, "algo.curiosity_decay_cycle", a.curiosity_decay_cycle)
+    for name in ("curiosity_decay_rate", "curiosity_tau"):
+        if not 0.0 <= getattr(a, name) <= 1.0:
+            errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
+    uses_memory = a.memory_weight > 0 or a.incentive != "none"
+    if uses_memory and not mem.enabled:
+        errors.append(
+            f"algo.memory.enabled=false, but algo.memory_weight={a.memory_weight} and "
+            f"algo.incentive={a.incentive!r} need the episodic memory: set algo.memory.enabled=true"
+        )
+    if mem.delta <= 0 or not math.isfinite(mem.delta):
+        errors.append(f"algo.memory.delta={mem.delta}: must be > 0")
+    if mem.capacity < 1:
+        errors.append(f"algo.memory.capacity={mem.capacity}: must be >= 1 entry")
+    for name in ("key_dim", "hidden_dim", "embedding_interval", "embedding_samples", "embedding_batch"):
+        _positive(errors, f"algo.memory.{name}", getattr(mem, name))
+    _positive(errors, "algo.memory.embedding_lr", mem.embedding_lr)
+    _positive(errors, "algo.memory.state_weight", mem.state_weight, allow_zero=True)
+    if len(mem.cnn_channels) != 3 or any(c < 1 for c in mem.cnn_channels):
+        errors.append(f"algo.memory.cnn_channels={list(mem.cnn_channels)}: must be 3 positive channel counts")
+    if mem.enabled and mem.key_dim > 8:
+        errors.append(
+            f"algo.memory.key_dim={mem.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"
+        )
+    if mem.enabled and not errors:
+        errors += _embedding_fit_errors(cfg)
+    return errors
+
+
+def _embedding_fit_errors(cfg: DictConfig) -> list[str]:
+    """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
+    from mcrs.models.embeddings import make_embedding
+
+    mem = cfg.algo.memory
+    try:
+        env_config = from_mapping(cfg.env)
+    except (ValueError, TypeError):
+        return []  # reported as an env problem
+    try:
+        make_embedding(
+            mem.embedding,
+            env_config.state_dim,
+            (env_config.width, env_config.height),
+            key_dim=mem.key_dim,
+            hidden_dim=mem.hidden_dim,
+            cnn_channels=tuple(mem.cnn_channels),
+        )
+    except ValueError as error:
+        return [f"algo.memory.embedding={mem.embedding!r} does not fit {env_config.name}: {error}"]
+    return []
 
 
 def validate(cfg: DictConfig) -> None:

@@ -20,7 +20,6 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.envs import TransformedEnv
 from torchrl.objectives import HardUpdate
 
@@ -28,7 +27,9 @@ from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.env.core import METRICS, N_ACTIONS
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import to_container, validate
+from mcrs.experiment.episodic import EpisodicSide
 from mcrs.experiment.evaluation import evaluate, make_eval_env
 from mcrs.experiment.logging import log_scalars, make_logger
 from mcrs.experiment.replay import (
@@ -41,10 +42,8 @@ from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
-
-
-class TrainingDiverged(RuntimeError):
-    """A loss or gradient became NaN or infinite."""
+from mcrs.objectives.curiosity import EMCCuriosity
+from mcrs.objectives.gradient import TrainingDiverged, gradient_step
 
 
 @dataclass
@@ -60,26 +59,7 @@ class Counters:
     next_eval: int = 0
     next_checkpoint: int = 0
     next_log: int = 0
-
-
-def gradient_step(
-    loss: torch.Tensor,
-    optimizer: torch.optim.Optimizer,
-    params: list[nn.Parameter],
-    grad_clip: float,
-    step: int,
-) -> torch.Tensor:
-    """Backward, clip, step; returns the gradient norm. Raises :class:`TrainingDiverged` before the weights
-    change when the loss or the gradient norm is NaN or infinite (``step`` names where)."""
-    if not torch.isfinite(loss):
-        raise TrainingDiverged(f"non-finite loss_td={loss.item()} at env step {step}")
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    grad_norm = nn.utils.clip_grad_norm_(params, grad_clip)
-    if not torch.isfinite(grad_norm):
-        raise TrainingDiverged(f"non-finite gradient norm={grad_norm.item()} at env step {step}")
-    optimizer.step()
-    return grad_norm
+    next_embedding: int = 0  # env step of the next training of the memory's embedding
 
 
 def batch_seed(seed: int, iteration: int) -> int:
@@ -116,14 +96,32 @@ class Learner:
         t = cfg.train
         self.agent = build_agent(cfg, env_config).to(device)
         self.mixer = build_mixer(cfg, env_config).to(device)
+        a = cfg.algo
         self.loss = ValueFactorisationLoss(
             self.agent,
             self.mixer,
-            gamma=cfg.algo.gamma,
-            td_lambda=cfg.algo.td_lambda,
-            double_q=cfg.algo.double_q,
+            gamma=a.gamma,
+            td_lambda=a.td_lambda,
+            double_q=a.double_q,
+            memory_weight=a.memory_weight,
+            incentive=a.incentive,
         )
         self.params = [*self.agent.parameters(), *self.mixer.parameters()]
+        self.curiosity = (
+            EMCCuriosity(
+                self.agent,
+                gamma=a.gamma,
+                scale=a.curiosity_scale,
+                decay_rate=a.curiosity_decay_rate,
+                decay_cycle=a.curiosity_decay_cycle,
+                tau=a.curiosity_tau,
+                lr=t.lr,
+                grad_clip=t.grad_clip,
+                optimizer=t.optimizer,
+            )
+            if a.curiosity_scale > 0
+            else None
+        )
         if t.optimizer == "adam":
             self.optimizer = torch.optim.Adam(self.params, lr=t.lr, eps=t.optim_eps)
         else:
@@ -134,9 +132,18 @@ class Learner:
 
     def update(self, batch, step: int) -> dict[str, torch.Tensor]:
         """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
+        extra: dict[str, torch.Tensor] = {}
+        if self.curiosity is not None:  # EMC: the intrinsic reward enters the TD target
+            self.curiosity.set_env_steps(step)
+            intrinsic, extra = self.curiosity.update(batch, step)
+            batch.set("intrinsic_reward", intrinsic)
         out = self.loss(batch)
-        grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step)
-        return {**{k: v.detach() for k, v in out.items() if k != "loss"}, "grad_norm": grad_norm.detach()}
+        # Name the term that broke: the TD loss, or the memory term (its weight is applied inside "loss").
+        bad = [k for k in ("loss_td", "loss_memory") if not torch.isfinite(out[k])]
+        term = bad[0] if bad else "loss"
+        grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step, term)
+        stats = {k: v.detach() for k, v in out.items() if k != "loss"}
+        return {**stats, **extra, "grad_norm": grad_norm.detach()}
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -145,6 +152,7 @@ class Learner:
             "target_agent": self.loss.target_agent_network_params.state_dict(),
             "target_mixer": self.loss.target_mixer_params.state_dict(),
             "optimizer": self.optimizer.state_dict(),
+            **({"curiosity": self.curiosity.state_dict_all()} if self.curiosity is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -153,6 +161,8 @@ class Learner:
         self.loss.target_agent_network_params.load_state_dict(state["target_agent"])
         self.loss.target_mixer_params.load_state_dict(state["target_mixer"])
         self.optimizer.load_state_dict(state["optimizer"])
+        if self.curiosity is not None:
+            self.curiosity.load_state_dict_all(state["curiosity"])
 
 
 class Trainer:
@@ -188,7 +198,12 @@ class Trainer:
         )
         self.eval_env = make_eval_env(self.env_config, t.eval_episodes, cfg.model.hidden_dim, self.device)
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
-        self.counters = Counters(next_checkpoint=t.checkpoint_interval)
+        self.episodic = EpisodicSide(cfg, self.env_config, self.device) if cfg.algo.memory.enabled else None
+        if self.episodic is not None:  # every sampled batch carries the memory's H(phi(s_{t+1}))
+            self.replay.append_transform(self.episodic.lookup_transform())
+        self.counters = Counters(
+            next_checkpoint=t.checkpoint_interval, next_embedding=cfg.algo.memory.embedding_interval
+        )
         self.last_eval: dict[str, float] = {}
         if resume:
             self._load(ckpt.checkpoint_path(self.run_dir))
@@ -198,14 +213,14 @@ class Trainer:
         self.logger = make_logger(
             cfg.logger.backend, self.run_dir, to_container(cfg), cfg.logger.project, cfg.logger.wandb_mode
         )
-        self.collector = Collector(
+        self.collector = TrainingCollector(  # whole episodes: every batch row is one episode
+            t.collector,
             self.env,
             self.exploring,
-            frames_per_batch=t.num_envs * self.T,  # whole episodes: every batch row is one episode
-            total_frames=-1,
-            device=self.device,
-            trust_policy=True,
-            auto_register_policy_transforms=False,
+            self.env_config,
+            cfg.model.hidden_dim,
+            t.collector_workers,
+            self.device,
         )
         if resume:  # last: building the collector may draw random numbers
             rng = self._resume_rng
@@ -221,7 +236,7 @@ class Trainer:
         self._session_start_steps = c.env_steps
         progress = self._progress_bar()
         train_stats: dict[str, list[torch.Tensor]] = {}
-        timer = {"collect": 0.0, "update": 0.0, "eval": 0.0}
+        timer = {"collect": 0.0, "memory": 0.0, "update": 0.0, "eval": 0.0}
         collector_iter = iter(self.collector)
         try:
             while c.env_steps < t.total_env_steps:
@@ -232,9 +247,9 @@ class Trainer:
                 # Collect num_envs whole episodes with the exploring policy.
                 start = time.perf_counter()
                 self.epsilon.set_env_steps(c.env_steps)
-                self.env.set_seed(batch_seed(int(self.cfg.seed), c.iteration))
-                self.collector.reset()
-                batch = next(collector_iter)
+                self.collector.sync_weights()
+                self.collector.start_batch(batch_seed(int(self.cfg.seed), c.iteration))
+                batch = self.collector.next_batch(collector_iter)
                 self.replay.extend(episodes_from_rollout(batch))
                 for name in METRICS:
                     train_stats.setdefault(f"train/{name}", []).append(
@@ -244,6 +259,17 @@ class Trainer:
                 c.episodes += t.num_envs
                 c.env_steps += batch.numel()
                 timer["collect"] += time.perf_counter() - start
+
+                if self.episodic is not None:  # Algorithm 1 on the new episodes; phi every t_emb steps
+                    start = time.perf_counter()
+                    last_reward = self.last_eval.get("episode_reward")
+                    for key, value in self.episodic.insert(batch, last_reward).items():
+                        train_stats.setdefault(key, []).append(torch.tensor(value))
+                    if c.env_steps >= c.next_embedding:
+                        for key, value in self.episodic.train_embedding().items():
+                            train_stats.setdefault(key, []).append(torch.tensor(value))
+                        c.next_embedding += self.cfg.algo.memory.embedding_interval
+                    timer["memory"] += time.perf_counter() - start
 
                 # Learn: updates_per_episode updates per collected episode, once a batch can be sampled.
                 start = time.perf_counter()
@@ -302,6 +328,8 @@ class Trainer:
         values["train/episodes"] = c.episodes
         values["train/updates"] = c.updates
         values["train/replay_episodes"] = len(self.replay)
+        if self.episodic is not None:
+            values.update(self.episodic.statistics())
         elapsed = sum(timer.values())
         values.update({f"time/{k}_s": v for k, v in timer.items()})
         if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
@@ -341,6 +369,8 @@ class Trainer:
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
         if self.cfg.train.save_replay:
             state["replay"] = replay_state_dict(self.replay)
+        if self.episodic is not None:
+            state["episodic"] = self.episodic.state_dict()
         return state
 
     def save(self, name: str = ckpt.LAST) -> Path:
@@ -370,6 +400,10 @@ class Trainer:
         # it holds a copy of the replay buffer)
         self.learner.load_state_dict(state["learner"])
         load_replay_state_dict(self.replay, state["replay"])
+        if self.episodic is not None:
+            if "episodic" not in state:
+                raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")
+            self.episodic.load_state_dict(state["episodic"])
         self.counters = Counters(**state["counters"])
         self.last_eval = dict(state.get("last_eval", {}))
         self.epsilon.set_env_steps(self.counters.env_steps)

@@ -18,8 +18,23 @@ Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.replay.epis
     terminated    [B, T+1, 1]        the transition ends in a terminal state (no bootstrap)
     filled        [B, T+1]           the transition is real (False on padding and on the last row)
 
+The episodic-memory terms read, when switched on (row t describes the transition t -> t+1; see
+:class:`mcrs.memory.EpisodicLookup`, the replay-buffer transform that attaches them)::
+
+    memory_return [B, T+1, 1]        H(phi(s_{t+1})): the highest return stored near s_{t+1}
+    memory_hit    [B, T+1]           a stored key lies within delta of phi(s_{t+1})
+    memory_ratio  [B, T+1, 1]        N_xi / N_call of that entry (EMU's desirability), incentive="fixed"
+    intrinsic_reward [B, T+1, 1]     a reward added to the TD target only (EMC's curiosity), optional
+
+- ``memory_weight`` (lambda, eq. 32): ``loss += lambda * sum_hits (r_t + gamma H - Q_tot)^2 / n_valid``; a
+  transition without a memory contributes nothing (the sum runs over hits, the mean over all valid
+  transitions, so the term's weight grows with the hit rate, as EMC's does).
+- ``incentive`` (EMU): ``r_p = gamma * ratio * max(H - Q_tot_target(s_{t+1}), 0)`` on hits, added to the TD
+  target; ``"change"`` drops the ratio (EMU-change).
+
 Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
-``reward``, ``done``, ``terminated``, ``filled``), so the loss plugs into other TorchRL multi-agent tasks.
+``reward``, ``done``, ``terminated``, ``filled``, ``memory_return``, ``memory_hit``, ``memory_ratio``,
+``intrinsic_reward``), so the loss plugs into other TorchRL multi-agent tasks.
 """
 
 from __future__ import annotations
@@ -55,7 +70,12 @@ class ValueFactorisationLoss(LossModule):
         gamma: discount factor.
         td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
         double_q: pick the bootstrap action with the online network (True) or the target network.
+        memory_weight: lambda of the one-step memory target (eq. 32); 0 switches it off.
+        incentive: EMU's episodic incentive: ``"none"``, ``"fixed"`` (scaled by the desirability ratio) or
+            ``"change"`` (no ratio).
     """
+
+    INCENTIVES = ("none", "fixed", "change")
 
     @dataclass
     class _AcceptedKeys:
@@ -69,10 +89,17 @@ class ValueFactorisationLoss(LossModule):
         done: NestedKey = "done"
         terminated: NestedKey = "terminated"
         filled: NestedKey = "filled"
+        memory_return: NestedKey = "memory_return"
+        memory_hit: NestedKey = "memory_hit"
+        memory_ratio: NestedKey = "memory_ratio"
+        intrinsic_reward: NestedKey = "intrinsic_reward"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    out_keys: tuple[str, ...] = ("loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs")
+    out_keys: tuple[str, ...] = (
+        "loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs",
+        "loss_memory", "memory_hit_rate", "memory_target_mean", "incentive_mean", "intrinsic_mean",
+    )  # fmt: skip
 
     agent_network: RecurrentAgent
     agent_network_params: TensorDictBase
@@ -89,8 +116,15 @@ class ValueFactorisationLoss(LossModule):
         gamma: float = 0.99,
         td_lambda: float = 0.0,
         double_q: bool = True,
+        memory_weight: float = 0.0,
+        incentive: str = "none",
     ) -> None:
         super().__init__()
+        if memory_weight < 0:
+            raise ValueError(f"memory_weight must be >= 0, got {memory_weight}")
+        if incentive not in self.INCENTIVES:
+            raise ValueError(f"incentive must be one of {', '.join(self.INCENTIVES)}, got {incentive!r}")
+        self.memory_weight, self.incentive = float(memory_weight), incentive
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not 0.0 <= td_lambda <= 1.0:
@@ -100,9 +134,19 @@ class ValueFactorisationLoss(LossModule):
         self.convert_to_functional(mixer, "mixer", create_target_params=True)
 
     @property
+    def uses_memory(self) -> bool:
+        """Whether batches must carry the memory look-ups (``memory_return``, ``memory_hit``...)."""
+        return self.memory_weight > 0 or self.incentive != "none"
+
+    @property
     def in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
-        return [keys.observation, keys.action, keys.action_mask, keys.state, keys.reward, keys.done]
+        in_keys = [keys.observation, keys.action, keys.action_mask, keys.state, keys.reward, keys.done]
+        if self.uses_memory:
+            in_keys += [keys.memory_return, keys.memory_hit]
+        if self.incentive == "fixed":
+            in_keys.append(keys.memory_ratio)
+        return in_keys
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No TorchRL value estimator object: the returns come from its functional estimators."""
@@ -177,6 +221,19 @@ class ValueFactorisationLoss(LossModule):
         greedy_q = mask_unavailable(q.detach(), action_mask)
         q_tot = self.mix(chosen, state, all_actions, greedy_q.max(-1).values)[:, :-1]  # [B, T, 1]
 
+        weight = filled.unsqueeze(-1).to(q_tot.dtype)
+        n_valid = weight.sum().clamp(min=1.0)
+        zero = q_tot.new_zeros(())
+        stats = {"memory_hit_rate": zero, "memory_target_mean": zero, "incentive_mean": zero}
+        target_reward = reward
+        intrinsic = tensordict.get(keys.intrinsic_reward, None)
+        if intrinsic is not None:  # EMC's curiosity: in the TD target only
+            target_reward = target_reward + intrinsic[:, :-1]
+        if self.uses_memory:
+            memory_return = tensordict.get(keys.memory_return)[:, :-1]
+            hit = tensordict.get(keys.memory_hit)[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
+            stats["memory_hit_rate"] = hit.sum() / n_valid
+
         with torch.no_grad():
             target_q = mask_unavailable(
                 self.agent_values(tensordict, target=True, inputs=inputs), action_mask
@@ -186,19 +243,34 @@ class ValueFactorisationLoss(LossModule):
             next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
             # QPLEX's learner: the target mixer sees the double-Q actions and the target net's own maxima.
             next_q_tot = self.mix(next_chosen, state, next_actions, target_q.max(-1).values, target=True)
-            y = self.targets(reward, next_q_tot[:, 1:], done, terminated)
+            if self.incentive != "none":  # EMU: r_p = gamma * ratio * max(H(s') - Q_target(s'), 0)
+                gap = (memory_return - next_q_tot[:, 1:]).clamp(min=0.0) * hit
+                if self.incentive == "fixed":
+                    gap = gap * tensordict.get(keys.memory_ratio)[:, :-1]
+                incentive = self.gamma * gap
+                target_reward = target_reward + incentive
+                stats["incentive_mean"] = incentive.sum() / n_valid
+            y = self.targets(target_reward, next_q_tot[:, 1:], done, terminated)
 
-        weight = filled.unsqueeze(-1).to(q_tot.dtype)
-        n_valid = weight.sum().clamp(min=1.0)
         td_error = (q_tot - y) * weight
         loss_td = td_error.pow(2).sum() / n_valid
+        loss = loss_td
+        loss_memory = zero
+        if self.memory_weight > 0:  # eq. 32: the one-step memory target r_t + gamma * H(phi(s_{t+1}))
+            memory_target = reward + self.gamma * memory_return
+            loss_memory = ((q_tot - memory_target) * hit).pow(2).sum() / n_valid
+            loss = loss + self.memory_weight * loss_memory
+            stats["memory_target_mean"] = (memory_target * hit).sum() / hit.sum().clamp(min=1.0)
         return TensorDict(
             {
-                "loss": loss_td,
+                "loss": loss,
                 "loss_td": loss_td.detach(),
                 "q_taken_mean": (q_tot.detach() * weight).sum() / n_valid,
                 "target_mean": (y * weight).sum() / n_valid,
                 "td_error_abs": td_error.detach().abs().sum() / n_valid,
+                "loss_memory": loss_memory.detach(),
+                "intrinsic_mean": zero if intrinsic is None else (intrinsic[:, :-1] * weight).sum() / n_valid,
+                **{k: v.detach() for k, v in stats.items()},
             },
             batch_size=[],
         )

@@ -38,11 +38,11 @@ from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from torchrl.objectives import HardUpdate
 
 from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
-from mcrs.experiment.trainer import gradient_step
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
+from mcrs.objectives.gradient import gradient_step
 
 #: The non-monotonic payoff of QTRAN (Son et al. 2019, table 1) and QPLEX (Wang et al. 2021, table 1).
 PAYOFF = torch.tensor([[8.0, -12.0, -12.0], [-12.0, 0.0, 0.0], [-12.0, 0.0, 0.0]])

@@ -1,0 +1,168 @@
+"""The trainer's collector: one process (``train.collector=single``) or several (``multiprocess``).
+
+``multiprocess`` runs TorchRL's :class:`~torchrl.collectors.MultiSyncCollector` over
+``train.collector_workers`` spawned processes, each with its own ``num_envs / workers`` environments and a
+copy of the exploring policy. Each worker collects ``num_envs / workers`` whole episodes per batch and the
+batches are concatenated along the environment dimension, so the trainer still receives ``[num_envs, T]``
+whole episodes in the same layout as with one process.
+
+Seeding: collector batch ``k`` seeds worker 0 with ``batch_seed(seed, k)`` and each next worker with the
+seed TorchRL chains from it; a worker seeds both its environments and its torch generator (exploration)
+from that seed, so a multiprocess run is reproducible and resumes exactly, though it draws different
+episodes than the single-process run with the same seed.
+
+A worker that raises dies; TorchRL then only reports its exit code. Each worker therefore writes the
+traceback of an exception in its environment to a per-run temporary folder before dying, and
+:func:`next_batch` raises :class:`CollectorWorkerFailed` carrying that cause.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import traceback
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
+from torchrl.envs import EnvBase, TransformedEnv
+
+from mcrs.env.config import EnvConfig
+from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.models.acting import recurrent_primer
+
+
+class CollectorWorkerFailed(RuntimeError):
+    """A collector worker process raised; the message carries the worker's exception."""
+
+
+class _WorkerEnv(MCRSEnv):
+    """MCRSEnv inside a collector worker: records the traceback of a failure where the trainer finds it."""
+
+    def __init__(self, config: EnvConfig, error_dir: str) -> None:
+        super().__init__(config)
+        self._error_dir = error_dir
+
+    def _record(self) -> None:
+        path = Path(self._error_dir) / f"worker_{os.getpid()}.txt"
+        path.write_text(traceback.format_exc())
+
+    def _set_seed(self, seed: int | None) -> None:
+        super()._set_seed(seed)
+        torch.manual_seed(0 if seed is None else seed)  # the worker's exploration draws
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        try:
+            return super()._reset(tensordict, **kwargs)
+        except BaseException:
+            self._record()
+            raise
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        try:
+            return super()._step(tensordict)
+        except BaseException:
+            self._record()
+            raise
+
+
+class WorkerEnvFactory:
+    """Builds one worker's environments in the worker process (picklable: sent to spawned processes)."""
+
+    def __init__(self, env_config: EnvConfig, hidden_dim: int, error_dir: str) -> None:
+        self.env_config, self.hidden_dim, self.error_dir = env_config, hidden_dim, error_dir
+
+    def __call__(self) -> EnvBase:
+        c = self.env_config
+        primer = recurrent_primer(c.num_envs, c.n_uavs, self.hidden_dim, device=torch.device(c.device))
+        return TransformedEnv(_WorkerEnv(c, self.error_dir), primer)
+
+
+class TrainingCollector:
+    """The collector of a run, with the few calls the trainer makes, whichever kind it is."""
+
+    def __init__(
+        self,
+        kind: str,
+        env: EnvBase,
+        policy: torch.nn.Module,
+        env_config: EnvConfig,
+        hidden_dim: int,
+        workers: int,
+        device: torch.device,
+    ) -> None:
+        self.kind, self.env = kind, env
+        T = env_config.max_steps
+        self.error_dir: str | None = None
+        if kind == "single":
+            self.collector: BaseCollector = Collector(
+                env,
+                policy,
+                frames_per_batch=env_config.num_envs * T,  # whole episodes: every batch row is one episode
+                total_frames=-1,
+                device=device,
+                trust_policy=True,
+                auto_register_policy_transforms=False,
+            )
+            return
+        per_worker = env_config.num_envs // workers
+        self.error_dir = tempfile.mkdtemp(prefix="mcrs-collector-")
+        worker_config = env_config.replace(num_envs=per_worker)
+        self.collector = MultiSyncCollector(
+            [WorkerEnvFactory(worker_config, hidden_dim, self.error_dir) for _ in range(workers)],
+            policy,
+            frames_per_batch=env_config.num_envs * T,  # split evenly: per_worker whole episodes each
+            total_frames=-1,
+            device=device,
+            cat_results=0,  # [workers * per_worker, T]: the single-process layout
+            trust_policy=True,
+            auto_register_policy_transforms=False,
+        )
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        return iter(self.collector)
+
+    def start_batch(self, seed: int) -> None:
+        """Seed and reset the environments: the next batch starts fresh episodes from ``seed``."""
+        if self.kind == "single":
+            self.env.set_seed(seed)
+        else:
+            self.collector.set_seed(seed)
+        self.collector.reset()
+
+    def sync_weights(self) -> None:
+        """Send the learner's weights and epsilon to the workers (one process: they are the same objects)."""
+        if self.kind != "single":
+            self.collector.update_policy_weights_()
+
+    def next_batch(self, iterator: Iterator[TensorDictBase]) -> TensorDictBase:
+        try:
+            return next(iterator)
+        except Exception as error:
+            cause = self.worker_error()
+            if cause is None:
+                raise
+            raise CollectorWorkerFailed(f"a collector worker failed: {cause}") from error
+
+    def worker_error(self) -> str | None:
+        """The last line (exception and message) of a worker's recorded traceback, if one failed."""
+        if self.error_dir is None:
+            return None
+        for path in sorted(Path(self.error_dir).glob("worker_*.txt")):
+            lines = [line for line in path.read_text().splitlines() if line.strip()]
+            if lines:
+                return lines[-1].strip()
+        return None
+
+    def shutdown(self) -> None:
+        """Stop the workers; never masks the exception that stopped the run."""
+        try:
+            self.collector.shutdown()
+        except Exception:  # a worker already dead: its error is the one that matters
+            pass
+        finally:
+            if self.error_dir is not None:
+                shutil.rmtree(self.error_dir, ignore_errors=True)

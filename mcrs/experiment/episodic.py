@@ -1,0 +1,112 @@
+"""The episodic-memory side of a run (paper Algorithm 2, lines 4-11): D_E, the embedding phi and its
+training.
+
+    after each collection:        insert the new episodes into D_E (Algorithm 1)
+    every t_emb env steps:        train phi on a sample of D_E (eq. 31), then re-embed every stored state
+    at every learner update:      the replay buffer's EpisodicLookup transform attaches H(phi(s_{t+1}))
+
+Built from the ``algo.memory`` config; everything here is in every checkpoint, so a resumed run continues
+with the same memory.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from mcrs.env.config import EnvConfig
+from mcrs.memory.codec import StateCodec
+from mcrs.memory.episodic import EpisodicMemory
+from mcrs.memory.transform import EpisodicLookup
+from mcrs.models.embeddings import EmbeddingTrainer, make_embedding
+
+
+def build_embedding(cfg: DictConfig, env_config: EnvConfig):
+    """phi for this config and map (raises ValueError when it does not fit the map)."""
+    mem = cfg.algo.memory
+    return make_embedding(
+        mem.embedding,
+        env_config.state_dim,
+        (env_config.width, env_config.height),
+        key_dim=mem.key_dim,
+        hidden_dim=mem.hidden_dim,
+        cnn_channels=tuple(mem.cnn_channels),
+        seed=int(cfg.seed),
+    )
+
+
+class EpisodicSide:
+    """D_E with its embedding and the embedding's trainer, for one run."""
+
+    def __init__(self, cfg: DictConfig, env_config: EnvConfig, device: torch.device) -> None:
+        mem, a = cfg.algo.memory, cfg.algo
+        self.incentive, self.threshold = a.incentive, float(a.incentive_threshold)
+        self.max_steps = env_config.max_steps
+        self.embedding = build_embedding(cfg, env_config).to(device)
+        self.memory = EpisodicMemory(
+            self.embedding,
+            StateCodec(env_config),
+            capacity=mem.capacity,
+            delta=mem.delta,
+            gamma=a.gamma,
+            max_steps=env_config.max_steps,
+            track_desirability=a.incentive != "none",
+            device=device,
+        )
+        self.trainer = (
+            EmbeddingTrainer(
+                self.embedding,
+                lr=mem.embedding_lr,
+                batch_size=mem.embedding_batch,
+                samples=mem.embedding_samples,
+                state_weight=mem.state_weight,
+            )
+            if self.embedding.trainable
+            else None
+        )
+        self.interval = int(mem.embedding_interval)
+
+    def lookup_transform(self) -> EpisodicLookup:
+        """The replay-buffer transform that attaches the memory to sampled batches."""
+        return EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
+
+    def insert(self, batch: TensorDictBase, last_eval_reward: float | None) -> dict[str, float]:
+        """Algorithm 1 on a collector batch ``[E, T]`` of whole episodes; returns diagnostics."""
+        reward = batch.get(("next", "reward"))[..., 0]
+        desirable = None
+        if self.incentive != "none":
+            # EMU: desirable episodes reach the return threshold; EMU-change follows the latest evaluation.
+            threshold = self.threshold if self.incentive == "fixed" else last_eval_reward
+            threshold = float("inf") if threshold is None else threshold
+            desirable = reward.sum(-1) >= threshold
+        stats = self.memory.insert(batch.get("state"), batch.get("state_counts"), reward, desirable)
+        out = {f"memory/insert_{k}": float(v) for k, v in vars(stats).items()}
+        if desirable is not None:
+            out["memory/desirable_episodes"] = float(desirable.float().mean())
+        return out
+
+    def train_embedding(self) -> dict[str, float]:
+        """Train phi on a sample of D_E, then re-embed every stored state (Algorithm 2, lines 8-11)."""
+        if self.trainer is None or len(self.memory) == 0:
+            return {}
+        stats = self.trainer.fit(self.memory.sample)
+        self.memory.refresh_keys()
+        return {f"memory/embedding_{k}": float(v) for k, v in stats.items()}
+
+    def statistics(self) -> dict[str, float]:
+        return {f"memory/{k}": float(v) for k, v in self.memory.statistics().items()}
+
+    def state_dict(self) -> dict[str, Any]:
+        state: dict[str, Any] = {"memory": self.memory.state_dict(), "embedding": self.embedding.state_dict()}
+        if self.trainer is not None:
+            state["embedding_trainer"] = self.trainer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.embedding.load_state_dict(state["embedding"])
+        if self.trainer is not None:
+            self.trainer.load_state_dict(state["embedding_trainer"])
+        self.memory.load_state_dict(state["memory"])

@@ -1,0 +1,14 @@
+"""The episodic buffer D_E: compact bit-exact states, an exact grid index, and Algorithm 1 in batch."""
+
+from mcrs.memory.codec import StateCodec
+from mcrs.memory.episodic import EpisodicMemory, InsertStats, discounted_returns
+from mcrs.memory.index import GridIndex, squared_distance
+
+__all__ = [
+    "EpisodicMemory",
+    "GridIndex",
+    "InsertStats",
+    "StateCodec",
+    "discounted_returns",
+    "squared_distance",
+]

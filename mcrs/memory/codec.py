@@ -1,0 +1,240 @@
+"""Compact, bit-exact storage of the env's global state for the episodic buffer D_E.
+
+A map20 state is 880 float32 values (3.5 kB); a million of them would not fit the memory budget. The state
+is a function of small integers (see ``mcrs/env/core.py``, ``MCRSCore._result``):
+
+- the maps m(U), m(F) (``2 * cells`` values, x-major) are ``belief_masses`` of the global detection counts
+  ``state_counts [cells, 2]`` (positive, negative) of each cell;
+- the positions (UAVs, no-fly zones, targets: ``P = N + Z + K`` cells) are ``p.to(float32) / pos_scale``
+  with ``pos_scale = (width - 1, height - 1)`` clamped to >= 1.
+
+So an entry stores the counts (``uint8`` while every count is <= 255, else ``int16``: 800 B for map20) and
+the integer positions (``uint8`` [P, 2]: 80 B), and :meth:`StateCodec.decode` rebuilds the float32 state
+*bit for bit*: the maps are gathered from a table holding ``belief_masses`` of every count pair, computed by
+the env's own function (elementwise float32 maths, so a table entry equals the env's value for that pair;
+the tests check it on real rollouts with ``torch.equal``), and the positions go through the env's division.
+Decoding is on the re-embedding path (every stored state, at every embedding update), hence the table.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import torch
+
+from mcrs.env.belief import belief_masses
+from mcrs.env.config import EnvConfig
+
+MAX_COUNT = 2**15 - 1  # the widest code, int16
+U8_MAX = 255
+# Tables for int16 codes are built up to the largest counts present; above this many entries the maps are
+# computed directly with belief_masses instead (the same elementwise maths, only slower).
+MAX_TABLE_ENTRIES = 1 << 22
+_LITTLE_ENDIAN = sys.byteorder == "little"
+MAP_CHECKS = 64  # states of each encoded batch whose maps are checked against their counts
+
+
+class StateCodec:
+    """Encodes env states ``[B, state_dim]`` as ``(codes [B, cells, 2], positions [B, P, 2])`` and back.
+
+    Args:
+        config: the env's config; the codec is only valid for this map (see :meth:`identity`).
+    """
+
+    def __init__(self, config: EnvConfig) -> None:
+        self.config = config
+        self.n_cells = config.n_cells
+        self.map_dim = 2 * config.n_cells
+        self.n_positions = config.n_uavs + config.n_no_fly + config.n_targets
+        self.state_dim = config.state_dim
+        self.grid_max = (config.width - 1, config.height - 1)
+        self.position_dtype = torch.uint8 if max(self.grid_max) <= U8_MAX else torch.int16
+        # The env's float32 scale, so that decode repeats its division exactly.
+        self._pos_scale = torch.tensor(self.grid_max, dtype=torch.int64).clamp(min=1).to(torch.float32)
+        self._grid_max = torch.tensor(self.grid_max, dtype=torch.float32)
+        self._tables: dict[tuple, torch.Tensor] = {}
+        self._index: torch.Tensor | None = None
+
+    # ------------------------------------------------------------------------------------------ identity
+    def identity(self) -> dict[str, Any]:
+        """What a stored state depends on: a memory saved for another map (or sensor model) is refused."""
+        c = self.config
+        return {
+            "map": c.name,
+            "width": c.width,
+            "height": c.height,
+            "n_uavs": c.n_uavs,
+            "n_no_fly": c.n_no_fly,
+            "n_targets": c.n_targets,
+            "state_dim": c.state_dim,
+            "max_steps": c.max_steps,
+            "m_f": float(c.m_f),
+            "m_e": float(c.m_e),
+        }
+
+    def identity_mismatch(self, other: dict[str, Any]) -> str | None:
+        """Why states encoded under ``other`` (an :meth:`identity`) cannot be decoded here; None if they can."""
+        mine = self.identity()
+        diffs = [f"{k}: saved {other.get(k)!r}, here {v!r}" for k, v in mine.items() if other.get(k) != v]
+        return "; ".join(diffs) if diffs else None
+
+    # ------------------------------------------------------------------------------------------ encoding
+    def encode(
+        self, counts: torch.Tensor, state: torch.Tensor, check_maps: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``counts [B, cells, 2]`` (ints) and ``state [B, state_dim]`` -> ``(codes, positions)``.
+
+        ``codes`` are the counts as ``uint8`` when every count of the batch is <= 255, else ``int16``
+        (the memory promotes its storage then). ``positions [B, P, 2]`` are the cells recovered from the
+        state (rounded ``state * pos_scale``), checked to reproduce the state's positions exactly. With
+        ``check_maps``, up to ``MAP_CHECKS`` evenly spaced states are also checked to have the maps of
+        their counts (counts of another step, or of another sensor model, are refused).
+        """
+        B = state.shape[0] if state.dim() == 2 else -1
+        if state.dim() != 2 or state.shape[1] != self.state_dim:
+            raise ValueError(f"state must have shape [B, {self.state_dim}], got {tuple(state.shape)}")
+        if counts.shape != (B, self.n_cells, 2):
+            raise ValueError(
+                f"counts must have shape [B, {self.n_cells}, 2] = {[B, self.n_cells, 2]}, got {tuple(counts.shape)}"
+            )
+        if counts.dtype.is_floating_point or counts.dtype == torch.bool or counts.dtype.is_complex:
+            raise ValueError(f"counts must be integers (the env's state_counts), got {counts.dtype}")
+        if B == 0:
+            return counts.to(torch.uint8), torch.zeros(0, self.n_positions, 2, dtype=self.position_dtype)
+        low, high = (int(v) for v in torch.aminmax(counts))
+        if low < 0 or high > MAX_COUNT:
+            raise ValueError(f"counts must lie in [0, {MAX_COUNT}], got [{low}, {high}]")
+        codes = counts.to(torch.uint8 if high <= U8_MAX else torch.int16)
+
+        scale = self._pos_scale.to(state.device)
+        # Contiguous first: elementwise ops on the strided slice take the slow scalar path.
+        scaled = state[:, self.map_dim :].contiguous().view(B, self.n_positions, 2)
+        cells = (scaled * scale).round_()
+        low, high = torch.aminmax(cells.view(-1, 2), dim=0)
+        grid_max = self._grid_max.to(state.device)
+        if (low < 0).any() or (high > grid_max).any() or not torch.equal(cells / scale, scaled):
+            raise ValueError(
+                "state positions are not grid cells divided by pos_scale (width - 1, height - 1): "
+                "is this a state of this map's env?"
+            )
+        if check_maps:
+            rows = torch.linspace(0, B - 1, min(B, MAP_CHECKS), device=state.device).round().long()
+            if not torch.equal(self.decode_map(codes[rows]), state[rows, : self.map_dim]):
+                raise ValueError(
+                    "state maps are not the beliefs of counts (m(U), m(F) of each cell): are counts "
+                    "and state from the same step and this map's sensor model (m_f, m_e)?"
+                )
+        return codes.contiguous(), cells.to(self.position_dtype)
+
+    # ------------------------------------------------------------------------------------------ decoding
+    def decode(
+        self, codes: torch.Tensor, positions: torch.Tensor, out: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The env's float32 state ``[B, state_dim]``, bit-exact, from ``codes`` and ``positions``.
+
+        ``out`` (``[B, state_dim]`` float32, contiguous) may be given to reuse a buffer. For ``uint8``
+        storage the whole state is one gather: every output value is an entry of one table (m(U) and m(F)
+        of each count pair, ``cell / pos_scale`` of each cell coordinate), indexed by an int32 array built
+        with three elementwise ops.
+        """
+        B = codes.shape[0]
+        if out is None:
+            out = torch.empty(B, self.state_dim, dtype=torch.float32, device=codes.device)
+        fast = codes.dtype == torch.uint8 and positions.dtype == torch.uint8 and _LITTLE_ENDIAN
+        if not (fast and codes.is_contiguous() and positions.is_contiguous() and out.is_contiguous()):
+            self.decode_map(codes, out=out[:, : self.map_dim])
+            scale = self._pos_scale.to(codes.device)
+            torch.div(
+                positions.to(torch.float32), scale, out=out[:, self.map_dim :].view(B, self.n_positions, 2)
+            )
+            return out
+        if B == 0:
+            return out
+        table, offsets = self._state_table(codes.device)
+        C, M = self.n_cells, self.map_dim
+        index = self._index_buffer(B, codes.device)
+        # The byte pair (positive, negative) read as one uint16: positive + 256 * negative.
+        index[:, :C].copy_(codes.view(torch.uint16).squeeze(-1))
+        torch.add(index[:, :C], (U8_MAX + 1) ** 2, out=index[:, C:M])  # the m(F) half of the table
+        torch.add(positions.view(B, -1), offsets, out=index[:, M:])
+        torch.index_select(table, 0, index.view(-1), out=out.view(-1))
+        return out
+
+    def _state_table(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """The one-gather table ``[m(U) (65536), m(F) (65536), x / scale_x (256), y / scale_y (256)]`` and
+        the position offsets ``[2 P]`` into it."""
+        key = (str(device), "state")
+        if key not in self._tables:
+            with torch.inference_mode(False):  # cached: must not become an inference tensor
+                self._build_state_table(device, key)
+        return self._tables[key], self._tables[(str(device), "offsets")]
+
+    def _build_state_table(self, device: torch.device, key: tuple) -> None:
+        maps = self._table(device, U8_MAX + 1, U8_MAX + 1).reshape(-1)
+        scale = self._pos_scale.to(device)
+        cells = torch.arange(U8_MAX + 1, dtype=torch.float32, device=device)
+        positions = (cells.unsqueeze(0) / scale.unsqueeze(1)).reshape(-1)  # the env's division
+        self._tables[key] = torch.cat([maps, positions])
+        axis = torch.arange(2, device=device, dtype=torch.int32) * (U8_MAX + 1)
+        self._tables[(str(device), "offsets")] = (maps.numel() + axis).repeat(self.n_positions)
+
+    def _index_buffer(self, rows: int, device: torch.device) -> torch.Tensor:
+        """A reused int32 ``[rows, state_dim]`` buffer (a fresh one per call would fault its pages in)."""
+        buffer = self._index
+        if buffer is None or buffer.device != device or buffer.shape[0] < rows:
+            with torch.inference_mode(False):  # reused: must not become an inference tensor
+                buffer = self._index = torch.empty(rows, self.state_dim, dtype=torch.int32, device=device)
+        return buffer[:rows]
+
+    def decode_map(self, codes: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """The maps ``[B, 2 * cells]`` = [m(U) (cells), m(F) (cells)] of ``codes [B, cells, 2]``."""
+        B, C = codes.shape[0], self.n_cells
+        if codes.shape[1:] != (C, 2):
+            raise ValueError(f"codes must have shape [B, {C}, 2], got {tuple(codes.shape)}")
+        if out is None:
+            out = torch.empty(B, 2 * C, dtype=torch.float32, device=codes.device)
+        if B == 0:
+            return out
+        if codes.dtype == torch.uint8:
+            table = self._table(codes.device, U8_MAX + 1, U8_MAX + 1)
+            if _LITTLE_ENDIAN and codes.is_contiguous():
+                # The two bytes (positive, negative) read as one int16: positive + 256 * negative.
+                index = codes.view(torch.int16).squeeze(-1).to(torch.int32).bitwise_and_(0xFFFF)
+            else:
+                index = codes[..., 0].to(torch.int32) + codes[..., 1].to(torch.int32) * (U8_MAX + 1)
+        else:
+            positive, negative = codes[..., 0].to(torch.int32), codes[..., 1].to(torch.int32)
+            # Power-of-two table sizes (>= 256): few distinct tables however the maxima vary.
+            rows, cols = (max(U8_MAX + 1, 1 << int(t.max()).bit_length()) for t in (positive, negative))
+            if rows * cols > MAX_TABLE_ENTRIES:
+                _, full, unknown = belief_masses(positive, negative, self.config.m_f, self.config.m_e)
+                out[:, :C] = unknown
+                out[:, C:] = full
+                return out
+            table = self._table(codes.device, rows, cols)
+            index = positive.add_(negative.mul_(rows))
+        index = index.view(-1)
+        out[:, :C] = torch.index_select(table[0], 0, index).view(B, C)
+        out[:, C:] = torch.index_select(table[1], 0, index).view(B, C)
+        return out
+
+    def _table(self, device: torch.device, rows: int, cols: int) -> torch.Tensor:
+        """``[2, rows * cols]``: (m(U), m(F)) of the count pair (p, n) at ``p + rows * n``."""
+        key = (str(device), rows, cols)
+        table = self._tables.get(key)
+        if table is None:
+            with torch.inference_mode(False):  # cached: must not become an inference tensor
+                table = self._tables[key] = self._pair_table(device, rows, cols)
+        return table
+
+    def _pair_table(self, device: torch.device, rows: int, cols: int) -> torch.Tensor:
+        positive = torch.arange(rows, device=device).repeat(cols)
+        negative = torch.arange(cols, device=device).repeat_interleave(rows)
+        _, full, unknown = belief_masses(positive, negative, self.config.m_f, self.config.m_e)
+        return torch.stack([unknown, full]).contiguous()
+
+    def nbytes(self) -> int:
+        """Bytes of the cached decode tables and index buffer."""
+        tensors = [*self._tables.values(), *([self._index] if self._index is not None else [])]
+        return sum(t.numel() * t.element_size() for t in tensors)

@@ -1,0 +1,721 @@
+"""The episodic buffer D_E (paper Algorithm 1; spec "Episodic buffer D_E"), batched and exact.
+
+An entry holds a key ``x = phi(s, t/T)`` (float32 ``[key_dim]``), the highest return ``H`` seen from it,
+the state ``s`` in the compact bit-exact form of :class:`~mcrs.memory.codec.StateCodec`, and the step
+``t`` (the embedding's time input is ``t / T`` in float32, :meth:`EpisodicMemory.normalised_time`).
+Everything is a preallocated tensor of ``capacity`` rows (1M map20 entries: about 0.9 GiB); look-ups go
+through the exact grid index of :mod:`mcrs.memory.index`, which is kept current at every insertion.
+"Nearest within delta" is the smallest float32 squared distance between standardised keys, strictly
+below ``delta^2``, the lowest slot on ties.
+
+**Insertion (Algorithm 1).** The transitions of a batch ``[E, T]`` are taken in the order episode
+0..E-1, each walked backwards t = T-1..0, with ``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``. For each: the
+nearest key within delta (standardised, strict ``<``) -> if ``H < R``: ``H <- R`` and the entry's key,
+state and step are replaced (memory shift), else nothing; no key within delta -> a new entry
+``(x, R, s, t)``. The result is *exactly* that of this sequential loop, computed in batch: a transition
+that has no other batch key within delta and shares no stored neighbour (within delta) with another
+transition cannot see or be seen by the rest of the batch, so it is resolved from one batched look-up;
+only the others (rare) are walked in order, in plain Python over precomputed candidate lists.
+
+**EMU (``track_desirability``).** Each entry also counts N_call (hits) and N_xi (hits from desirable
+episodes) and carries xi (reached by a desirable episode). On a hit: N_call += 1, N_xi += desirable; the
+entry shifts when ``H < R`` *or* when a desirable episode meets an entry with xi False; a shift sets
+``H <- R`` (in the second case possibly lower: EMU's reference re-anchors the entry on the desirable
+trajectory) and ``xi <- xi or desirable``. A new entry starts with N_call = 1, N_xi = xi = desirable.
+
+**Eviction (FIFO ring, batched).** Before a batch of n transitions is resolved, if ``size + n >
+capacity`` the ``size + n - capacity`` oldest entries (insertion order) are evicted, so the whole batch
+fits whatever its number of new entries; the batch never sees the evicted entries. A shifted entry keeps
+its slot and its age. New entries take the next slots of the ring.
+
+**Statistics of the key standardisation** (per-dimension mean and std over the live keys) are recomputed
+at every index rebuild, and only then:
+
+- when an insertion finds the buffer empty, from the keys of that batch (before resolving it);
+- after an insertion that leaves the buffer at least twice as large as at the previous refresh (so while
+  the buffer is filling: sizes ~n, 2n, 4n, ...);
+- after an insertion that leaves more stale index records (left by shifts and evictions) than
+  ``stale_fraction`` of the live entries (a purge);
+- at :meth:`EpisodicMemory.refresh_keys` (re-embedding).
+
+:meth:`EpisodicMemory.load_state_dict` restores the saved statistics instead. Between refreshes a look-up
+equals the brute-force nearest neighbour over the current keys standardised with the current statistics.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from mcrs.memory.codec import StateCodec
+from mcrs.memory.index import MAX_KEY_DIM, GridIndex
+
+STATE_VERSION = 1
+MAX_STEPS_LIMIT = 2**15  # steps are stored as int16
+
+
+@dataclass
+class InsertStats:
+    """What one :meth:`EpisodicMemory.insert` did."""
+
+    transitions: int  # transitions offered (E * T)
+    new: int  # new entries
+    hits: int  # transitions that found a key within delta (shifts included)
+    shifted: int  # memory shifts (key, state and return replaced)
+    evicted: int  # oldest entries evicted before the batch
+
+
+def discounted_returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``, over the last dimension, in float32.
+
+    One loop over T in numpy (float32 multiply, then add: no fused multiply-add, so every element is
+    rounded the same way): a hundred small torch ops would cost ten times more.
+    """
+    r = reward.detach().to("cpu", torch.float32).numpy()
+    returns = np.empty_like(r)
+    running = np.zeros(r.shape[:-1], dtype=np.float32)
+    g = np.float32(gamma)
+    for t in range(r.shape[-1] - 1, -1, -1):
+        running = r[..., t] + g * running
+        returns[..., t] = running
+    return torch.from_numpy(returns).to(reward.device)
+
+
+def _check_int(name: str, value: Any, low: int, high: int | None = None) -> int:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int)
+        or value < low
+        or (high is not None and value > high)
+    ):
+        allowed = f"an int >= {low}" if high is None else f"an int in [{low}, {high}]"
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return value
+
+
+class EpisodicMemory:
+    """D_E: keys, highest returns and compact states of up to ``capacity`` visited states.
+
+    Args:
+        embedding: phi, any module with ``forward(state [..., D], time [...]) -> [..., key_dim]`` and an int
+            ``key_dim`` attribute. It is called under ``torch.no_grad`` / ``inference_mode``.
+        codec: the :class:`StateCodec` of the env's map.
+        capacity: number of entries (table 3: 1M).
+        delta: match radius on standardised keys (table 3: 1.3e-3).
+        gamma: discount of the returns H.
+        max_steps: T of the env (the embedding's time input is ``t / T``); default: the codec's.
+        track_desirability: keep EMU's N_call, N_xi and xi.
+        device: where every tensor of the memory lives.
+        stale_fraction: rebuild the index when stale records exceed this fraction of the entries.
+        check_states: check that inserted states have the maps of their counts (a sample of each batch;
+            see :meth:`StateCodec.encode`). Off only for synthetic states in tests.
+    """
+
+    def __init__(
+        self,
+        embedding: nn.Module,
+        codec: StateCodec,
+        capacity: int = 1_000_000,
+        delta: float = 1.3e-3,
+        gamma: float = 0.99,
+        max_steps: int | None = None,
+        track_desirability: bool = False,
+        device: torch.device | str = "cpu",
+        stale_fraction: float = 0.25,
+        check_states: bool = True,
+    ) -> None:
+        key_dim = getattr(embedding, "key_dim", None)
+        _check_int("embedding.key_dim", key_dim, 1, MAX_KEY_DIM)
+        _check_int("capacity", capacity, 1, 2**31 - 1)
+        if isinstance(delta, bool) or not isinstance(delta, (int, float)) or not 0 < delta < math.inf:
+            raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}")
+        max_steps = codec.config.max_steps if max_steps is None else max_steps
+        _check_int("max_steps", max_steps, 1, MAX_STEPS_LIMIT - 1)
+        if (
+            isinstance(stale_fraction, bool)
+            or not isinstance(stale_fraction, (int, float))
+            or not stale_fraction > 0
+        ):
+            raise ValueError(f"stale_fraction must be a number > 0, got {stale_fraction!r}")
+        self.embedding, self.codec = embedding, codec
+        self.key_dim, self.capacity, self.delta = int(key_dim), capacity, float(delta)
+        self.gamma, self.max_steps = float(gamma), max_steps
+        self.track_desirability = bool(track_desirability)
+        self.device = torch.device(device)
+        self.stale_fraction = float(stale_fraction)
+        self.check_states = bool(check_states)
+        C, dev = capacity, self.device
+        self.keys = torch.zeros(C, self.key_dim, dtype=torch.float32, device=dev)
+        self.returns = torch.zeros(C, dtype=torch.float32, device=dev)  # H
+        self.step = torch.zeros(C, dtype=torch.int16, device=dev)
+        # torch.empty: the large arrays only become resident as entries are written.
+        self.codes = torch.empty(C, codec.n_cells, 2, dtype=torch.uint8, device=dev)
+        self.positions = torch.empty(C, codec.n_positions, 2, dtype=codec.position_dtype, device=dev)
+        self.live = torch.zeros(C, dtype=torch.bool, device=dev)
+        if self.track_desirability:
+            self.n_call = torch.zeros(C, dtype=torch.int32, device=dev)
+            self.n_xi = torch.zeros(C, dtype=torch.int32, device=dev)
+            self.xi = torch.zeros(C, dtype=torch.bool, device=dev)
+        self.start = 0  # slot of the oldest entry
+        self.size = 0
+        self.stats_size = 0  # entries when the statistics were last refreshed
+        self.index = GridIndex(self.key_dim, self.delta, C, dev)
+
+    # ------------------------------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return self.size
+
+    def nbytes(self) -> int:
+        """Bytes held by the buffer: storage, index records and decode tables."""
+        tensors = [self.keys, self.returns, self.step, self.codes, self.positions, self.live]
+        if self.track_desirability:
+            tensors += [self.n_call, self.n_xi, self.xi]
+        return sum(t.numel() * t.element_size() for t in tensors) + self.index.nbytes() + self.codec.nbytes()
+
+    def live_slots(self) -> torch.Tensor:
+        """Slots of the live entries, oldest first."""
+        return (self.start + torch.arange(self.size, device=self.device)) % self.capacity
+
+    def _live_ranges(self) -> Iterator[tuple[int, int]]:
+        """The live slots as at most two contiguous ranges ``[a, b)``, oldest first."""
+        end = self.start + self.size
+        yield self.start, min(end, self.capacity)
+        if end > self.capacity:
+            yield 0, end - self.capacity
+
+    def statistics(self) -> dict[str, float]:
+        """Scalars for logging."""
+        stats = {
+            "size": float(self.size),
+            "capacity": float(self.capacity),
+            "fill": self.size / self.capacity,
+            "index_records": float(len(self.index)),
+            "stale_records": float(len(self.index) - self.size),
+            "count_bytes": float(self.codes.element_size()),
+            "nbytes": float(self.nbytes()),
+        }
+        if self.size:
+            slots = self.live_slots()
+            H = self.returns[slots]
+            stats.update(return_mean=H.mean().item(), return_max=H.max().item(), return_min=H.min().item())
+            if self.track_desirability:
+                calls = self.n_call[slots].float()
+                stats.update(
+                    n_call_mean=calls.mean().item(),
+                    desirable_ratio_mean=(self.n_xi[slots].float() / calls).mean().item(),
+                    xi_fraction=self.xi[slots].float().mean().item(),
+                )
+        return stats
+
+    # ------------------------------------------------------------------------------------ embedding
+    def _embed(self, state: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """Keys of ``state [..., D]`` at ``time [...]`` (float32, on the memory's device)."""
+        first = next(iter(self.embedding.parameters()), None)
+        if first is None:
+            first = next(iter(self.embedding.buffers()), None)
+        device = first.device if first is not None else self.device
+        with torch.no_grad():
+            keys = self.embedding(state.to(device, torch.float32), time.to(device, torch.float32))
+        if keys.shape != (*state.shape[:-1], self.key_dim):
+            raise ValueError(
+                f"the embedding returned keys of shape {tuple(keys.shape)}, expected {(*state.shape[:-1], self.key_dim)}"
+            )
+        return keys.to(self.device, torch.float32)
+
+    def normalised_time(self, step: torch.Tensor) -> torch.Tensor:
+        """``t / T`` in float32, as the memory computes it for the embedding."""
+        return step.to(torch.float32) / self.max_steps
+
+    # ------------------------------------------------------------------------------------ look-ups
+    def lookup(
+        self, state: torch.Tensor, time: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Embed ``state [..., D]`` at ``time [...]`` (t/T) and look the keys up: ``(H, hit, slot)``, each ``[...]``."""
+        keys = self._embed(state, torch.as_tensor(time).expand(state.shape[:-1]))
+        value, hit, slot = self.lookup_keys(keys.reshape(-1, self.key_dim))
+        lead = state.shape[:-1]
+        return value.view(lead), hit.view(lead), slot.view(lead)
+
+    def lookup_keys(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For raw keys ``[M, key_dim]``: ``(H [M] float32 (0 on a miss), hit [M] bool, slot [M] int64 (-1))``."""
+        keys = keys.to(self.device, torch.float32)
+        slot, _ = self.index.nearest(self.index.standardise(keys), self.keys, self.live)
+        hit = slot >= 0
+        value = torch.where(hit, self.returns[slot.clamp(min=0)], 0.0)
+        return value, hit, slot
+
+    def desirable_ratio(self, slot: torch.Tensor) -> torch.Tensor:
+        """EMU's N_xi / N_call of the entries ``slot`` (float32; 0 where slot is -1)."""
+        if not self.track_desirability:
+            raise RuntimeError("desirable_ratio needs track_desirability=True")
+        slot = slot.to(self.device)
+        safe = slot.clamp(min=0)
+        ratio = self.n_xi[safe].to(torch.float32) / self.n_call[safe].clamp(min=1).to(torch.float32)
+        return torch.where(slot >= 0, ratio, 0.0)
+
+    def sample(
+        self, n: int, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``n`` entries drawn uniformly (with replacement): ``(state [n, D], time [n], H [n])``."""
+        if self.size == 0:
+            raise RuntimeError("cannot sample from an empty episodic memory")
+        draw = torch.randint(self.size, (n,), generator=generator).to(self.device)
+        slots = (self.start + draw) % self.capacity
+        state = self.codec.decode(self.codes[slots], self.positions[slots])
+        return state, self.normalised_time(self.step[slots]), self.returns[slots].clone()
+
+    def states(self, slots: torch.Tensor) -> torch.Tensor:
+        """Decoded states ``[n, D]`` of ``slots``."""
+        slots = slots.to(self.device)
+        return self.codec.decode(self.codes[slots], self.positions[slots])
+
+    # ------------------------------------------------------------------------------------ insertion
+    @torch.inference_mode(False)  # tensors it allocates persist: they must not be inference tensors
+    def insert(
+        self,
+        state: torch.Tensor,
+        counts: torch.Tensor,
+        reward: torch.Tensor,
+        desirable: torch.Tensor | None = None,
+    ) -> InsertStats:
+        """Algorithm 1 on whole episodes: ``state [E, T, D]``, ``counts [E, T, cells, 2]`` (the env's
+        ``state_counts`` of the same states), ``reward [E, T]`` (r_t of s_t -> s_{t+1}), ``desirable [E]``
+        (EMU; required when tracking desirability)."""
+        D, cells = self.codec.state_dim, self.codec.n_cells
+        if state.dim() != 3 or state.shape[2] != D:
+            raise ValueError(f"state must have shape [E, T, {D}], got {tuple(state.shape)}")
+        E, T = state.shape[:2]
+        if counts.shape != (E, T, cells, 2):
+            raise ValueError(f"counts must have shape {[E, T, cells, 2]}, got {tuple(counts.shape)}")
+        if reward.shape != (E, T):
+            raise ValueError(f"reward must have shape {[E, T]}, got {tuple(reward.shape)}")
+        if self.max_steps < T:
+            raise ValueError(f"episodes have {T} steps, more than max_steps={self.max_steps}")
+        n = E * T
+        if n > self.capacity:
+            raise ValueError(
+                f"a batch of {n} transitions does not fit capacity={self.capacity}: insert fewer"
+            )
+        if self.track_desirability and (desirable is None or desirable.shape != (E,)):
+            raise ValueError(f"desirable must be a bool tensor of shape [{E}] with track_desirability")
+        if n == 0:
+            return InsertStats(0, 0, 0, 0, 0)
+        dev, C = self.device, self.capacity
+        state, counts, reward = state.to(dev), counts.to(dev), reward.to(dev)
+
+        # Transition j = e * T + (T - 1 - t): episode by episode, backwards in time.
+        flat = (
+            torch.arange(E, device=dev).unsqueeze(1) * T + torch.arange(T - 1, -1, -1, device=dev)
+        ).reshape(-1)
+        returns = discounted_returns(reward, self.gamma).reshape(-1)[flat]
+        time = self.normalised_time(torch.arange(T, device=dev))
+        x = self._embed(state, time.expand(E, T)).reshape(n, self.key_dim)[flat]
+        if not torch.isfinite(x).all():
+            raise ValueError("the embedding produced non-finite keys")
+        step = (T - 1 - torch.arange(T, device=dev, dtype=torch.int16)).repeat(E)
+        if self.track_desirability:
+            wanted = desirable.to(dev, torch.bool).repeat_interleave(T)
+        else:
+            wanted = torch.zeros(n, dtype=torch.bool, device=dev)
+        codes, positions = self.codec.encode(
+            counts.reshape(n, cells, 2), state.reshape(n, D), check_maps=self.check_states
+        )
+        if codes.element_size() > self.codes.element_size():
+            self.codes = self.codes.to(codes.dtype)  # promotion: a count above 255 arrived
+        codes = codes.to(self.codes.dtype)
+
+        evicted = self._evict(max(0, self.size + n - C))
+        if self.size == 0:
+            self.index.clear()
+            self.index.set_statistics(x)
+            self.stats_size = n
+        z = self.index.standardise(x)
+        write = (self.start + self.size) % C  # slot of the first new entry
+        outcome = _resolve(self, z, returns, wanted, write)
+
+        # Apply: new entries (consecutive ring slots: slice copies), then the shifts (row copies; a new
+        # entry may be shifted later in the same batch, so this second write must come after).
+        nu = outcome.new_from.numel()
+        new_slots = (write + torch.arange(nu, device=dev)) % C
+        old_slots = outcome.shift_slots[~outcome.shift_is_new]
+        old_cubes = self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots)))
+        batch = {"keys": x, "returns": returns, "step": step}
+        rows = {"codes": codes.view(n, -1), "positions": positions.view(n, -1)}
+        first = min(nu, C - write)
+        for slot, lo, hi in ((write, 0, first), (0, first, nu)):
+            if hi > lo:
+                source = outcome.new_from[lo:hi]
+                for name, values in batch.items():
+                    getattr(self, name)[slot : slot + hi - lo] = values.index_select(0, source)
+                for name, values in rows.items():
+                    getattr(self, name).view(C, -1)[slot : slot + hi - lo] = values.index_select(
+                        0, flat[source]
+                    )
+                self.live[slot : slot + hi - lo] = True
+        if outcome.shift_slots.numel():
+            source = outcome.shift_from
+            for name, values in batch.items():
+                getattr(self, name).index_copy_(0, outcome.shift_slots, values.index_select(0, source))
+            for name, values in rows.items():
+                _row_view(getattr(self, name)).index_copy_(
+                    0, outcome.shift_slots, _row_view(values.index_select(0, flat[source]))
+                )
+        if self.track_desirability:
+            new_wanted = wanted.index_select(0, outcome.new_from)
+            self.n_call[new_slots] = 1
+            self.n_xi[new_slots] = new_wanted.to(torch.int32)
+            self.xi[new_slots] = new_wanted
+            self.n_call[outcome.count_slots] = outcome.n_call
+            self.n_xi[outcome.count_slots] = outcome.n_xi
+            self.xi[outcome.count_slots] = outcome.xi
+        self.size += nu
+
+        # Index: every new slot, and the shifted old slots whose cube changed.
+        changed = (
+            self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots))) != old_cubes
+        )
+        fresh = torch.cat([new_slots, old_slots[changed]])
+        self.index.add(self.keys.index_select(0, fresh), fresh)
+        self._maintain()
+        return InsertStats(
+            transitions=n,
+            new=int(new_slots.numel()),
+            hits=outcome.hits,
+            shifted=outcome.shifts,
+            evicted=evicted,
+        )
+
+    def _evict(self, count: int) -> int:
+        """Drop the ``count`` oldest entries."""
+        if count:
+            self.live[(self.start + torch.arange(count, device=self.device)) % self.capacity] = False
+            self.start = (self.start + count) % self.capacity
+            self.size -= count
+        return count
+
+    def _maintain(self) -> None:
+        """Rebuild the index (and refresh the statistics) when it is stale or the buffer has doubled."""
+        stale = len(self.index) - self.size
+        if self.size >= 2 * max(self.stats_size, 1) or stale > self.stale_fraction * self.size:
+            self.rebuild_index()
+
+    def rebuild_index(self, refresh: bool = True) -> None:
+        """Re-index every live entry; with ``refresh`` recompute the standardisation statistics first."""
+        self.index.rebuild(self.keys, self.live_slots(), refresh=refresh)
+        if refresh:
+            self.stats_size = self.size
+
+    # ------------------------------------------------------------------------------------ re-embedding
+    def refresh_keys(self, chunk: int = 4096) -> None:
+        """Re-embed every stored state with the current embedding, then rebuild the index and statistics.
+
+        Chunks of ``chunk`` states are decoded into one reused buffer and embedded under inference mode
+        (a few thousand states per chunk keep the CNN's activations in cache).
+        """
+        _check_int("chunk", chunk, 1)
+        buffer = torch.empty(min(chunk, max(self.size, 1)), self.codec.state_dim, device=self.device)
+        with torch.inference_mode():
+            for a, b in self._live_ranges():
+                for lo in range(a, b, chunk):
+                    hi = min(lo + chunk, b)
+                    states = self.codec.decode(
+                        self.codes[lo:hi], self.positions[lo:hi], out=buffer[: hi - lo]
+                    )
+                    keys = self._embed(states, self.normalised_time(self.step[lo:hi]))
+                    if not torch.isfinite(keys).all():
+                        self.rebuild_index()  # the keys written so far stay consistent with the index
+                        raise ValueError("the embedding produced non-finite keys")
+                    self.keys[lo:hi] = keys
+        self.rebuild_index()
+
+    # ------------------------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict[str, Any]:
+        """The filled part (oldest first), the ring position, the statistics and the codec's identity.
+
+        Plain tensors, ints, floats, strings, bools and dicts only: ``torch.load(weights_only=True)`` reads it.
+        """
+        slots = self.live_slots()
+        state: dict[str, Any] = {
+            "version": STATE_VERSION,
+            "codec": self.codec.identity(),
+            "key_dim": self.key_dim,
+            "delta": self.delta,
+            "capacity": self.capacity,
+            "start": self.start,
+            "size": self.size,
+            "stats_size": self.stats_size,
+            "mean": self.index.mean.cpu(),
+            "std": self.index.std.cpu(),
+            "track_desirability": self.track_desirability,
+            "keys": self.keys[slots].cpu(),
+            "returns": self.returns[slots].cpu(),
+            "step": self.step[slots].cpu(),
+            "codes": self.codes[slots].cpu(),
+            "positions": self.positions[slots].cpu(),
+        }
+        if self.track_desirability:
+            state.update(
+                n_call=self.n_call[slots].cpu(), n_xi=self.n_xi[slots].cpu(), xi=self.xi[slots].cpu()
+            )
+        return state
+
+    @torch.inference_mode(False)
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict`; refuses one from another map, key_dim, or that does not fit.
+
+        With the same capacity the entries return to their slots, so look-ups answer exactly as before
+        (slots included); otherwise they are laid out oldest first from slot 0. The saved statistics are
+        restored (not recomputed); this memory's own delta and gamma apply from now on.
+        """
+        if state.get("version") != STATE_VERSION:
+            raise ValueError(
+                f"episodic memory state version {state.get('version')!r}, expected {STATE_VERSION}"
+            )
+        mismatch = self.codec.identity_mismatch(state["codec"])
+        if mismatch:
+            raise ValueError(f"episodic memory saved for another map or sensor model ({mismatch})")
+        if state["key_dim"] != self.key_dim:
+            raise ValueError(
+                f"episodic memory saved with key_dim={state['key_dim']}, this one has key_dim={self.key_dim}"
+            )
+        size = int(state["size"])
+        if size > self.capacity:
+            raise ValueError(f"episodic memory holds {size} entries, more than capacity={self.capacity}")
+        if self.track_desirability and not state["track_desirability"]:
+            raise ValueError("episodic memory saved without desirability counters (EMU) cannot restore them")
+        start = int(state["start"]) if state["capacity"] == self.capacity else 0
+        dev = self.device
+        self.live.zero_()
+        self.start, self.size = start, size
+        slots = self.live_slots()
+        self.codes = torch.empty(self.capacity, *self.codes.shape[1:], dtype=state["codes"].dtype, device=dev)
+        self.keys[slots] = state["keys"].to(dev)
+        self.returns[slots] = state["returns"].to(dev)
+        self.step[slots] = state["step"].to(dev)
+        self.codes[slots] = state["codes"].to(dev)
+        self.positions[slots] = state["positions"].to(dev, self.positions.dtype)
+        self.live[slots] = True
+        if self.track_desirability:
+            self.n_call[slots] = state["n_call"].to(dev)
+            self.n_xi[slots] = state["n_xi"].to(dev)
+            self.xi[slots] = state["xi"].to(dev)
+        self.index.mean = state["mean"].to(dev, torch.float32)
+        self.index.std = state["std"].to(dev, torch.float32)
+        self.stats_size = int(state["stats_size"])
+        self.rebuild_index(refresh=False)
+
+
+def _row_view(t: torch.Tensor) -> torch.Tensor:
+    """``t [N, ...]`` (contiguous) as ``[N, m]`` of the widest integer type dividing a row's bytes: row
+    copies (``index_copy_``) of narrow types are several times slower than of int64."""
+    t = t.view(t.shape[0], -1)
+    row_bytes = t.shape[1] * t.element_size()
+    for dtype in (torch.int64, torch.int32, torch.int16):
+        if row_bytes % dtype.itemsize == 0:
+            return t.view(torch.uint8).view(dtype)
+    return t
+
+
+# ---------------------------------------------------------------------------------------- resolution
+@dataclass
+class _Outcome:
+    """The net effect of a batch on the memory (slots and the transitions whose data they take)."""
+
+    new_from: torch.Tensor  # [nu] transitions that create an entry, in order (they take the next slots)
+    shift_slots: torch.Tensor  # existing or new slots whose key/state/H end up from another transition
+    shift_from: torch.Tensor  # that transition
+    shift_is_new: torch.Tensor  # whether the shifted slot was created by this batch
+    count_slots: torch.Tensor  # slots whose EMU counters changed (hits on existing entries)
+    n_call: torch.Tensor
+    n_xi: torch.Tensor
+    xi: torch.Tensor
+    hits: int
+    shifts: int
+
+
+def _resolve(
+    memory: EpisodicMemory, z: torch.Tensor, R: torch.Tensor, wanted: torch.Tensor, write: int
+) -> _Outcome:
+    """Algorithm 1 for the transitions ``z [n, d]`` (standardised keys, in order) against ``memory``.
+
+    Independent transitions (no batch key within delta, no stored neighbour within delta shared with
+    another transition) are resolved from the batched look-up; the interacting ones sequentially.
+    """
+    index, dev = memory.index, memory.device
+    track = memory.track_desirability
+    n = z.shape[0]
+    cubes = index.query_cubes(z)
+    query, slot, d2 = index.within(
+        z, memory.keys, memory.live, cubes
+    )  # stored neighbours, by query then slot
+    bi, bj, bd2 = index.pairs(z, cubes)  # batch neighbours
+
+    interacting = torch.zeros(n, dtype=torch.bool, device=dev)
+    interacting[bi] = True
+    if slot.numel():
+        _, inverse, shared = torch.unique(slot, return_inverse=True, return_counts=True)
+        interacting[query[shared[inverse] > 1]] = True
+
+    # Nearest stored neighbour (lowest slot on ties) of every transition.
+    nearest = torch.full((n,), -1, dtype=torch.int64, device=dev)
+    if slot.numel():
+        best = torch.full((n,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+        best.scatter_reduce_(0, query, (d2.view(torch.int32).to(torch.int64) << 32) | slot, "amin")
+        nearest = torch.where(best != torch.iinfo(torch.int64).max, best & 0xFFFFFFFF, -1)
+
+    free = ~interacting
+    hit_j = (free & (nearest >= 0)).nonzero().squeeze(1)
+    new_free = free & (nearest < 0)
+    target = nearest[hit_j]
+    shift = memory.returns[target] < R[hit_j]
+    if track:
+        shift |= wanted[hit_j] & ~memory.xi[target]
+    shift_slots, shift_from = target[shift], hit_j[shift]
+    count_slots = target
+    if track:
+        n_call = memory.n_call[target] + 1
+        n_xi = memory.n_xi[target] + wanted[hit_j].to(torch.int32)
+        xi = memory.xi[target] | (shift & wanted[hit_j])
+    else:
+        n_call = n_xi = xi = torch.zeros(0, device=dev)
+    hits, shifts = int(hit_j.numel()), int(shift.sum())
+    new_mask = new_free
+
+    group = interacting.nonzero().squeeze(1)
+    shift_is_new = torch.zeros(shift_slots.numel(), dtype=torch.bool, device=dev)
+    if group.numel():
+        seq = _sequential(memory, group, query, slot, d2, bi, bj, bd2, R, wanted, new_free, write)
+        new_mask = new_free.clone()
+        new_mask[seq["new"]] = True
+        shift_slots = torch.cat([shift_slots, seq["owner_slots"]])
+        shift_from = torch.cat([shift_from, seq["owner_from"]])
+        shift_is_new = torch.cat([shift_is_new, seq["owner_is_new"]])
+        hits, shifts = hits + seq["hits"], shifts + seq["shifts"]
+        if track:
+            count_slots = torch.cat([count_slots, seq["count_slots"]])
+            n_call = torch.cat([n_call, seq["n_call"]])
+            n_xi = torch.cat([n_xi, seq["n_xi"]])
+            xi = torch.cat([xi, seq["xi"]])
+    return _Outcome(
+        new_from=new_mask.nonzero().squeeze(1),
+        shift_slots=shift_slots,
+        shift_from=shift_from,
+        shift_is_new=shift_is_new,
+        count_slots=count_slots,
+        n_call=n_call,
+        n_xi=n_xi,
+        xi=xi,
+        hits=hits,
+        shifts=shifts,
+    )
+
+
+def _sequential(
+    memory: EpisodicMemory,
+    group: torch.Tensor,
+    query: torch.Tensor,
+    slot: torch.Tensor,
+    d2: torch.Tensor,
+    bi: torch.Tensor,
+    bj: torch.Tensor,
+    bd2: torch.Tensor,
+    R: torch.Tensor,
+    wanted: torch.Tensor,
+    new_free: torch.Tensor,
+    write: int,
+) -> dict[str, Any]:
+    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending).
+
+    Their candidates are precomputed: stored neighbours within delta (valid while the entry still holds
+    its old key) and earlier batch keys within delta (valid while some entry holds that key). Independent
+    transitions touch none of these, except that their new entries take slots: a new entry of transition
+    j takes slot ``write + (new entries before j)``.
+    """
+    dev, C, track = memory.device, memory.capacity, memory.track_desirability
+    in_group = torch.zeros_like(new_free)
+    in_group[group] = True
+    sel = in_group[query]
+    g_query, g_slot, g_d2 = query[sel].tolist(), slot[sel].tolist(), d2[sel].tolist()
+    sel = bj < bi  # neighbours earlier in the order
+    p_i, p_j, p_d2 = bi[sel].tolist(), bj[sel].tolist(), bd2[sel].tolist()
+    stored: dict[int, list[tuple[float, int]]] = {}
+    for j, s, d in zip(g_query, g_slot, g_d2, strict=True):
+        stored.setdefault(j, []).append((d, s))
+    earlier: dict[int, list[tuple[float, int]]] = {}
+    for j, i, d in zip(p_i, p_j, p_d2, strict=True):
+        earlier.setdefault(j, []).append((d, i))
+    touched = sorted(set(g_slot))
+    touched_t = torch.tensor(touched, dtype=torch.int64, device=dev)
+    H = dict(zip(touched, memory.returns[touched_t].tolist(), strict=True))
+    if track:
+        n_call = dict(zip(touched, memory.n_call[touched_t].tolist(), strict=True))
+        n_xi = dict(zip(touched, memory.n_xi[touched_t].tolist(), strict=True))
+        xi = dict(zip(touched, memory.xi[touched_t].tolist(), strict=True))
+    members = group.tolist()
+    new_before = (torch.cumsum(new_free.to(torch.int64), 0) - new_free.to(torch.int64))[group].tolist()
+    R_g, want_g = R[group].tolist(), wanted[group].tolist()
+
+    owner: dict[int, int] = {}  # slot -> transition whose key/state it holds now (changed in this batch)
+    holder: dict[int, int] = {}  # transition -> slot holding its key
+    created: set[int] = set()
+    counted: set[int] = set()
+    new: list[int] = []
+    hits = shifts = 0
+    for j, before, r, want in zip(members, new_before, R_g, want_g, strict=True):
+        best: tuple[float, int] | None = None
+        for d, s in stored.get(j, ()):
+            if s not in owner and (best is None or (d, s) < best):
+                best = (d, s)
+        for d, i in earlier.get(j, ()):
+            s = holder.get(i)
+            if s is not None and (best is None or (d, s) < best):
+                best = (d, s)
+        if best is None:  # a new entry
+            s = (write + before + len(new)) % C
+            new.append(j)
+            created.add(s)
+            owner[s], holder[j], H[s] = j, s, r
+            if track:
+                n_call[s], n_xi[s], xi[s] = 1, int(want), bool(want)
+            continue
+        s = best[1]
+        hits += 1
+        if track:
+            n_call[s] += 1
+            n_xi[s] += int(want)
+            counted.add(s)
+        if H[s] < r or (track and want and not xi[s]):
+            shifts += 1
+            if s in owner:
+                del holder[owner[s]]
+            owner[s], holder[j], H[s] = j, s, r
+            if track:
+                xi[s] = xi[s] or bool(want)
+
+    owner_slots = sorted(owner)
+    result: dict[str, Any] = {
+        "new": torch.tensor(new, dtype=torch.int64, device=dev),
+        "owner_slots": torch.tensor(owner_slots, dtype=torch.int64, device=dev),
+        "owner_from": torch.tensor([owner[s] for s in owner_slots], dtype=torch.int64, device=dev),
+        "owner_is_new": torch.tensor([s in created for s in owner_slots], dtype=torch.bool, device=dev),
+        "hits": hits,
+        "shifts": shifts,
+    }
+    if track:
+        # Counters of every slot this group changed (new entries included: their start values).
+        slots = sorted(counted | created)
+        result.update(
+            count_slots=torch.tensor(slots, dtype=torch.int64, device=dev),
+            n_call=torch.tensor([n_call[s] for s in slots], dtype=torch.int32, device=dev),
+            n_xi=torch.tensor([n_xi[s] for s in slots], dtype=torch.int32, device=dev),
+            xi=torch.tensor([xi[s] for s in slots], dtype=torch.bool, device=dev),
+        )
+    return result

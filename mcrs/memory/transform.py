@@ -1,0 +1,64 @@
+"""Attaching the episodic memory to training batches: a TorchRL replay-buffer transform.
+
+``ReplayBuffer.sample()`` runs its transforms on the sampled batch, so appending :class:`EpisodicLookup`
+to the episode buffer (``buffer.append_transform(EpisodicLookup(memory, T))``) gives every sampled batch
+the memory's answer for each transition ``t -> t+1``, looked up with the *current* embedding and keys (so
+the answers follow the memory as it grows and as its embedding is retrained). Any TorchRL replay buffer of
+episodes ``[B, T+1]`` with a state key works; the loss reads the keys written here.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.envs import Transform
+
+
+class EpisodicLookup(Transform):
+    """Writes, for each transition ``t`` of an episode batch ``[B, T+1]``:
+
+    - ``memory_return`` ``[B, T+1, 1]``: H(phi(s_{t+1}, (t+1)/T)), 0 without a memory within delta;
+    - ``memory_hit`` ``[B, T+1]``: whether a stored key lies within delta;
+    - ``memory_ratio`` ``[B, T+1, 1]`` (``with_ratio=True``, EMU): N_xi / N_call of the entry found.
+
+    The last row (no transition) is padding: no hit.
+
+    Args:
+        memory: an :class:`~mcrs.memory.EpisodicMemory` (``lookup(state, time) -> (value, hit, slot)``).
+        max_steps: the episode length T (the embedding's time input is t / T).
+        state_key: where the batch keeps the states ``s_0 .. s_T``.
+        with_ratio: also write the desirability ratio (EMU's incentive).
+    """
+
+    def __init__(self, memory, max_steps: int, state_key: NestedKey = "state", with_ratio: bool = False):
+        out_keys: list[NestedKey] = ["memory_return", "memory_hit"] + (["memory_ratio"] if with_ratio else [])
+        super().__init__(in_keys=[state_key], out_keys=out_keys)
+        if max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        self.memory, self.max_steps = memory, int(max_steps)
+        self.state_key, self.with_ratio = state_key, with_ratio
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = tensordict.get(self.state_key)
+        if state.dim() != 3:
+            raise ValueError(
+                f"EpisodicLookup expects episodes [B, T+1, state_dim] under {self.state_key!r}, "
+                f"got shape {tuple(state.shape)}"
+            )
+        B, T1 = state.shape[:2]
+        time = torch.arange(1, T1, device=state.device, dtype=torch.float32).div_(self.max_steps)
+        value, hit, slot = self.memory.lookup(state[:, 1:], time.expand(B, -1))
+        pad = value.new_zeros(B, 1)
+        tensordict.set("memory_return", torch.cat([value, pad], 1).unsqueeze(-1))
+        tensordict.set("memory_hit", torch.cat([hit, hit.new_zeros(B, 1)], 1))
+        if self.with_ratio:
+            ratio = torch.where(hit, self.memory.desirable_ratio(slot.clamp(min=0)), torch.zeros_like(value))
+            tensordict.set("memory_ratio", torch.cat([ratio, pad], 1).unsqueeze(-1))
+        return tensordict
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict  # nothing to do when episodes are written
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(max_steps={self.max_steps}, with_ratio={self.with_ratio})"

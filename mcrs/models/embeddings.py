@@ -1,0 +1,456 @@
+"""State embeddings phi: the keys of the episodic buffer D_E (spec "Embeddings phi"; paper section 5, eq. 31).
+
+The three memories of the paper differ only here:
+
+- :class:`RandomProjection` (EMC): a fixed Gaussian projection of the flat state, never trained.
+- :class:`FCEmbedding` (SEMU, EMU's dCAE): a fully connected encoder-decoder conditioned on t/T.
+- :class:`CNNEmbedding` (CNN-SEMU, paper figure 3d/3f): the map part of the state goes through a CNN whose last
+  layer covers the whole remaining map, the rest (positions) and t/T through a fully connected layer.
+
+Every embedding maps ``state [*B, D]`` (float32) and ``time [*B]`` (t/T in [0, 1]) to keys ``[*B, key_dim]``.
+The trainable ones also have a decoder, ``reconstruct(keys, time) -> (state_hat [*B, D], return_hat [*B])``,
+trained by :class:`EmbeddingTrainer` on :func:`embedding_loss` (eq. 31).
+
+The state layout is the env's (``mcrs/env/core.py``): the first ``2 * width * height`` values are the maps
+m(U) and m(F), each x-major (index ``x * height + y``), so ``state[..., :2 * cells].view(*B, 2, width,
+height)`` is the map image (the env's ``state_map``); the remaining values are the scaled positions.
+
+Parameters are initialised from ``seed`` inside :func:`torch.random.fork_rng`: two embeddings built with one
+seed are identical, and building one leaves the global RNG where it was.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+EMBEDDINGS = ("random", "fc", "cnn")
+
+Kernel = int | tuple[int, int]
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return value
+
+
+def _flatten_inputs(state: torch.Tensor, time: torch.Tensor | float | None, state_dim: int):
+    """Check the state's last dimension and flatten the leading batch shape (time broadcast onto it)."""
+    if state.dim() == 0 or state.shape[-1] != state_dim:
+        raise ValueError(
+            f"state must have shape [..., {state_dim}] (the embedding's state_dim), got {tuple(state.shape)}"
+        )
+    lead = state.shape[:-1]
+    flat = state.reshape(-1, state_dim)
+    if time is None:
+        return lead, flat, None
+    time = torch.as_tensor(time, dtype=state.dtype, device=state.device)
+    try:
+        time = time.expand(lead)
+    except RuntimeError as err:
+        raise ValueError(
+            f"time must have the state's leading shape {tuple(lead)} (one t/T per state), got {tuple(time.shape)}"
+        ) from err
+    return lead, flat, time.reshape(-1)
+
+
+def _linear_with_time(layer: nn.Linear, x: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+    """``layer(cat([x, time[:, None]], -1))`` without the concatenation (a copy of every state otherwise)."""
+    weight = layer.weight
+    out = F.linear(x, weight[:, :-1], layer.bias)
+    return out + time.unsqueeze(-1) * weight[:, -1]
+
+
+def _pair(name: str, value: Kernel) -> tuple[int, int]:
+    pair = (value, value) if isinstance(value, int) and not isinstance(value, bool) else tuple(value)
+    if len(pair) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v <= 0 for v in pair):
+        raise ValueError(f"{name} must be a positive int or a pair of them, got {value!r}")
+    return pair  # type: ignore[return-value]
+
+
+def conv_output_size(size: int, kernel: int, stride: int, padding: int) -> int:
+    """Output length of a convolution along one axis (PyTorch's formula)."""
+    return (size + 2 * padding - kernel) // stride + 1
+
+
+def default_cnn_kernels(map_shape: tuple[int, int], layers: int = 3) -> list[tuple[int, int]]:
+    """Paper figure 3f generalised: 3x3 stride-2 layers, then one kernel the size of the remaining map.
+
+    20x20 -> 10 -> 5 -> 5x5 kernel (the paper's); 10x10 -> 5 -> 3 -> 3x3; 15x15 -> 8 -> 4 -> 4x4; a
+    non-square map gets a rectangular last kernel.
+    """
+    size_x, size_y = map_shape
+    for _ in range(layers - 1):
+        size_x, size_y = conv_output_size(size_x, 3, 2, 1), conv_output_size(size_y, 3, 2, 1)
+    return [(3, 3)] * (layers - 1) + [(size_x, size_y)]
+
+
+# ----------------------------------------------------------------------------------------------- modules
+class StateEmbedding(nn.Module):
+    """Base class: ``forward(state [*B, D], time [*B]) -> keys [*B, key_dim]`` for any leading shape ``*B``."""
+
+    trainable: bool = True
+    # On the CPU and without autograd, batches are encoded this many states at a time: the activations
+    # then stay in the caches instead of streaming through memory (re-embedding 1M map20 states with the
+    # CNN: about 3x faster than in passes of 65536). Same result; GPUs take the batch in one pass.
+    inference_chunk: int = 1024
+
+    def __init__(self, state_dim: int, key_dim: int) -> None:
+        super().__init__()
+        self.state_dim = _positive_int("state_dim", state_dim)
+        self.key_dim = _positive_int("key_dim", key_dim)
+
+    def forward(self, state: torch.Tensor, time: torch.Tensor | float) -> torch.Tensor:
+        lead, flat, flat_time = _flatten_inputs(state, time, self.state_dim)
+        return self._encode_chunked(flat, flat_time).reshape(*lead, self.key_dim)
+
+    def _encode_chunked(self, state: torch.Tensor, time: torch.Tensor | None) -> torch.Tensor:
+        n, chunk = state.shape[0], self.inference_chunk
+        if torch.is_grad_enabled() or n <= chunk or state.device.type != "cpu":
+            return self.encode(state, time)
+        keys = state.new_empty(n, self.key_dim)
+        workspace = self.workspace(chunk, state)
+        for i in range(0, n, chunk):
+            chunk_time = None if time is None else time[i : i + chunk]
+            keys[i : i + chunk] = self.encode(state[i : i + chunk], chunk_time, workspace)
+        return keys
+
+    def workspace(self, rows: int, like: torch.Tensor) -> torch.Tensor | None:
+        """Scratch memory reused by every chunk of one chunked pass (None: the embedding needs none)."""
+        return None
+
+    def encode(
+        self, state: torch.Tensor, time: torch.Tensor | None, workspace: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Keys of a flat batch: ``state [N, D]``, ``time [N]`` -> ``[N, key_dim]`` (inputs already checked).
+
+        ``workspace`` is :meth:`workspace`'s scratch memory, given only in chunked inference passes.
+        """
+        raise NotImplementedError
+
+    def reconstruct(
+        self, keys: torch.Tensor, time: torch.Tensor | float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Decode keys into ``(state_hat [*B, D], return_hat [*B])``; only trainable embeddings have a decoder."""
+        raise TypeError(f"{type(self).__name__} has no decoder: it is not trained")
+
+
+class RandomProjection(StateEmbedding):
+    """EMC's key: ``x = s @ P`` with ``P [D, key_dim]`` drawn once from N(0, 1/key_dim), i.e. std 1/sqrt(key_dim).
+
+    This is EMC's ``rng.normal(0, 1/sqrt(latent_dim), (latent_dim, state_dim))`` (spec: N(0, 1/dim(x))).
+    ``P`` is a buffer (saved in the state dict, moved by ``.to``), not a parameter: it is never trained, and
+    the time is ignored.
+    """
+
+    trainable = False
+
+    def __init__(self, state_dim: int, key_dim: int = 4, seed: int = 0) -> None:
+        super().__init__(state_dim, key_dim)
+        generator = torch.Generator().manual_seed(seed)
+        projection = torch.randn(state_dim, key_dim, generator=generator) / math.sqrt(key_dim)
+        self.register_buffer("projection", projection)
+
+    def encode(
+        self, state: torch.Tensor, time: torch.Tensor | None, workspace: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        return state @ self.projection
+
+    def forward(self, state: torch.Tensor, time: torch.Tensor | float | None = None) -> torch.Tensor:
+        lead, flat, _ = _flatten_inputs(state, None, self.state_dim)
+        return self._encode_chunked(flat, None).reshape(*lead, self.key_dim)
+
+
+class Decoder(nn.Module):
+    """EMU's dCAE decoder: ``[x, t/T] -> hidden -> hidden`` then two heads, the state (D) and the return (1)."""
+
+    def __init__(self, key_dim: int, state_dim: int, hidden_dim: int) -> None:
+        super().__init__()
+        self.input = nn.Linear(key_dim + 1, hidden_dim)
+        self.hidden = nn.Linear(hidden_dim, hidden_dim)
+        self.state_head = nn.Linear(hidden_dim, state_dim)
+        self.return_head = nn.Linear(hidden_dim, 1)
+
+    def forward(self, keys: torch.Tensor, time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = F.relu(_linear_with_time(self.input, keys, time))
+        h = F.relu(self.hidden(h))
+        return self.state_head(h), self.return_head(h).squeeze(-1)
+
+
+class _EncoderDecoder(StateEmbedding):
+    """A trainable embedding: a subclass's encoder plus the shared :class:`Decoder`."""
+
+    def __init__(self, state_dim: int, key_dim: int, hidden_dim: int) -> None:
+        super().__init__(state_dim, key_dim)
+        self.hidden_dim = _positive_int("hidden_dim", hidden_dim)
+        self.decoder = Decoder(key_dim, state_dim, hidden_dim)
+
+    def reconstruct(
+        self, keys: torch.Tensor, time: torch.Tensor | float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        lead, flat_keys, flat_time = _flatten_inputs(keys, time, self.key_dim)
+        state_hat, return_hat = self.decoder(flat_keys, flat_time)
+        return state_hat.reshape(*lead, self.state_dim), return_hat.reshape(lead)
+
+
+class FCEmbedding(_EncoderDecoder):
+    """SEMU / EMU's dCAE encoder: ``[s, t/T] -> hidden -> hidden -> key_dim`` (ReLU between hidden layers)."""
+
+    def __init__(self, state_dim: int, key_dim: int = 4, hidden_dim: int = 64) -> None:
+        super().__init__(state_dim, key_dim, hidden_dim)
+        self.input = nn.Linear(state_dim + 1, hidden_dim)
+        self.hidden = nn.Linear(hidden_dim, hidden_dim)
+        self.output = nn.Linear(hidden_dim, key_dim)
+
+    def encode(
+        self, state: torch.Tensor, time: torch.Tensor, workspace: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        h = F.relu(_linear_with_time(self.input, state, time))
+        h = F.relu(self.hidden(h))
+        return self.output(h)
+
+
+class CNNEmbedding(_EncoderDecoder):
+    """CNN-SEMU's encoder (paper figure 3d, 3f): a CNN on the map, a fully connected layer on the rest.
+
+    The first ``2 * width * height`` state values are the map image ``[2, width, height]`` (m(U), m(F),
+    x-major: the env's ``state_map``). It goes through ``len(channels)`` convolutions: 3x3 stride 2 padding 1
+    layers, then a stride-1 unpadded layer whose kernel is the remaining spatial size, so its single output
+    position sees the whole map (paper: 20x20 -> 10 -> 5 -> 5x5 kernel), each followed by a ReLU. The rest of
+    the state (positions) and t/T go through ``Linear(rest + 1, hidden) -> ReLU``. The two feature vectors are
+    concatenated and mapped linearly to the key.
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        map_shape: Sequence[int],
+        key_dim: int = 4,
+        hidden_dim: int = 64,
+        channels: Sequence[int] = (8, 16, 32),
+        kernels: Sequence[Kernel] | None = None,
+    ) -> None:
+        super().__init__(state_dim, key_dim, hidden_dim)
+        self.map_shape = _check_map_shape(map_shape, state_dim)
+        channels = tuple(channels)
+        if not channels or any(isinstance(c, bool) or not isinstance(c, int) or c <= 0 for c in channels):
+            raise ValueError(f"channels must be a non-empty list of positive ints, got {channels!r}")
+        if kernels is None:
+            kernel_pairs = default_cnn_kernels(self.map_shape, len(channels))
+        else:
+            kernel_pairs = [_pair("kernels", k) for k in kernels]
+            if len(kernel_pairs) != len(channels):
+                raise ValueError(
+                    f"kernels must give one kernel per conv layer ({len(channels)} channels), got {len(kernel_pairs)}"
+                )
+        self.map_cells = 2 * self.map_shape[0] * self.map_shape[1]
+        self.rest_dim = state_dim - self.map_cells
+
+        convs, size, in_channels = [], self.map_shape, 2
+        for i, (out_channels, kernel) in enumerate(zip(channels, kernel_pairs, strict=True)):
+            last = i == len(channels) - 1
+            stride, padding = (1, 0) if last else (2, 1)
+            size = tuple(conv_output_size(n, k, stride, padding) for n, k in zip(size, kernel, strict=True))
+            if min(size) <= 0:
+                raise ValueError(
+                    f"kernels {kernel_pairs} do not fit the {self.map_shape} map (map_shape): "
+                    f"layer {i} has no output position"
+                )
+            convs.append(nn.Conv2d(in_channels, out_channels, kernel, stride=stride, padding=padding))
+            in_channels = out_channels
+        if size != (1, 1):
+            raise ValueError(
+                f"kernels {kernel_pairs} reduce the {self.map_shape} map (map_shape) to {size}, not 1x1: "
+                f"the last layer must cover the whole remaining map (default kernels do)"
+            )
+        self.kernels = kernel_pairs
+        self.convs = nn.ModuleList(convs)
+        self.rest = nn.Linear(self.rest_dim + 1, hidden_dim)
+        self.output = nn.Linear(channels[-1] + hidden_dim, key_dim)
+
+    def workspace(self, rows: int, like: torch.Tensor) -> torch.Tensor:
+        """A channels-last map image ``[rows, width, height, 2]`` that every chunk copies its maps into.
+
+        A fresh image per chunk would make the allocator fetch (and page-fault) new memory each time: on
+        2 cores that cost more than the convolutions.
+        """
+        return like.new_empty(rows, *self.map_shape, 2)
+
+    def map_features(self, state: torch.Tensor, workspace: torch.Tensor | None = None) -> torch.Tensor:
+        """CNN features ``[N, channels[-1]]`` of the map part ``state[:, :2 * cells]`` of a flat batch.
+
+        The image is laid out channels-last (NHWC), oneDNN's native layout on the CPU (no reorders).
+        """
+        image = state[:, : self.map_cells].unflatten(1, (2, *self.map_shape))
+        if workspace is None:
+            h = image.contiguous(memory_format=torch.channels_last)
+        else:
+            h = workspace[: state.shape[0]].permute(0, 3, 1, 2)
+            h.copy_(image)
+        for conv in self.convs[:-1]:
+            h = F.relu(conv(h), inplace=True)
+        # The last layer has one output position: a matrix product with the flattened kernel is the same
+        # convolution and avoids the conv kernel's overhead for a 1x1 output. Both sides are flattened in
+        # (height, width, channel) order, a view of the channels-last activations.
+        last = self.convs[-1]
+        weight = last.weight.permute(0, 2, 3, 1).flatten(1)
+        return F.relu(F.linear(h.permute(0, 2, 3, 1).flatten(1), weight, last.bias))
+
+    def encode(
+        self, state: torch.Tensor, time: torch.Tensor, workspace: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        rest = F.relu(_linear_with_time(self.rest, state[:, self.map_cells :], time))
+        return self.output(torch.cat([self.map_features(state, workspace), rest], dim=-1))
+
+
+def _check_map_shape(map_shape: Sequence[int] | None, state_dim: int) -> tuple[int, int]:
+    if map_shape is None:
+        raise ValueError("map_shape (width, height) is required for the cnn embedding")
+    shape = tuple(map_shape)
+    if len(shape) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v <= 0 for v in shape):
+        raise ValueError(f"map_shape must be two positive ints (width, height), got {map_shape!r}")
+    if 2 * shape[0] * shape[1] > state_dim:
+        raise ValueError(
+            f"map_shape {shape} does not fit the state: its two maps need 2 * {shape[0]} * {shape[1]} = "
+            f"{2 * shape[0] * shape[1]} values, more than state_dim = {state_dim}"
+        )
+    return shape  # type: ignore[return-value]
+
+
+def make_embedding(
+    kind: str,
+    state_dim: int,
+    map_shape: Sequence[int] | None = None,
+    key_dim: int = 4,
+    hidden_dim: int = 64,
+    cnn_channels: Sequence[int] = (8, 16, 32),
+    seed: int = 0,
+) -> StateEmbedding:
+    """Build the embedding ``kind`` ("random" EMC, "fc" SEMU, "cnn" CNN-SEMU), parameters drawn from ``seed``.
+
+    The trainable ones are initialised inside ``torch.random.fork_rng`` seeded with ``seed``: deterministic,
+    and the global RNG is left untouched.
+    """
+    if kind not in EMBEDDINGS:
+        raise ValueError(f"kind must be one of {EMBEDDINGS}, got {kind!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed must be an int, got {seed!r}")
+    if kind == "random":
+        return RandomProjection(state_dim, key_dim, seed=seed)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        if kind == "fc":
+            return FCEmbedding(state_dim, key_dim, hidden_dim)
+        return CNNEmbedding(state_dim, map_shape, key_dim, hidden_dim, cnn_channels)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------- training
+def embedding_loss(
+    embedding: StateEmbedding,
+    state: torch.Tensor,
+    time: torch.Tensor,
+    returns: torch.Tensor,
+    state_weight: float = 0.1,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Paper eq. 31: ``mean ||H - H_hat||^2 + state_weight * mean ||s - s_hat||^2``.
+
+    ``||s - s_hat||^2`` is the squared L2 norm over the state's D values (eq. 31), averaged over the batch.
+    ``returns`` must already be scaled (see :class:`EmbeddingTrainer`).
+    """
+    if not embedding.trainable:
+        raise TypeError(f"{type(embedding).__name__} is not trainable: it has no decoder and no loss")
+    keys = embedding(state, time)
+    state_hat, return_hat = embedding.reconstruct(keys, time)
+    loss_return = (return_hat - returns).square().mean()
+    loss_state = (state_hat - state).square().sum(-1).mean()
+    loss = loss_return + state_weight * loss_state
+    stats = {"loss": loss.item(), "loss_return": loss_return.item(), "loss_state": loss_state.item()}
+    return loss, stats
+
+
+Sampler = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+class EmbeddingTrainer:
+    """Trains a trainable embedding on a sample of the episodic buffer (EMU: 102,400 samples, batches of 1024).
+
+    ``fit(sample)`` draws ``samples`` entries in one call ``sample(samples) -> (state [n, D], time [n],
+    returns [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches. The returns are
+    standardised by the mean and std of the drawn sample before the loss: ours reach hundreds, and raw
+    returns would make the return term dwarf the reconstruction term (and the decoder's return head start
+    far off). The ranking of returns, which is what shapes the keys, is unchanged by this affine map.
+    """
+
+    def __init__(
+        self,
+        embedding: StateEmbedding,
+        lr: float = 5e-4,
+        batch_size: int = 1024,
+        samples: int = 102_400,
+        state_weight: float = 0.1,
+    ) -> None:
+        if not embedding.trainable:
+            raise TypeError(f"{type(embedding).__name__} is not trainable: there is nothing to fit")
+        if not lr > 0:
+            raise ValueError(f"lr must be positive, got {lr!r}")
+        _positive_int("batch_size", batch_size)
+        _positive_int("samples", samples)
+        if samples < batch_size:
+            raise ValueError(
+                f"samples ({samples}) must be at least batch_size ({batch_size}): no step otherwise"
+            )
+        if not state_weight >= 0:
+            raise ValueError(f"state_weight must be non-negative, got {state_weight!r}")
+        self.embedding = embedding
+        self.batch_size = batch_size
+        self.samples = samples
+        self.state_weight = state_weight
+        self.optimizer = torch.optim.Adam(embedding.parameters(), lr=lr)
+
+    def fit(self, sample: Sampler, generator: torch.Generator | None = None) -> dict[str, float]:
+        """Draw ``samples`` entries, take ``samples // batch_size`` Adam steps; mean stats over the steps.
+
+        The minibatches are a permutation drawn from ``generator`` (the global RNG when None). The stats
+        also give the return standardisation used (``return_mean``, ``return_std``).
+        """
+        device = next(self.embedding.parameters()).device
+        state, time, returns = (torch.as_tensor(x).to(device, torch.float32) for x in sample(self.samples))
+        n = state.shape[0]
+        if n < self.batch_size or time.shape != (n,) or returns.shape != (n,):
+            raise ValueError(
+                f"sample({self.samples}) must return state [n, D], time [n], returns [n] with n >= batch_size "
+                f"({self.batch_size}); got {tuple(state.shape)}, {tuple(time.shape)}, {tuple(returns.shape)}"
+            )
+        mean, std = returns.mean(), returns.std(unbiased=False).clamp_min(1e-6)
+        returns = (returns - mean) / std
+        steps = n // self.batch_size
+        order = torch.randperm(n, generator=generator).to(device)
+        totals = {"loss": 0.0, "loss_return": 0.0, "loss_state": 0.0}
+        self.embedding.train()
+        for step in range(steps):
+            idx = order[step * self.batch_size : (step + 1) * self.batch_size]
+            loss, stats = embedding_loss(
+                self.embedding, state[idx], time[idx], returns[idx], state_weight=self.state_weight
+            )
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            for key in totals:
+                totals[key] += stats[key]
+        result = {key: value / steps for key, value in totals.items()}
+        result.update(steps=float(steps), return_mean=mean.item(), return_std=std.item())
+        return result
+
+    def state_dict(self) -> dict[str, Any]:
+        """The optimizer's state (Adam moments), for checkpoints; the embedding saves its own."""
+        return {"optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,144 @@
+"""End-to-end training with the episodic memory: every memory algorithm runs, logs its diagnostics,
+checkpoints its memory, resumes identically, and refuses bad memory settings."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import ConfigError, validate
+from mcrs.experiment.episodic import EpisodicSide
+from mcrs.experiment.trainer import Trainer
+from mcrs.train import CONFIG_DIR, resume_config
+from tests.train_helpers import TINY_MEMORY, compose_config
+
+MEMORY_ALGOS = ["emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu"]
+
+
+def scalars(run_dir: Path, name: str) -> list[tuple[int, float]]:
+    with open(run_dir / "logs" / "scalars" / f"{name}.csv") as f:
+        return [(int(float(step)), float(value)) for step, value in csv.reader(f)]
+
+
+def memory_config(*overrides: str):
+    return compose_config(*TINY_MEMORY, *overrides)
+
+
+def test_mcrs_train_defaults_to_cnn_semu() -> None:
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose(config_name="config")
+    assert cfg.algo.name == "cnn_semu" and cfg.env.name == "map10"
+    assert cfg.algo.memory.enabled and cfg.algo.memory.embedding == "cnn" and cfg.algo.memory_weight == 0.1
+    assert cfg.algo.memory.capacity == 1_000_000 and cfg.algo.memory.delta == pytest.approx(1.3e-3)
+
+
+@pytest.mark.parametrize("algo", MEMORY_ALGOS)
+def test_each_memory_algorithm_trains_and_logs_its_diagnostics(algo: str, tmp_path: Path) -> None:
+    cfg = memory_config(f"algo={algo}")
+    trainer = Trainer(cfg, tmp_path)
+    result = trainer.train()
+    assert math.isfinite(result["episode_reward"])
+    # 200 env steps of 10-step episodes: 200 transitions inserted (hits update instead of adding).
+    size = scalars(tmp_path, "memory/size")
+    assert size and 0 < size[-1][1] <= 200 and len(trainer.episodic.memory) == size[-1][1]
+    for name in ("train/memory_hit_rate", "train/q_taken_mean", "memory/insert_new"):
+        assert scalars(tmp_path, name), name
+    if cfg.algo.memory.embedding != "random":  # phi trained at 80 and 160 env steps
+        losses = scalars(tmp_path, "memory/embedding_loss")
+        assert [step for step, _ in losses] and all(math.isfinite(v) for _, v in losses)
+    if cfg.algo.memory_weight > 0:
+        assert all(math.isfinite(v) for _, v in scalars(tmp_path, "train/loss_memory"))
+    if cfg.algo.incentive != "none":
+        assert scalars(tmp_path, "train/incentive_mean")
+    if cfg.algo.curiosity_scale > 0:
+        assert all(v > 0 for _, v in scalars(tmp_path, "train/curiosity_scale"))
+    # The checkpoint carries the memory: a fresh memory loaded from it answers look-ups identically.
+    state = ckpt.load(ckpt.checkpoint_path(tmp_path))
+    fresh = EpisodicSide(cfg, trainer.env_config, torch.device("cpu"))
+    fresh.load_state_dict(state["episodic"])
+    assert len(fresh.memory) == len(trainer.episodic.memory)
+    states = trainer.replay.storage.get(torch.arange(4)).get("state")[:, 1:]
+    time = torch.arange(1, states.shape[1] + 1).float().div(cfg.env.max_steps).expand(4, -1)
+    for a, b in zip(
+        fresh.memory.lookup(states, time), trainer.episodic.memory.lookup(states, time), strict=True
+    ):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("mixer", ["vdn", "qplex"])
+def test_cnn_semu_on_other_mixers(mixer: str, tmp_path: Path) -> None:
+    trainer = Trainer(
+        memory_config("algo=cnn_semu", f"algo.mixer={mixer}", "train.total_env_steps=80"), tmp_path
+    )
+    assert math.isfinite(trainer.train()["episode_reward"])
+
+
+def test_memory_hits_reach_the_loss(tmp_path: Path) -> None:
+    """With a huge delta every look-up hits: the memory term is active and logged as such."""
+    trainer = Trainer(
+        memory_config("algo=cnn_semu", "algo.memory.delta=1e6", "train.total_env_steps=80"), tmp_path
+    )
+    trainer.train()
+    assert scalars(tmp_path, "train/memory_hit_rate")[-1][1] == pytest.approx(1.0)
+    assert scalars(tmp_path, "train/loss_memory")[-1][1] > 0
+    # Every transition found an entry: the memory holds one entry per distinct time step at most.
+    assert len(trainer.episodic.memory) < 80
+
+
+@pytest.mark.parametrize("algo", ["cnn_semu", "emc"])
+def test_resume_continues_with_the_same_memory(algo: str, tmp_path: Path) -> None:
+    overrides = [f"algo={algo}", "train.total_env_steps=200"]
+    straight = Trainer(memory_config(*overrides), tmp_path / "straight")
+    straight.train()
+    Trainer(memory_config(f"algo={algo}", "train.total_env_steps=120"), tmp_path / "half").train()
+    args = [f"resume={tmp_path / 'half'}", "train.total_env_steps=200"]
+    cfg, run_dir = resume_config(memory_config(*args), args)
+    resumed = Trainer(cfg, run_dir, resume=True)
+    assert len(resumed.episodic.memory) > 0
+    resumed.train()
+    for name, value in straight.learner.agent.state_dict().items():
+        assert torch.equal(value, resumed.learner.agent.state_dict()[name]), name
+    for name, value in straight.episodic.embedding.state_dict().items():
+        assert torch.equal(value, resumed.episodic.embedding.state_dict()[name]), name
+    a, b = straight.episodic.memory.state_dict(), resumed.episodic.memory.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], torch.Tensor):
+            assert torch.equal(a[key], b[key]), key
+        else:
+            assert a[key] == b[key], key
+    assert straight.counters == resumed.counters
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("algo.memory.delta=0", r"algo\.memory\.delta=0\.0: must be > 0"),
+        ("algo.memory.delta=-1", r"algo\.memory\.delta=-1\.0: must be > 0"),
+        ("algo.memory.capacity=0", r"algo\.memory\.capacity=0: must be >= 1 entry"),
+        ("algo.memory_weight=-0.1", r"algo\.memory_weight=-0\.1: must be >= 0"),
+        ("algo.memory.embedding=pca", r"algo\.memory\.embedding='pca': allowed values are random, fc, cnn"),
+        ("algo.incentive=often", r"algo\.incentive='often': allowed values are none, fixed, change"),
+        ("algo.memory.enabled=false", r"need the episodic memory: set algo\.memory\.enabled=true"),
+        ("algo.memory.cnn_channels=[4,4]", r"algo\.memory\.cnn_channels=\[4, 4\]: must be 3 positive"),
+        ("algo.curiosity_decay_rate=2", r"algo\.curiosity_decay_rate=2\.0: must be in \[0, 1\]"),
+    ],
+)
+def test_bad_memory_settings_are_refused_at_start(override: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        validate(memory_config("algo=cnn_semu", override))
+
+
+def test_a_memory_from_another_map_is_refused(tmp_path: Path) -> None:
+    small = Trainer(memory_config("algo=cnn_semu", "train.total_env_steps=40"), tmp_path / "a")
+    small.train()
+    other = Trainer(memory_config("algo=cnn_semu", "env=map15", "env.max_steps=10", "train.total_env_steps=40"),
+                    tmp_path / "b")  # fmt: skip
+    with pytest.raises(ValueError, match="map"):
+        other.episodic.memory.load_state_dict(small.episodic.memory.state_dict())
