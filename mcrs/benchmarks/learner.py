@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import copy
 import gc
-import logging
 import os
 import shlex
 import statistics
@@ -43,7 +42,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torch.nn import functional as F
 
-from mcrs.benchmarks.common import load_average, pass_fail
+from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.env.config import SCENARIOS, EnvConfig, from_mapping
 from mcrs.env.core import N_ACTIONS
 
@@ -72,13 +71,19 @@ NEG_INF = -1e10
 
 
 # ---------------------------------------------------------------------------------------- the config
-def compose_config(map_name: str, quick: bool, extra: Sequence[str] = ()) -> DictConfig:
-    """The real ``mcrs-train`` config (pymarl preset, QMIX) for ``map_name``, composed in-process."""
+def compose_config(map_name: str, quick: bool, extra: Sequence[str] = (), algo: str = "qmix") -> DictConfig:
+    """The real ``mcrs-train`` config (pymarl preset, ``algo``) for ``map_name``, composed in-process."""
     from hydra import compose, initialize_config_dir
 
     from mcrs.train import CONFIG_DIR  # also registers the structured config schema
 
-    overrides = [f"env={map_name}", "preset=pymarl", "algo=qmix", *(QUICK_OVERRIDES if quick else ()), *extra]
+    overrides = [
+        f"env={map_name}",
+        "preset=pymarl",
+        f"algo={algo}",
+        *(QUICK_OVERRIDES if quick else ()),
+        *extra,
+    ]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
 
@@ -395,7 +400,9 @@ class LoopResult:
         return (steps / self.env_steps_per_s + evals) / 3600
 
 
-def measure_loop(map_name: str, quick: bool, loop_steps: int, threads: int) -> LoopResult:
+def measure_loop(
+    map_name: str, quick: bool, loop_steps: int, threads: int, algo: str = "qmix", extra: Sequence[str] = ()
+) -> LoopResult:
     """Run the real :class:`Trainer` and time its steady state from its own counters.
 
     The run evaluates only at its start and end (``eval_interval`` out of reach) and writes no checkpoint
@@ -406,7 +413,9 @@ def measure_loop(map_name: str, quick: bool, loop_steps: int, threads: int) -> L
     """
     from mcrs.experiment.trainer import Trainer
 
-    cfg = compose_config(map_name, quick, ["logger=csv", "logger.progress_bar=false", f"threads={threads}"])
+    cfg = compose_config(
+        map_name, quick, ["logger=csv", "logger.progress_bar=false", f"threads={threads}", *extra], algo
+    )
     t = cfg.train
     eval_interval = int(t.eval_interval)
     batch_steps = int(t.num_envs) * int(cfg.env.max_steps)
@@ -526,17 +535,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print the update table, the ratios, the loop figures and the goals."""
     command = shlex.join(["mcrs-bench-learner", *(sys.argv[1:] if argv is None else argv)])
     args = _parse_args(argv)
-    threads = torch.get_num_threads()
-    torchrl_log = logging.getLogger("torchrl")  # its INFO lines (storage allocation) would break the tables
-    level = torchrl_log.level
-    torchrl_log.setLevel(logging.WARNING)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
+    with benchmark_process(args.threads):
         _run(args, command)
-    finally:  # main() also runs in-process (tests): leave the process as found; the Trainer sets threads
-        torch.set_num_threads(threads)
-        torchrl_log.setLevel(level)
     return 0
 
 

@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from mcrs.benchmarks.common import load_average, pass_fail
+from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.benchmarks.env_throughput import resident_bytes
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import MCRSCore
@@ -180,13 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print the figures and the goals."""
     command = shlex.join(["mcrs-bench-memory", *(sys.argv[1:] if argv is None else argv)])
     args = _parse_args(argv)
-    threads = torch.get_num_threads()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
+    with benchmark_process(args.threads):
         _run(args, command)
-    finally:  # main() also runs in-process (tests): leave the process as found
-        torch.set_num_threads(threads)
     return 0
 
 

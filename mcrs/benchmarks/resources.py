@@ -1,0 +1,171 @@
+"""Long-run resource benchmark (``mcrs-bench-resources``, ``python -m mcrs.benchmarks.resources``).
+
+Why: a 2M-step run must not grow its memory without bound. Every store of the loop is bounded (the replay
+buffer holds ``train.replay_episodes`` episodes, the episodic memory ``algo.memory.capacity`` entries), so
+once they are full the process's resident memory (RSS) should stay flat; a leak (a growing list of stats,
+tensors kept alive by a logger, a collector that accumulates) shows as growth after that point.
+
+This trains in-process (default: map10, QMIX, 200k env steps, a replay of 500 episodes so that it fills in
+the first eighth of the run), samples the RSS (VmRSS of /proc/self/status, or psutil) every ``--every``
+env steps and prints the curve (env steps, RSS, replay episodes, memory entries), then the growth between
+50% and 100% of the run with PASS/FAIL against < 5%. The run directory is a temporary folder, removed at
+the end (checkpoints included).
+
+    mcrs-bench-resources                                         # QMIX, map10, 200k env steps
+    mcrs-bench-resources --algo cnn_semu --override algo.memory.capacity=20000
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import shlex
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from mcrs.benchmarks.common import load_average, pass_fail
+from mcrs.benchmarks.env_throughput import resident_bytes
+
+GOAL_GROWTH = 0.05  # RSS growth between 50% and 100% of the run
+MIB = 2**20
+
+
+@dataclass
+class Sample:
+    env_steps: int
+    rss_mib: float
+    replay_episodes: int
+    memory_entries: int
+
+
+def rss_bytes() -> int:
+    """Resident memory of this process: /proc's VmRSS, else psutil."""
+    value = resident_bytes()
+    if value is not None:
+        return value
+    import psutil  # only where there is no /proc (not a dependency)
+
+    return int(psutil.Process().memory_info().rss)
+
+
+def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="mcrs-bench-resources", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algo", default="qmix", help="algo group option (qmix, cnn_semu, ...)")
+    parser.add_argument("--env", default="map10", help="env group option (map10, map15, map20)")
+    parser.add_argument("--env-steps", type=int, default=200_000, help="length of the run")
+    parser.add_argument(
+        "--replay-episodes", type=int, default=500, help="replay capacity (small: fills early)"
+    )
+    parser.add_argument("--every", type=int, default=10_000, help="env steps between RSS samples")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        help="extra Hydra override, e.g. algo.memory.capacity=20000",
+    )
+    return parser.parse_args(argv)
+
+
+def compose(args: argparse.Namespace):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from mcrs.experiment.config import register_configs
+    from mcrs.train import CONFIG_DIR
+
+    register_configs()
+    overrides = [
+        f"algo={args.algo}",
+        f"env={args.env}",
+        f"train.total_env_steps={args.env_steps}",
+        f"train.replay_episodes={args.replay_episodes}",
+        f"threads={args.threads}",
+        "logger.progress_bar=false",
+        *args.override,
+    ]
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=overrides)
+
+
+def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
+    """Train while sampling the RSS before every collector batch that crosses a multiple of ``--every``."""
+    from mcrs.experiment.trainer import Trainer
+
+    trainer = Trainer(compose(args), run_dir)
+    samples: list[Sample] = []
+
+    def sample() -> None:
+        gc.collect()
+        memory = trainer.episodic.memory.size if trainer.episodic is not None else 0
+        samples.append(
+            Sample(trainer.counters.env_steps, rss_bytes() / MIB, len(trainer.replay), int(memory))
+        )
+
+    next_sample = [0]
+    collect = trainer.collector.next_batch
+
+    def sampled_next_batch(iterator):
+        if trainer.counters.env_steps >= next_sample[0]:
+            sample()
+            next_sample[0] += args.every
+        return collect(iterator)
+
+    trainer.collector.next_batch = sampled_next_batch  # the loop's one call per collector batch
+    trainer.train()
+    sample()
+    return samples, trainer
+
+
+def growth(samples: list[Sample], total: int) -> tuple[Sample, Sample, float]:
+    """RSS growth from the first sample at or after 50% of the run to the last sample."""
+    middle = next(s for s in samples if s.env_steps >= total // 2)
+    last = samples[-1]
+    return middle, last, (last.rss_mib - middle.rss_mib) / middle.rss_mib
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    command = shlex.join(["mcrs-bench-resources", *(sys.argv[1:] if argv is None else argv)])
+    args = _parse_args(argv)
+    torch.set_num_threads(args.threads)
+    print(
+        f"MCRS resource benchmark: {args.algo} on {args.env}, {args.env_steps} env steps, replay "
+        f"{args.replay_episodes} episodes, torch threads {args.threads}, load average {load_average()}\n"
+        f"command: {command}",
+        flush=True,
+    )
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="mcrs-bench-resources-") as tmp:
+        samples, trainer = run(args, Path(tmp) / "run")
+    elapsed = time.perf_counter() - start
+    print(f"\n{'env_steps':>10} {'rss_mib':>9} {'replay_episodes':>16} {'memory_entries':>15}")
+    for s in samples:
+        print(f"{s.env_steps:>10} {s.rss_mib:>9.1f} {s.replay_episodes:>16} {s.memory_entries:>15}")
+    middle, last, rise = growth(samples, args.env_steps)
+    capacity = trainer.cfg.train.replay_episodes
+    full = "full" if middle.replay_episodes >= capacity else f"NOT full ({middle.replay_episodes}/{capacity})"
+    print(
+        f"\nrun: {elapsed:.0f} s; replay at 50%: {full}"
+        + (
+            f"; memory at 50%: {middle.memory_entries}/{trainer.cfg.algo.memory.capacity} entries"
+            if trainer.episodic is not None
+            else ""
+        )
+    )
+    print(
+        f"RSS growth 50% -> 100% ({middle.env_steps} -> {last.env_steps} env steps): "
+        f"{middle.rss_mib:.1f} -> {last.rss_mib:.1f} MiB = {100 * rise:+.2f}% "
+        f"(goal < {100 * GOAL_GROWTH:.0f}%): {pass_fail(rise < GOAL_GROWTH)}",
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
