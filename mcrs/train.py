@@ -29,6 +29,8 @@ RESUME_MUTABLE = (
     "threads",
     "train.eval_interval",
     "train.checkpoint_interval",
+    "train.collector",  # how episodes are collected (a crashed multiprocess run may go on in one process;
+    "train.collector_workers",  # the episodes then differ from an uninterrupted run's)
 )
 
 
@@ -107,12 +109,14 @@ def main(cfg: DictConfig) -> float:
     """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""
     from hydra.core.hydra_config import HydraConfig
 
+    from mcrs.experiment.collection import CollectorWorkerFailed
     from mcrs.experiment.trainer import TrainingDiverged
 
     hydra_cfg = HydraConfig.get()
     try:
         result = run(cfg, Path(hydra_cfg.runtime.output_dir), list(hydra_cfg.overrides.task))
-    except (ConfigError, ckpt.CheckpointError, TrainingDiverged) as error:  # one clear message, no traceback
+    except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed) as error:
+        # one clear message (with the cause), no traceback
         raise SystemExit(f"mcrs-train: error: {error}") from None
     return float(result.get("episode_reward", float("nan")))
 

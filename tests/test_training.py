@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -16,7 +17,7 @@ from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
 from mcrs.experiment.trainer import Trainer, TrainingDiverged
 from mcrs.train import resume_config, run
-from tests.train_helpers import TINY, compose_config
+from tests.train_helpers import TINY, TINY_MEMORY, compose_config
 
 
 def scalars(run_dir: Path, name: str) -> list[tuple[int, float]]:
@@ -125,12 +126,59 @@ def test_corrupt_and_foreign_checkpoints_are_refused(tmp_path: Path) -> None:
 
 
 def test_non_finite_loss_stops_the_run_and_keeps_the_last_good_state(tmp_path: Path) -> None:
-    cfg = compose_config("env.w_uncertainty=1e38", "env.w_discovery=1e38")  # rewards overflow to inf
+    cfg = compose_config("env.w_uncertainty=1e37")  # finite rewards whose squared TD errors overflow
     trainer = Trainer(cfg, tmp_path)
     with pytest.raises(TrainingDiverged, match=r"non-finite loss_td=.* at env step \d+ \(update 1\)"):
         trainer.train()
     state = ckpt.load(tmp_path / "checkpoints" / "last_good.pt")
     assert state["counters"]["updates"] == 0
+
+
+def test_non_finite_memory_term_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    trainer = Trainer(compose_config("algo=cnn_semu", *TINY_MEMORY), tmp_path)
+    forward = trainer.learner.loss.forward
+
+    def broken_memory_term(batch):
+        out = forward(batch)
+        out["loss_memory"] = torch.tensor(float("nan"))
+        out["loss"] = out["loss"] + out["loss_memory"]
+        return out
+
+    monkeypatch.setattr(trainer.learner.loss, "forward", broken_memory_term)
+    with pytest.raises(TrainingDiverged, match=r"non-finite loss_memory=nan at env step \d+ \(update 1\)"):
+        trainer.train()
+    assert ckpt.load(tmp_path / "checkpoints" / "last_good.pt")["counters"]["updates"] == 0
+
+
+@pytest.mark.parametrize(
+    ("key", "term"),
+    [
+        ("state", "belief maps / state"),
+        (("next", "reward"), "reward"),
+        (("agents", "observation"), "observation"),
+    ],
+)
+def test_non_finite_env_output_stops_before_the_replay(
+    key, term: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    trainer = Trainer(compose_config("train.total_env_steps=80"), tmp_path)
+    next_batch = trainer.collector.next_batch
+    calls = []
+
+    def poisoned(iterator):
+        batch = next_batch(iterator)
+        calls.append(1)
+        if len(calls) == 2:  # the second batch carries a NaN belief / reward / observation
+            batch.get(key).view(-1)[3] = float("nan")
+        return batch
+
+    monkeypatch.setattr(trainer.collector, "next_batch", poisoned)
+    with pytest.raises(
+        TrainingDiverged, match=rf"non-finite {re.escape(term)} in the episodes collected after env step 40"
+    ):
+        trainer.train()
+    state = ckpt.load(tmp_path / "checkpoints" / "last_good.pt")
+    assert state["counters"]["env_steps"] == 40 and state["replay"]["length"] == 4  # only the good batch
 
 
 @pytest.mark.parametrize("logger", ["wandb", "tensorboard"])

@@ -77,7 +77,10 @@ def _future_version(path: Path, marker: Path) -> None:
 def _bad_files(good: Path) -> dict[str, tuple[Callable[[Path, Path], None], str]]:
     """name -> (writer, the reason the error must give)."""
     return {
-        "pickled_callable": (_pickled_callable, r"needs code to load \(Unsupported global: .*\); refused without"),
+        "pickled_callable": (
+            _pickled_callable,
+            r"needs code to load \(Unsupported global: .*\); refused without",
+        ),
         "truncated": (_truncated(good), "it is truncated or corrupt"),
         "random_bytes": (_random_bytes, "it is corrupt or not a torch file"),
         "foreign_state_dict": (_foreign_state_dict, "is not an mcrs checkpoint"),

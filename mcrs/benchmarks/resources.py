@@ -6,8 +6,9 @@ once they are full the process's resident memory (RSS) should stay flat; a leak 
 tensors kept alive by a logger, a collector that accumulates) shows as growth after that point.
 
 This trains in-process (default: map10, QMIX, 200k env steps, a replay of 500 episodes so that it fills in
-the first eighth of the run), samples the RSS (VmRSS of /proc/self/status, or psutil) every ``--every``
-env steps and prints the curve (env steps, RSS, replay episodes, memory entries), then the growth between
+the first eighth of the run), samples the RSS (VmRSS of /proc/self/status, or psutil; after
+``gc.collect()`` and glibc's ``malloc_trim(0)``, so that freed allocator cache is not read as growth) every
+``--every`` env steps and prints the curve (env steps, RSS, replay episodes, memory entries), then the growth between
 50% and 100% of the run with PASS/FAIL against < 5%. The run directory is a temporary folder, removed at
 the end (checkpoints included).
 
@@ -18,6 +19,8 @@ the end (checkpoints included).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import gc
 import shlex
 import sys
@@ -27,9 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from mcrs.benchmarks.common import load_average, pass_fail
+from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.benchmarks.env_throughput import resident_bytes
 
 GOAL_GROWTH = 0.05  # RSS growth between 50% and 100% of the run
@@ -42,6 +43,17 @@ class Sample:
     rss_mib: float
     replay_episodes: int
     memory_entries: int
+
+
+def release_free_heap() -> None:
+    """Collect garbage and hand glibc's cached free heap back to the OS (``malloc_trim``).
+
+    Without this, memory freed after a transient peak (a checkpoint's serialisation, an evaluation) stays
+    in the process as allocator cache and reads as growth; what is left is memory that is still in use.
+    """
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):  # not glibc: the figure includes the allocator's cache
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
 def rss_bytes() -> int:
@@ -95,14 +107,15 @@ def compose(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
-    """Train while sampling the RSS before every collector batch that crosses a multiple of ``--every``."""
+    """Train, sampling the RSS before every collector batch that crosses a multiple of ``--every`` and after
+    the final evaluation and checkpoint (before the collector shuts down, which frees memory)."""
     from mcrs.experiment.trainer import Trainer
 
     trainer = Trainer(compose(args), run_dir)
     samples: list[Sample] = []
 
     def sample() -> None:
-        gc.collect()
+        release_free_heap()
         memory = trainer.episodic.memory.size if trainer.episodic is not None else 0
         samples.append(
             Sample(trainer.counters.env_steps, rss_bytes() / MIB, len(trainer.replay), int(memory))
@@ -117,9 +130,19 @@ def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
             next_sample[0] += args.every
         return collect(iterator)
 
+    save = trainer.save
+
+    def save_then_sample(name: str = "last.pt"):
+        path = save(name)
+        if trainer.counters.env_steps >= args.env_steps:  # the final checkpoint, collector still alive
+            if samples and samples[-1].env_steps == trainer.counters.env_steps:
+                samples.pop()  # an interval checkpoint at the last step: keep the sample after the last one
+            sample()
+        return path
+
     trainer.collector.next_batch = sampled_next_batch  # the loop's one call per collector batch
+    trainer.save = save_then_sample
     trainer.train()
-    sample()
     return samples, trainer
 
 
@@ -133,7 +156,12 @@ def growth(samples: list[Sample], total: int) -> tuple[Sample, Sample, float]:
 def main(argv: Sequence[str] | None = None) -> int:
     command = shlex.join(["mcrs-bench-resources", *(sys.argv[1:] if argv is None else argv)])
     args = _parse_args(argv)
-    torch.set_num_threads(args.threads)
+    with benchmark_process(args.threads):
+        _report(args, command)
+    return 0
+
+
+def _report(args: argparse.Namespace, command: str) -> None:
     print(
         f"MCRS resource benchmark: {args.algo} on {args.env}, {args.env_steps} env steps, replay "
         f"{args.replay_episodes} episodes, torch threads {args.threads}, load average {load_average()}\n"
@@ -164,7 +192,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"(goal < {100 * GOAL_GROWTH:.0f}%): {pass_fail(rise < GOAL_GROWTH)}",
         flush=True,
     )
-    return 0
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ mark it as ours so a foreign or truncated file is refused with a clear error ins
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
     """Write ``payload`` to ``path`` so that a crash leaves either the old file or the new one, never half."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
@@ -44,16 +46,30 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
     return path
 
 
+def remove_stale_temporaries(directory: str | Path) -> list[Path]:
+    """Delete half-written checkpoint temporaries left in ``directory`` by a writer killed mid-save.
+
+    A run writes its checkpoints from one process, one at a time, so a temporary that exists before a
+    save is garbage from a crash; resume never reads one, and deleting them keeps the disk from filling.
+    """
+    stale = list(Path(directory).glob(".*.pt.*.tmp"))
+    for tmp in stale:
+        tmp.unlink(missing_ok=True)
+    return stale
+
+
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Read a checkpoint without executing code; refuse anything that is not ours."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"checkpoint {path} cannot be read safely: the file is empty")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # truncated, corrupt or carrying objects that need code to load
         raise CheckpointError(
-            f"checkpoint {path} cannot be read safely: {type(error).__name__}: {error}"
+            f"checkpoint {path} cannot be read safely: {_unreadable_reason(error)}"
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not an mcrs checkpoint (no '{FORMAT}' marker)")
@@ -62,6 +78,21 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str
             f"{path} has checkpoint version {payload.get('version')}; this mcrs reads {VERSION}"
         )
     return payload
+
+
+def _unreadable_reason(error: Exception) -> str:
+    """One line on why ``torch.load(weights_only=True)`` refused a file (torch's own text is a page long)."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(error))
+    if "WeightsUnpickler error:" in text:
+        detail = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
+        detail = detail.split(" was not an allowed global")[0].strip()
+        if detail.startswith("Unsupported global"):
+            return f"it needs code to load ({detail}); refused without running it"
+        return f"it is corrupt or not a torch file ({detail})"
+    if "PytorchStreamReader" in text:
+        return f"it is truncated or corrupt ({text.split('.')[0]})"
+    first = text.strip().splitlines()[0] if text.strip() else "no detail"
+    return f"{type(error).__name__}: {first}"
 
 
 def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:

@@ -214,10 +214,14 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     if not str(lg.project).strip():
         errors.append(f"logger.project={lg.project!r}: must be a non-empty name")
     if not str(a.name).strip() or "/" in str(a.name):
-        errors.append(f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)")
+        errors.append(
+            f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)"
+        )
     env_name = str(cfg.env.get("name", ""))
     if not env_name.strip() or "/" in env_name:
-        errors.append(f"env.name={env_name!r}: must be a non-empty label without '/' (it names run directories)")
+        errors.append(
+            f"env.name={env_name!r}: must be a non-empty label without '/' (it names run directories)"
+        )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
     problem = _device_problem(cfg.device)

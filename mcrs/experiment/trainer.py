@@ -250,6 +250,7 @@ class Trainer:
                 self.collector.sync_weights()
                 self.collector.start_batch(batch_seed(int(self.cfg.seed), c.iteration))
                 batch = self.collector.next_batch(collector_iter)
+                self._check_finite(batch)
                 self.replay.extend(episodes_from_rollout(batch))
                 for name in METRICS:
                     train_stats.setdefault(f"train/{name}", []).append(
@@ -301,6 +302,20 @@ class Trainer:
             progress.close()
             self.collector.shutdown()
         return dict(self.last_eval)
+
+    #: What a collected batch must hold finite, and how an error names it.
+    FINITE_KEYS = (("state", "belief maps / state"), (("next", "reward"), "reward"),
+                   (("agents", "observation"), "observation"))  # fmt: skip
+
+    def _check_finite(self, batch) -> None:
+        """Stop before a NaN or inf from the env (a belief, a reward) reaches the replay or the memory."""
+        for key, term in self.FINITE_KEYS:
+            if not bool(torch.isfinite(batch.get(key)).all()):
+                path = self.save(name="last_good.pt")
+                raise TrainingDiverged(
+                    f"non-finite {term} in the episodes collected after env step {self.counters.env_steps}; "
+                    f"the last good state is saved in {path}"
+                )
 
     def _update(self) -> dict[str, torch.Tensor]:
         c = self.counters

@@ -1,0 +1,173 @@
+"""Multi-process collection (``train.collector=multiprocess``): same batch layout, synced weights, errors surfaced.
+
+Each test starts worker processes (spawned: a few seconds each on a small machine), so the sizes are tiny.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.trainer import Trainer
+from mcrs.train import resume_config
+from tests.train_helpers import TINY, compose_config
+
+MULTI = ("train.collector=multiprocess", "train.collector_workers=2")
+T, ENVS = 10, 4  # TINY: 4 environments, 10-step episodes
+
+
+def test_batch_is_whole_episodes_in_the_single_process_layout(tmp_path: Path) -> None:
+    trainer = Trainer(compose_config(*MULTI, "train.total_env_steps=80"), tmp_path)
+    single = Trainer(compose_config("train.total_env_steps=80"), tmp_path / "single")
+    try:
+        iterator = iter(trainer.collector)
+        trainer.collector.start_batch(123)
+        batch = trainer.collector.next_batch(iterator)
+        single_iterator = iter(single.collector)
+        single.collector.start_batch(123)
+        reference = single.collector.next_batch(single_iterator)
+    finally:
+        trainer.collector.shutdown()
+        single.collector.shutdown()
+    assert batch.batch_size == reference.batch_size == torch.Size([ENVS, T])
+    assert set(batch.keys(True, True)) == set(reference.keys(True, True))
+    done = batch.get(("next", "done")).reshape(ENVS, T)
+    assert done[:, -1].all() and not done[:, :-1].any()  # one whole episode per row
+    steps = batch.get(("next", "metrics", "coverage")).reshape(ENVS, T)
+    assert (steps[:, 0] > 0).all()  # every row starts a fresh episode (coverage grows from the start cells)
+    # The two workers' environments were seeded differently: not the same episode twice.
+    assert not torch.equal(batch[:2].get(("agents", "observation")), batch[2:].get(("agents", "observation")))
+
+
+def test_training_with_workers_reaches_the_end_and_is_reproducible(tmp_path: Path) -> None:
+    straight = Trainer(compose_config(*MULTI, "train.total_env_steps=160"), tmp_path / "straight")
+    straight.train()
+    assert straight.counters.env_steps == 160 and straight.counters.episodes == 16
+    assert straight.counters.updates > 0
+    half = Trainer(compose_config(*MULTI, "train.total_env_steps=80"), tmp_path / "half")
+    half.train()
+    overrides = [f"resume={tmp_path / 'half'}", "train.total_env_steps=160"]
+    cfg, run_dir = resume_config(compose_config(*overrides), overrides)
+    resumed = Trainer(cfg, run_dir, resume=True)
+    resumed.train()
+    for name, value in straight.learner.agent.state_dict().items():
+        assert torch.equal(value, resumed.learner.agent.state_dict()[name]), name
+    assert straight.counters == resumed.counters
+
+
+def test_workers_act_with_the_learners_current_weights_and_epsilon(tmp_path: Path) -> None:
+    """After training (large lr, so the weights move), a worker's greedy actions are the learner's."""
+    cfg = compose_config(*MULTI, "train.total_env_steps=80", "train.lr=0.05", "train.eps_start=0",
+                         "train.eps_end=0")  # fmt: skip
+    trainer = Trainer(cfg, tmp_path)
+    initial = copy.deepcopy(trainer.greedy)
+    trainer.train()  # shuts its collector down: build a fresh one over the trained policy
+    from mcrs.experiment.collection import TrainingCollector
+
+    collector = TrainingCollector(
+        "multiprocess", trainer.env, trainer.exploring, trainer.env_config, 16, 2, trainer.device
+    )
+    try:
+        iterator = iter(collector)
+        with torch.no_grad():  # move the weights after the workers started: they must follow
+            trainer.learner.agent.fc1.weight.mul_(-1.0)
+        collector.sync_weights()
+        collector.start_batch(7)
+        greedy_batch = collector.next_batch(iterator)
+        trainer.epsilon.eps.fill_(1.0)  # then explore: every action random
+        collector.sync_weights()
+        collector.start_batch(7)
+        random_batch = collector.next_batch(iterator)
+    finally:
+        collector.shutdown()
+    assert _mismatches(trainer.greedy, greedy_batch) == 0
+    assert _mismatches(initial, greedy_batch) > 0  # the check can tell stale weights from current ones
+    assert _mismatches(trainer.greedy, random_batch) > 0  # epsilon reached the workers
+
+
+def _mismatches(policy: torch.nn.Module, batch) -> int:
+    """Actions of ``batch`` that ``policy`` would not have taken greedily, step by step."""
+    action_key = ("agents", "action")
+    count = 0
+    for t in range(batch.shape[1]):
+        step = batch[:, t].exclude(action_key, "next")
+        with torch.no_grad():
+            count += int((policy(step.clone()).get(action_key) != batch[:, t].get(action_key)).sum())
+    return count
+
+
+FAILING_RUN = textwrap.dedent(
+    """
+    from mcrs.env.torchrl_env import MCRSEnv
+
+    _step, _calls = MCRSEnv._step, [0]
+
+
+    def _failing_step(self, tensordict):
+        _calls[0] += 1
+        if _calls[0] > {fail_after}:
+            raise RuntimeError("injected step failure in worker")
+        return _step(self, tensordict)
+
+
+    if __name__ == "__mp_main__":  # only inside the collector's (spawned) workers
+        MCRSEnv._step = _failing_step
+
+    if __name__ == "__main__":
+        from mcrs.train import main
+
+        main()
+    """
+)
+
+
+def test_a_failing_worker_stops_the_run_with_its_cause_and_the_run_resumes(tmp_path: Path) -> None:
+    script = tmp_path / "failing_run.py"
+    script.write_text(FAILING_RUN.format(fail_after=3 * T))  # each worker fails in its 4th batch
+    run_dir = tmp_path / "run"
+    overrides = [
+        "algo=qmix", *TINY, *MULTI, "train.total_env_steps=400", "train.checkpoint_interval=40",
+        f"hydra.run.dir={run_dir}",
+    ]  # fmt: skip
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1", "PYTHONPATH": str(Path.cwd())}
+    done = subprocess.run(
+        [sys.executable, str(script), *overrides], cwd=tmp_path, env=env, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert done.returncode != 0
+    assert (
+        "mcrs-train: error: a collector worker failed: RuntimeError: injected step failure in worker"
+        in (done.stderr)
+    ), done.stderr[-3000:]
+    state = ckpt.load(ckpt.checkpoint_path(run_dir))
+    assert state["counters"]["env_steps"] == 3 * ENVS * T  # the batches before the failure were saved
+
+    resumed = subprocess.run(
+        [sys.executable, "-m", "mcrs.train", f"resume={run_dir}"], cwd=tmp_path, env=env, capture_output=True,
+        text=True, timeout=300,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 400
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (("train.collector=multiprocess", "train.collector_workers=3"), "not divisible by"),
+        (("train.collector=pool",), "allowed values are single, multiprocess"),
+        (("train.collector_workers=0",), "must be >= 1"),
+    ],
+)
+def test_bad_collector_settings_are_refused(overrides: tuple[str, ...], message: str) -> None:
+    from mcrs.experiment.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match=message):
+        validate(compose_config(*overrides))

@@ -1,0 +1,328 @@
+"""Bad input: every field of the training and env config, tried with values it must refuse.
+
+Each case composes the real Hydra config (``compose_config``) with one bad override and checks that
+either Hydra refuses it while composing (wrong types, unknown keys) or :func:`validate` raises a
+:class:`ConfigError` whose message names the field and what is allowed. ``test_every_field_is_tried``
+fails when a field is added to a schema without bad inputs here. The number of bad inputs tried is
+``len(BAD_VALUES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)`` (printed by ``test_count_of_bad_inputs``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from mcrs.env.config import EnvConfig
+from mcrs.experiment.config import (
+    AlgoConfig,
+    Config,
+    ConfigError,
+    LoggerConfig,
+    MemoryConfig,
+    ModelConfig,
+    TrainConfig,
+    validate,
+)
+from tests.train_helpers import compose_config
+
+POSITIVE = "must be > 0"
+UNIT = "must be in [0, 1]"
+
+#: (override, text the error must contain: the field and what is allowed), on the tiny qmix config;
+#: "a|b" is two overrides.
+BAD_VALUES: list[tuple[str, str]] = [
+    # algo
+    ("algo.name=", "algo.name='': must be a non-empty label"),
+    ("algo.name=a/b", "algo.name='a/b': must be a non-empty label without '/'"),
+    ("algo.mixer=qtran", "algo.mixer='qtran': allowed values are qmix, vdn, qplex"),
+    ("algo.mixer=QMIX", "algo.mixer='QMIX': allowed values are qmix, vdn, qplex"),
+    ("algo.mixing_embed_dim=0", f"algo.mixing_embed_dim=0: {POSITIVE}"),
+    ("algo.mixing_embed_dim=-8", f"algo.mixing_embed_dim=-8: {POSITIVE}"),
+    ("algo.hypernet_embed=0", f"algo.hypernet_embed=0: {POSITIVE}"),
+    ("algo.hypernet_layers=0", "algo.hypernet_layers=0: allowed values are 1, 2"),
+    ("algo.hypernet_layers=3", "algo.hypernet_layers=3: allowed values are 1, 2"),
+    ("algo.qplex_kernels=0", f"algo.qplex_kernels=0: {POSITIVE}"),
+    ("algo.qplex_adv_layers=0", "algo.qplex_adv_layers=0: allowed values are 1, 2, 3"),
+    ("algo.qplex_adv_layers=4", "algo.qplex_adv_layers=4: allowed values are 1, 2, 3"),
+    ("algo.gamma=-0.1", f"algo.gamma=-0.1: {UNIT}"),
+    ("algo.gamma=1.01", f"algo.gamma=1.01: {UNIT}"),
+    ("algo.gamma=nan", f"algo.gamma=nan: {UNIT}"),
+    ("algo.td_lambda=-0.1", f"algo.td_lambda=-0.1: {UNIT}"),
+    ("algo.td_lambda=2", f"algo.td_lambda=2.0: {UNIT}"),
+    ("algo.memory_weight=-0.1", "algo.memory_weight=-0.1: must be >= 0"),
+    ("algo.memory_weight=inf", "algo.memory_weight=inf: must be >= 0"),
+    ("algo.memory_weight=0.1", "set algo.memory.enabled=true"),  # a memory term without the memory
+    ("algo.incentive=often", "algo.incentive='often': allowed values are none, fixed, change"),
+    ("algo.incentive=fixed", "set algo.memory.enabled=true"),
+    ("algo.incentive_threshold=inf", "algo.incentive_threshold=inf: must be a finite return"),
+    ("algo.incentive_threshold=nan", "algo.incentive_threshold=nan: must be a finite return"),
+    ("algo.curiosity_scale=-1", "algo.curiosity_scale=-1.0: must be >= 0"),
+    ("algo.curiosity_decay_rate=-0.5", f"algo.curiosity_decay_rate=-0.5: {UNIT}"),
+    ("algo.curiosity_decay_rate=1.5", f"algo.curiosity_decay_rate=1.5: {UNIT}"),
+    ("algo.curiosity_decay_cycle=0", f"algo.curiosity_decay_cycle=0: {POSITIVE}"),
+    ("algo.curiosity_tau=-0.1", f"algo.curiosity_tau=-0.1: {UNIT}"),
+    ("algo.curiosity_tau=1.1", f"algo.curiosity_tau=1.1: {UNIT}"),
+    # algo.memory (checked by _memory_errors whether or not the memory is enabled)
+    ("algo.memory.embedding=pca", "algo.memory.embedding='pca': allowed values are random, fc, cnn"),
+    ("algo.memory.key_dim=0", f"algo.memory.key_dim=0: {POSITIVE}"),
+    ("algo.memory.key_dim=-1", f"algo.memory.key_dim=-1: {POSITIVE}"),
+    ("algo.memory.hidden_dim=0", f"algo.memory.hidden_dim=0: {POSITIVE}"),
+    ("algo.memory.cnn_channels=[4,4]", "algo.memory.cnn_channels=[4, 4]: must be 3 positive channel counts"),
+    ("algo.memory.cnn_channels=[4,0,4]", "algo.memory.cnn_channels=[4, 0, 4]: must be 3 positive"),
+    ("algo.memory.cnn_channels=[]", "algo.memory.cnn_channels=[]: must be 3 positive"),
+    ("algo.memory.capacity=0", "algo.memory.capacity=0: must be >= 1 entry"),
+    ("algo.memory.capacity=-5", "algo.memory.capacity=-5: must be >= 1 entry"),
+    ("algo.memory.delta=0", "algo.memory.delta=0.0: must be > 0"),
+    ("algo.memory.delta=-1", "algo.memory.delta=-1.0: must be > 0"),
+    ("algo.memory.delta=inf", "algo.memory.delta=inf: must be > 0"),
+    ("algo.memory.embedding_interval=0", f"algo.memory.embedding_interval=0: {POSITIVE}"),
+    ("algo.memory.embedding_samples=0", f"algo.memory.embedding_samples=0: {POSITIVE}"),
+    ("algo.memory.embedding_batch=-1", f"algo.memory.embedding_batch=-1: {POSITIVE}"),
+    ("algo.memory.embedding_lr=0", f"algo.memory.embedding_lr=0.0: {POSITIVE}"),
+    ("algo.memory.embedding_lr=nan", f"algo.memory.embedding_lr=nan: {POSITIVE}"),
+    ("algo.memory.state_weight=-0.1", "algo.memory.state_weight=-0.1: must be >= 0"),
+    # model
+    ("model.name=lstm", "model.name='lstm': allowed values are gru"),
+    ("model.hidden_dim=0", f"model.hidden_dim=0: {POSITIVE}"),
+    ("model.hidden_dim=-16", f"model.hidden_dim=-16: {POSITIVE}"),
+    # logger
+    ("logger.backend=mlflow", "logger.backend='mlflow': allowed values are csv, wandb, tensorboard"),
+    ("logger.project=", "logger.project='': must be a non-empty name"),
+    ("logger.project=' '", "logger.project=' ': must be a non-empty name"),
+    ("logger.wandb_mode=cloud", "logger.wandb_mode='cloud': allowed values are offline, online"),
+    ("logger.wandb_mode=disabled", "logger.wandb_mode='disabled': allowed values are offline, online"),
+    ("logger.log_interval=0", f"logger.log_interval=0: {POSITIVE}"),
+    ("logger.log_interval=-1", f"logger.log_interval=-1: {POSITIVE}"),
+    # train
+    ("train.total_env_steps=0", f"train.total_env_steps=0: {POSITIVE}"),
+    ("train.total_env_steps=-100", f"train.total_env_steps=-100: {POSITIVE}"),
+    ("train.num_envs=0", f"train.num_envs=0: {POSITIVE}"),
+    ("train.batch_episodes=0", f"train.batch_episodes=0: {POSITIVE}"),
+    ("train.batch_episodes=-4", f"train.batch_episodes=-4: {POSITIVE}"),
+    ("train.replay_episodes=0", f"train.replay_episodes=0: {POSITIVE}"),
+    ("train.replay_episodes=2", "train.replay_episodes=2 < train.batch_episodes=4: the buffer must hold"),
+    ("train.updates_per_episode=-1", "train.updates_per_episode=-1.0: must be >= 0"),
+    ("train.updates_per_episode=inf", "train.updates_per_episode=inf: must be >= 0"),
+    ("train.optimizer=sgd", "train.optimizer='sgd': allowed values are rmsprop, adam"),
+    ("train.lr=0", f"train.lr=0.0: {POSITIVE}"),
+    ("train.lr=-1", f"train.lr=-1.0: {POSITIVE}"),
+    ("train.lr=nan", f"train.lr=nan: {POSITIVE}"),
+    ("train.lr=inf", f"train.lr=inf: {POSITIVE}"),
+    ("train.rmsprop_alpha=-0.1", f"train.rmsprop_alpha=-0.1: {UNIT}"),
+    ("train.rmsprop_alpha=1.5", f"train.rmsprop_alpha=1.5: {UNIT}"),
+    ("train.optim_eps=0", f"train.optim_eps=0.0: {POSITIVE}"),
+    ("train.grad_clip=0", f"train.grad_clip=0.0: {POSITIVE}"),
+    ("train.grad_clip=-10", f"train.grad_clip=-10.0: {POSITIVE}"),
+    ("train.eps_start=1.5", f"train.eps_start=1.5: {UNIT}"),
+    ("train.eps_start=-0.5", f"train.eps_start=-0.5: {UNIT}"),
+    ("train.eps_end=-0.1", f"train.eps_end=-0.1: {UNIT}"),
+    ("train.eps_end=2", f"train.eps_end=2.0: {UNIT}"),
+    ("train.eps_start=0.01", "train.eps_end=0.05 > train.eps_start=0.01: epsilon only decays"),
+    ("train.eps_anneal_steps=0", f"train.eps_anneal_steps=0: {POSITIVE}"),
+    ("train.target_update_episodes=0", f"train.target_update_episodes=0: {POSITIVE}"),
+    ("train.eval_interval=0", f"train.eval_interval=0: {POSITIVE}"),
+    ("train.eval_interval=-1", f"train.eval_interval=-1: {POSITIVE}"),
+    ("train.eval_episodes=0", f"train.eval_episodes=0: {POSITIVE}"),
+    ("train.eval_seed=-1", "train.eval_seed=-1: must be in [0, 2**63 - 1]"),
+    ("train.eval_seed=9223372036854775808", "train.eval_seed=9223372036854775808: must be in [0, 2**63 - 1]"),
+    ("train.checkpoint_interval=0", f"train.checkpoint_interval=0: {POSITIVE}"),
+    ("train.checkpoint_interval=-100", f"train.checkpoint_interval=-100: {POSITIVE}"),
+    ("train.collector=threads", "train.collector='threads': allowed values are single, multiprocess"),
+    ("train.collector_workers=0", "train.collector_workers=0: must be >= 1"),
+    ("train.collector_workers=-2", "train.collector_workers=-2: must be >= 1"),
+    (
+        "train.collector=multiprocess|train.collector_workers=3",
+        "train.num_envs=4 is not divisible by train.collector_workers=3",
+    ),
+    # top level
+    ("seed=-1", "seed=-1: must be in [0, 2**63 - 1]"),
+    ("device=cuda:7", "device='cuda:7'"),
+    ("device=tpu", "device='tpu': is not a torch device: use a torch device string"),
+    ("device=gpu", "device='gpu': is not a torch device"),
+    ("device=meta", "device='meta': device type 'meta' is not supported"),
+    ("device=", "device='': is not a torch device"),
+    ("threads=-1", "threads=-1: must be >= 0"),
+    # env (mcrs.env.EnvConfig owns these rules; wrong types reach it as strings: env is a free mapping)
+    ("env.name=", "env.name='': must be a non-empty label"),
+    ("env.name=a/b", "env.name='a/b': must be a non-empty label without '/'"),
+    ("env.width=0", "width=0: must be an integer >= 1"),
+    ("env.width=abc", "width='abc': must be an integer >= 1"),
+    ("env.height=-3", "height=-3: must be an integer >= 1"),
+    ("env.height=2.5", "height=2.5: must be an integer >= 1"),
+    ("env.n_uavs=0", "n_uavs=0: must be an integer >= 1"),
+    ("env.n_uavs=500", "n_uavs=500 > 97 free cells"),
+    ("env.n_targets=-1", "n_targets=-1: must be an integer >= 0"),
+    ("env.n_targets=99", "n_targets + n_no_fly = 99 + 3 > 100 cells"),
+    ("env.n_no_fly=-1", "n_no_fly=-1: must be an integer >= 0"),
+    ("env.max_steps=0", "max_steps=0: must be an integer >= 1"),
+    ("env.max_steps=ten", "max_steps='ten': must be an integer >= 1"),
+    ("env.comm_range=-1", "comm_range=-1.0: must be a distance >= 0"),
+    ("env.comm_range=nan", "comm_range=nan: must be a distance >= 0"),
+    ("env.comm_rounds=0", "comm_rounds=0: must be an integer >= 1 or 'flood'"),
+    ("env.comm_rounds=often", "comm_rounds='often': must be an integer >= 1 or 'flood'"),
+    ("env.sight_range=0", "sight_range=0.0: must be finite and > 0"),
+    ("env.sight_range=inf", "sight_range=inf: must be finite and > 0"),
+    ("env.no_fly_safety=-1", "no_fly_safety=-1.0: must be a distance >= 0"),
+    ("env.uav_safety=-0.5", "uav_safety=-0.5: must be a distance >= 0"),
+    ("env.m_f=1", "m_f=1: must be a probability in [0, 1)"),
+    ("env.m_f=-0.1", "m_f=-0.1: must be a probability in [0, 1)"),
+    ("env.m_e=1.5", "m_e=1.5: must be a probability in [0, 1)"),
+    ("env.p_detect=1.5", "p_detect=1.5: must be a probability in [0, 1]"),
+    ("env.p_detect=-0.1", "p_detect=-0.1: must be a probability in [0, 1]"),
+    ("env.p_false_alarm=2", "p_false_alarm=2: must be a probability in [0, 1]"),
+    ("env.target_threshold=1.1", "target_threshold=1.1: must be a probability in [0, 1]"),
+    ("env.w_uncertainty=inf", "w_uncertainty=inf: must be a finite number"),
+    ("env.w_discovery=nan", "w_discovery=nan: must be a finite number"),
+    ("env.w_no_fly=abc", "w_no_fly='abc': must be a finite number"),
+    ("env.w_collision=-inf", "w_collision=-inf: must be a finite number"),
+    ("env.invalid_action=ignore", "invalid_action='ignore': must be one of ['raise', 'clip']"),
+    ("env.expose_beliefs=maybe", "expose_beliefs='maybe': must be true or false"),
+    ("env.num_envs=0", "num_envs=0: must be an integer >= 1"),
+    ("env.device=tpu", "device='tpu': is not a torch device"),
+    ("env.device=cuda:7", "device='cuda:7'"),
+    ("+env.widht=3", "unknown environment field(s) ['widht']"),
+]
+
+#: Overrides Hydra refuses while composing: wrong types for the typed schema.
+WRONG_TYPES = [
+    "algo.mixing_embed_dim=abc",
+    "algo.hypernet_layers=1.5",
+    "algo.gamma=high",
+    "algo.double_q=maybe",
+    "algo.memory.enabled=maybe",
+    "algo.memory.capacity=big",
+    "algo.memory.cnn_channels=abc",
+    "algo.memory.cnn_channels=[a,b,c]",
+    "algo.memory.key_dim=2.5",
+    "algo.curiosity_decay_cycle=often",
+    "model.hidden_dim=wide",
+    "model.agent_id=maybe",
+    "model.last_action=maybe",
+    "logger.log_interval=often",
+    "logger.progress_bar=maybe",
+    "train.total_env_steps=abc",
+    "train.total_env_steps=1.5",
+    "train.num_envs=four",
+    "train.batch_episodes=1.5",
+    "train.lr=abc",
+    "train.updates_per_episode=x",
+    "train.save_replay=maybe",
+    "train.collector_workers=two",
+    "train.eval_seed=x",
+    "seed=x",
+    "seed=1.5",
+    "threads=all",
+]
+
+#: Keys that do not exist (typos) and group options that do not exist.
+UNKNOWN_KEYS = [
+    "algo.lrr=1",
+    "algo.memory.capcity=1",
+    "model.hiden_dim=3",
+    "logger.proj=x",
+    "train.colector=single",
+    "train.batch=3",
+    "sed=1",
+    "algo=qtran",
+    "env=map30",
+    "logger=mlflow",
+    "preset=pymarl3",
+    "model=lstm",
+]
+
+
+def _case_id(case: tuple[str, str] | str) -> str:
+    return case[0] if isinstance(case, tuple) else case
+
+
+@pytest.mark.parametrize(("override", "expected"), BAD_VALUES, ids=[_case_id(c) for c in BAD_VALUES])
+def test_bad_value_is_refused_naming_the_field_and_the_rule(override: str, expected: str) -> None:
+    cfg = compose_config(*override.split("|"))
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    assert expected in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("override", WRONG_TYPES)
+def test_wrong_type_fails_while_composing(override: str) -> None:
+    with pytest.raises((ConfigCompositionException, ValidationError)) as info:
+        compose_config(override)
+    message = f"{info.value} {info.value.__cause__}"
+    key = override.split("=", 1)[0]
+    assert key.split(".")[-1] in message, message  # the field is named
+
+
+@pytest.mark.parametrize("override", UNKNOWN_KEYS)
+def test_unknown_key_or_option_fails_while_composing(override: str) -> None:
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)):
+        compose_config(override)
+
+
+def test_valid_edges_are_accepted() -> None:
+    """The rules are not too strict: boundary values that can run pass."""
+    cfg = compose_config(
+        "seed=0",
+        "train.eval_seed=0",
+        "algo.gamma=1",
+        "algo.td_lambda=0",
+        "train.eps_start=0",
+        "train.eps_end=0",
+        "train.updates_per_episode=0",
+        "threads=0",
+        "train.collector=multiprocess",
+        "train.collector_workers=4",
+        "env.comm_range=inf",
+        "env.comm_rounds=flood",
+        "logger.project='${oc.env:HOME}'",
+    )
+    validate(cfg)
+
+
+def _schema_fields(cls: type, prefix: str) -> set[str]:
+    out = set()
+    for f in fields(cls):
+        if f.name == "memory":
+            out |= _schema_fields(MemoryConfig, "algo.memory.")
+        else:
+            out.add(prefix + f.name)
+    return out
+
+
+def _tried(cases: list[str]) -> set[str]:
+    keys = set()
+    for override in cases:
+        for part in override.split("|"):
+            keys.add(part.split("=", 1)[0].lstrip("+"))
+    return keys
+
+
+#: Fields with no bad value of their own: a label set by the group file, and the resume directory
+#: (refused when it is not a run: tests/test_training.py::test_resume_refuses_bad_directories...).
+NOT_VALUE_CHECKED = {"preset", "resume", "env"}
+
+
+def test_every_field_is_tried() -> None:
+    schema = (
+        _schema_fields(AlgoConfig, "algo.")
+        | _schema_fields(ModelConfig, "model.")
+        | _schema_fields(LoggerConfig, "logger.")
+        | _schema_fields(TrainConfig, "train.")
+        | {f.name for f in fields(Config) if f.name not in ("algo", "model", "logger", "train")}
+        | {f"env.{f.name}" for f in fields(EnvConfig)}
+    )
+    tried = _tried([o for o, _ in BAD_VALUES] + WRONG_TYPES)
+    missing = schema - tried - NOT_VALUE_CHECKED
+    assert not missing, f"fields without bad inputs: {sorted(missing)}"
+
+
+def test_count_of_bad_inputs(capsys: pytest.CaptureFixture) -> None:
+    total = len(BAD_VALUES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)
+    with capsys.disabled():
+        print(
+            f"\nbad config inputs tried: {total} "
+            f"({len(BAD_VALUES)} values, {len(WRONG_TYPES)} wrong types, {len(UNKNOWN_KEYS)} unknown keys)"
+        )
+    assert total >= 150
