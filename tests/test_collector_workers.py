@@ -143,9 +143,8 @@ def test_a_failing_worker_stops_the_run_with_its_cause_and_the_run_resumes(tmp_p
         timeout=300,
     )  # fmt: skip
     assert done.returncode != 0
-    assert (
-        "mcrs-train: error: a collector worker failed: RuntimeError: injected step failure in worker"
-        in (done.stderr)
+    assert "mcrs-train: error: a collector worker failed: RuntimeError: injected step failure in worker" in (
+        done.stderr
     ), done.stderr[-3000:]
     state = ckpt.load(ckpt.checkpoint_path(run_dir))
     assert state["counters"]["env_steps"] == 3 * ENVS * T  # the batches before the failure were saved
