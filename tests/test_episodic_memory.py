@@ -7,8 +7,8 @@ import pytest
 import torch
 from torch import nn
 
+from mcrs.benchmarks.memory import rollout as env_rollout
 from mcrs.env.config import scenario
-from mcrs.env.core import MCRSCore
 from mcrs.memory import EpisodicMemory, InsertStats, StateCodec, discounted_returns, episodic
 from mcrs.memory.index import squared_distance
 
@@ -60,21 +60,7 @@ def synthetic_batch(keys: torch.Tensor, config=MAP10, seed: int = 0):
 
 def rollout(name: str, num_envs: int, seed: int):
     """A collector-like batch of whole episodes: states s_0..s_{T-1}, their counts, rewards r_t."""
-    cfg = scenario(name, num_envs=num_envs)
-    core = MCRSCore(cfg)
-    core.seed(seed)
-    generator = torch.Generator().manual_seed(seed)
-    result = core.reset()
-    states, counts, rewards = [], [], []
-    for _ in range(cfg.max_steps):
-        states.append(result.state)
-        counts.append(result.state_counts)
-        scores = torch.rand(result.action_mask.shape, generator=generator).masked_fill(
-            ~result.action_mask, -1
-        )
-        result = core.step(scores.argmax(-1))
-        rewards.append(result.reward)
-    return torch.stack(states, 1), torch.stack(counts, 1), torch.stack(rewards, 1)
+    return env_rollout(scenario(name), num_envs, seed)
 
 
 class Reference:
@@ -520,20 +506,7 @@ def test_counts_above_255_promote_storage_and_keep_states_exact() -> None:
 
 
 def _tiny_rollout(cfg):
-    core = MCRSCore(cfg.replace(num_envs=1))
-    core.seed(0)
-    generator = torch.Generator().manual_seed(0)
-    result = core.reset()
-    states, counts, rewards = [], [], []
-    for _ in range(cfg.max_steps):
-        states.append(result.state)
-        counts.append(result.state_counts)
-        scores = torch.rand(result.action_mask.shape, generator=generator).masked_fill(
-            ~result.action_mask, -1
-        )
-        result = core.step(scores.argmax(-1))
-        rewards.append(result.reward)
-    return torch.stack(states, 1), torch.stack(counts, 1), torch.stack(rewards, 1)
+    return env_rollout(cfg, 1, 0)
 
 
 # ------------------------------------------------------------------------------------------- EMU

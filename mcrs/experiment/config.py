@@ -271,7 +271,7 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
 
 def _embedding_fit_errors(cfg: DictConfig) -> list[str]:
     """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
-    from mcrs.models.embeddings import make_embedding
+    from mcrs.experiment.episodic import build_embedding  # here: it imports the models
 
     mem = cfg.algo.memory
     try:
@@ -279,14 +279,7 @@ def _embedding_fit_errors(cfg: DictConfig) -> list[str]:
     except (ValueError, TypeError):
         return []  # reported as an env problem
     try:
-        make_embedding(
-            mem.embedding,
-            env_config.state_dim,
-            (env_config.width, env_config.height),
-            key_dim=mem.key_dim,
-            hidden_dim=mem.hidden_dim,
-            cnn_channels=tuple(mem.cnn_channels),
-        )
+        build_embedding(cfg, env_config)
     except ValueError as error:
         return [f"algo.memory.embedding={mem.embedding!r} does not fit {env_config.name}: {error}"]
     return []
