@@ -2,6 +2,9 @@
 
     collector (TorchRL, masked epsilon-greedy)  ->  whole episodes  ->  replay buffer (TorchRL)
         ->  ValueFactorisationLoss (TorchRL LossModule, TorchRL mixers)  ->  optimiser, HardUpdate
+    with an episodic memory (algo.memory.enabled): the episodes also go into D_E (Algorithm 1), phi is
+        retrained every t_emb env steps, and the replay's EpisodicLookup transform attaches H(phi(s'))
+        to every sampled batch (mcrs.experiment.episodic); EMC's curiosity runs inside Learner.update
     every eval_interval env steps: greedy evaluation on fixed-seed environments
     every checkpoint_interval env steps and at the end: an atomic checkpoint of everything
 
