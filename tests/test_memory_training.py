@@ -142,3 +142,10 @@ def test_a_memory_from_another_map_is_refused(tmp_path: Path) -> None:
                     tmp_path / "b")  # fmt: skip
     with pytest.raises(ValueError, match="map"):
         other.episodic.memory.load_state_dict(small.episodic.memory.state_dict())
+
+
+def test_curiosity_networks_use_the_learners_optimizer_setting(tmp_path: Path) -> None:
+    trainer = Trainer(memory_config("algo=emc", "train.optimizer=adam", "train.lr=0.002"), tmp_path)
+    curiosity = trainer.learner.curiosity
+    for optimizer in (curiosity.vdn_optimizer, curiosity.predictor_optimizer, trainer.learner.optimizer):
+        assert isinstance(optimizer, torch.optim.Adam) and optimizer.defaults["lr"] == 0.002

@@ -231,3 +231,11 @@ def test_cli_bad_input_is_one_clear_message(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr
     done = cli(f"resume={tmp_path / 'missing'}", cwd=tmp_path)
     assert done.returncode != 0 and "no such directory" in done.stderr
+
+
+def test_resume_may_switch_the_collector(tmp_path: Path) -> None:
+    """A multiprocess run whose worker crashed may go on in one process (train.collector* are mutable)."""
+    Trainer(compose_config("train.total_env_steps=40"), tmp_path / "run").train()
+    args = [f"resume={tmp_path / 'run'}", "train.collector=multiprocess", "train.collector_workers=4"]
+    cfg, _ = resume_config(compose_config(*args), args)
+    assert cfg.train.collector == "multiprocess" and cfg.train.collector_workers == 4

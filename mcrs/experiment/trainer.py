@@ -92,6 +92,13 @@ def build_mixer(cfg: DictConfig, env_config: EnvConfig) -> nn.Module:
     )
 
 
+def make_optimizer(params: list[nn.Parameter], t: DictConfig) -> torch.optim.Optimizer:
+    """The ``train.optimizer`` of the config over ``params`` (the learner's and EMC's curiosity nets)."""
+    if t.optimizer == "adam":
+        return torch.optim.Adam(params, lr=t.lr, eps=t.optim_eps)
+    return torch.optim.RMSprop(params, lr=t.lr, alpha=t.rmsprop_alpha, eps=t.optim_eps)
+
+
 class Learner:
     """Networks, loss, optimiser and target updates: one :meth:`update` per sampled batch of episodes."""
 
@@ -118,17 +125,13 @@ class Learner:
                 decay_rate=a.curiosity_decay_rate,
                 decay_cycle=a.curiosity_decay_cycle,
                 tau=a.curiosity_tau,
-                lr=t.lr,
                 grad_clip=t.grad_clip,
-                optimizer=t.optimizer,
+                make_optimizer=lambda params: make_optimizer(params, t),
             )
             if a.curiosity_scale > 0
             else None
         )
-        if t.optimizer == "adam":
-            self.optimizer = torch.optim.Adam(self.params, lr=t.lr, eps=t.optim_eps)
-        else:
-            self.optimizer = torch.optim.RMSprop(self.params, lr=t.lr, alpha=t.rmsprop_alpha, eps=t.optim_eps)
+        self.optimizer = make_optimizer(self.params, t)
         # interval 0: every step() copies; the trainer calls it every target_update_episodes episodes.
         self.target_updater = HardUpdate(self.loss, value_network_update_interval=0)
         self.grad_clip = t.grad_clip
@@ -141,9 +144,9 @@ class Learner:
             intrinsic, extra = self.curiosity.update(batch, step)
             batch.set("intrinsic_reward", intrinsic)
         out = self.loss(batch)
-        # Name the term that broke: the TD loss, or the memory term (its weight is applied inside "loss").
-        bad = [k for k in ("loss_td", "loss_memory") if not torch.isfinite(out[k])]
-        term = bad[0] if bad else "loss"
+        term = "loss"
+        if not torch.isfinite(out["loss"]):  # name the term that broke (the memory term is weighted inside)
+            term = next((k for k in ("loss_td", "loss_memory") if not torch.isfinite(out[k])), term)
         grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step, term)
         stats = {k: v.detach() for k, v in out.items() if k != "loss"}
         return {**stats, **extra, "grad_norm": grad_norm.detach()}

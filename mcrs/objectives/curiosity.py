@@ -15,6 +15,7 @@ target network (EMC keeps a third copy); the two only differ in how often they m
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
@@ -38,7 +39,9 @@ class EMCCuriosity(nn.Module):
         gamma: discount of the VDN learner.
         scale, decay_rate, decay_cycle: the intrinsic reward scale and its step decay.
         tau: soft target update rate.
-        lr, grad_clip, optimizer: the two optimisers (as the main learner's).
+        grad_clip: gradient-norm clip of both networks.
+        make_optimizer: builds an optimiser over a parameter list (the trainer passes the main learner's
+            ``train.optimizer`` setting); pymarl's RMSprop (lr 5e-4, alpha 0.99, eps 1e-5) by default.
     """
 
     def __init__(
@@ -50,9 +53,8 @@ class EMCCuriosity(nn.Module):
         decay_rate: float = 0.9,
         decay_cycle: int = 100_000,
         tau: float = 0.005,
-        lr: float = 5e-4,
         grad_clip: float = 10.0,
-        optimizer: str = "rmsprop",
+        make_optimizer: Callable[[list[nn.Parameter]], torch.optim.Optimizer] | None = None,
     ) -> None:
         super().__init__()
         if scale < 0:
@@ -73,7 +75,7 @@ class EMCCuriosity(nn.Module):
         )
         self.soft_update = SoftUpdate(self.vdn_loss, tau=tau)
         self.predictor = _fresh_copy(agent)
-        make = _optimizer_factory(optimizer, lr)
+        make = make_optimizer or _pymarl_rmsprop
         self.vdn_params = list(vdn_agent.parameters())
         self.predictor_params = list(self.predictor.parameters())
         self.vdn_optimizer = make(self.vdn_params)
@@ -135,9 +137,5 @@ def _fresh_copy(agent: nn.Module) -> nn.Module:
     return clone
 
 
-def _optimizer_factory(name: str, lr: float):
-    if name == "adam":
-        return lambda params: torch.optim.Adam(params, lr=lr)
-    if name == "rmsprop":
-        return lambda params: torch.optim.RMSprop(params, lr=lr, alpha=0.99, eps=1e-5)
-    raise ValueError(f"optimizer must be one of rmsprop, adam, got {name!r}")
+def _pymarl_rmsprop(params: list[nn.Parameter]) -> torch.optim.Optimizer:
+    return torch.optim.RMSprop(params, lr=5e-4, alpha=0.99, eps=1e-5)
