@@ -122,3 +122,17 @@ def test_identity_names_the_map_and_reports_mismatches() -> None:
     other = StateCodec(scenario("map10")).identity()
     assert "width: saved 10, here 20" in codec.identity_mismatch(other)
     assert "m_f" in codec.identity_mismatch({**identity, "m_f": 0.7})
+
+
+def test_torchrl_env_publishes_the_counts_behind_the_state_maps() -> None:
+    from mcrs.env.torchrl_env import MCRSEnv
+
+    env = MCRSEnv("map10", num_envs=3)
+    env.set_seed(0)
+    td = env.rollout(6, break_when_any_done=False)
+    counts, state = td.get(("next", "state_counts")), td.get(("next", "state"))
+    assert env.observation_spec["state_counts"].is_in(td[:, -1].get(("next", "state_counts")))
+    cells = env.config.width * env.config.height
+    _, full, unknown = belief_masses(counts[..., 0], counts[..., 1], env.config.m_f, env.config.m_e)
+    assert torch.equal(unknown, state[..., :cells]) and torch.equal(full, state[..., cells : 2 * cells])
+    assert int(counts.sum(-1).sum(-1)[0, -1]) == env.config.n_uavs * 7  # one reading per UAV per step

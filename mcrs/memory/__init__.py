@@ -3,8 +3,10 @@
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.episodic import EpisodicMemory, InsertStats, discounted_returns
 from mcrs.memory.index import GridIndex, squared_distance
+from mcrs.memory.transform import EpisodicLookup
 
 __all__ = [
+    "EpisodicLookup",
     "EpisodicMemory",
     "GridIndex",
     "InsertStats",
