@@ -230,6 +230,8 @@ UNKNOWN_KEYS = [
     "env=map30",
     "logger=mlflow",
     "preset=pymarl3",
+    "experiment=fig13",
+    "budget=huge",
     "model=lstm",
 ]
 
@@ -299,9 +301,10 @@ def _tried(cases: list[str]) -> set[str]:
     return keys
 
 
-#: Fields with no bad value of their own: a label set by the group file, and the resume directory
-#: (refused when it is not a run: tests/test_training.py::test_resume_refuses_bad_directories...).
-NOT_VALUE_CHECKED = {"preset", "resume", "env"}
+#: Fields with no bad value of their own: labels set by their group files (``experiment=x`` on the
+#: command line picks a group option, tried in UNKNOWN_KEYS), and the resume directory (refused when it
+#: is not a run: tests/test_training.py::test_resume_refuses_bad_directories...).
+NOT_VALUE_CHECKED = {"preset", "experiment", "budget", "resume", "env"}
 
 
 def test_every_field_is_tried() -> None:

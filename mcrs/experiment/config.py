@@ -134,6 +134,8 @@ class Config:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     preset: str = "pymarl"  # label of the hyper-parameter preset (conf/preset/)
+    experiment: str = "none"  # label of the section-6 preset that launched the run (conf/experiment/)
+    budget: str = "none"  # label of the budget (conf/budget/): smoke, cpu or paper
     seed: int = 0
     device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ...
     threads: int = 0  # torch CPU threads; 0 keeps torch's default
@@ -217,11 +219,12 @@ def validation_errors(cfg: DictConfig) -> list[str]:
         errors.append(
             f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)"
         )
-    env_name = str(cfg.env.get("name", ""))
-    if not env_name.strip() or "/" in env_name:
-        errors.append(
-            f"env.name={env_name!r}: must be a non-empty label without '/' (it names run directories)"
-        )
+    labels = {"env.name": str(cfg.env.get("name", "")), "experiment": cfg.experiment, "budget": cfg.budget}
+    for field_name, label in labels.items():
+        if not str(label).strip() or "/" in str(label):
+            errors.append(
+                f"{field_name}={label!r}: must be a non-empty label without '/' (it names run directories)"
+            )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
     problem = _device_problem(cfg.device)
