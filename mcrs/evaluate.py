@@ -97,18 +97,10 @@ def evaluate_policy(
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
     """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
+    from mcrs.analysis.tables import markdown, mean_std
+
     header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
-    rows = [[name] + [f"{r[m][0]:.2f} ± {r[m][1]:.2f}" for m in METRICS] for name, r in results.items()]
-    widths = [max(len(row[k]) for row in [header, *rows]) for k in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        padded = [
-            c.ljust(w) if k == 0 else c.rjust(w) for k, (c, w) in enumerate(zip(cells, widths, strict=True))
-        ]
-        return "| " + " | ".join(padded) + " |"
-
-    rule = "|" + "|".join("-" * (w + 1) + (":" if k else "-") for k, w in enumerate(widths)) + "|"
-    return "\n".join([line(header), rule, *(line(row) for row in rows)])
+    return markdown(header, [[name] + [mean_std(*r[m]) for m in METRICS] for name, r in results.items()])
 
 
 def describe(env_config: EnvConfig, episodes: int, seed: int) -> str:
@@ -123,21 +115,39 @@ def describe(env_config: EnvConfig, episodes: int, seed: int) -> str:
 def write_results(
     out_dir: Path,
     env_config: EnvConfig,
+    seed: int,
     per_episode: dict[str, dict[str, torch.Tensor]],
     results: dict[str, dict[str, tuple[float, float]]],
     title: str,
     table: str,
 ) -> None:
-    """``metrics.csv`` (one row per policy), ``episodes.csv`` (one row per episode) and ``summary.md``."""
+    """``metrics.csv`` (one row per policy, with the map, R_c and seed that ``mcrs-report`` groups by),
+    ``episodes.csv`` (one row per episode) and ``summary.md``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with open(out_dir / "metrics.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(
-            ["policy", "env", "episodes", *(f"{m}_{s}" for m in METRICS for s in ("mean", "std"))]
+            [
+                "policy",
+                "env",
+                "comm_range",
+                "seed",
+                "episodes",
+                *(f"{m}_{s}" for m in METRICS for s in ("mean", "std")),
+            ]
         )
         for name, r in results.items():
             episodes = len(next(iter(per_episode[name].values())))
-            writer.writerow([name, env_config.name, episodes, *(f"{v:.6g}" for m in METRICS for v in r[m])])
+            writer.writerow(
+                [
+                    name,
+                    env_config.name,
+                    f"{env_config.comm_range:g}",
+                    seed,
+                    episodes,
+                    *(f"{v:.6g}" for m in METRICS for v in r[m]),
+                ]
+            )
     with open(out_dir / "episodes.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["policy", "episode", *METRICS])
@@ -172,7 +182,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     title = describe(env_config, episodes, seed)
     table = format_table(results)
     print(f"{title}\n\n{table}\n", flush=True)
-    write_results(out_dir, env_config, per_episode, results, title, table)
+    write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
             paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)

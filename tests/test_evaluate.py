@@ -91,6 +91,9 @@ def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["policy"] for r in rows] == ["random", "lawnmower", "greedy"]
+    assert {(r["env"], r["comm_range"], r["seed"]) for r in rows} == {
+        ("map10", "5", "0")
+    }  # mcrs-report groups
     assert float(rows[2]["episode_reward_mean"]) == pytest.approx(
         results["greedy"]["episode_reward"][0], rel=1e-5
     )

@@ -58,15 +58,16 @@ def remove_stale_temporaries(directory: str | Path) -> list[Path]:
     return stale
 
 
-def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Read a checkpoint without executing code; refuse anything that is not ours."""
+def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool = False) -> dict[str, Any]:
+    """Read a checkpoint without executing code; refuse anything that is not ours. ``mmap=True`` maps
+    the tensors instead of reading them (cheap when only a part, e.g. the episodic buffer, is needed)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     if path.stat().st_size == 0:
         raise CheckpointError(f"checkpoint {path} cannot be read safely: the file is empty")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        payload = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as error:  # truncated, corrupt or carrying objects that need code to load
         raise CheckpointError(
             f"checkpoint {path} cannot be read safely: {_unreadable_reason(error)}"

@@ -1,0 +1,174 @@
+"""Learning curves over seeds: mean and a 95 % confidence band against env steps, and the tables read
+off them (final metrics, rewards at thirds of the budget, the paper's table 4 layout)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from mcrs.analysis.runs import Skipped, TrainingRun
+
+#: The four learning-curve panels of figures 6-7, 10 and 11 (greedy evaluation, 32 fixed episodes).
+CURVE_METRICS = {
+    "eval/episode_reward": "episode reward",
+    "eval/uncertainty": "final uncertainty",
+    "eval/collisions": "collisions",
+    "eval/targets_found": "targets found",
+}
+#: Every evaluation metric of the final table.
+FINAL_METRICS = {
+    **CURVE_METRICS,
+    "eval/false_discoveries": "false discoveries",
+    "eval/no_fly_violations": "no-fly violations",
+    "eval/coverage": "coverage",
+}
+Q_TOT = "train/q_taken_mean"  # mean Q_tot(s, a) of the replayed transitions (figure 8b)
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One method's metric over seeds, on the env steps that every seed logged."""
+
+    label: str
+    steps: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    half_width: np.ndarray  # 95 % confidence half-width of the mean (Student t; 0 for one seed)
+    values: np.ndarray  # [seeds, steps]
+
+    @property
+    def seeds(self) -> int:
+        return self.values.shape[0]
+
+
+def confidence_half_width(values: np.ndarray, level: float = 0.95) -> np.ndarray:
+    """Half-width of the ``level`` confidence interval of the mean over axis 0 (Student t)."""
+    n = values.shape[0]
+    if n < 2:
+        return np.zeros(values.shape[1:])
+    sem = values.std(axis=0, ddof=1) / np.sqrt(n)
+    return stats.t.ppf(0.5 + level / 2, n - 1) * sem
+
+
+def aggregate(groups: dict[str, list[TrainingRun]], metric: str, skipped: list[Skipped]) -> dict[str, Curve]:
+    """Per label, ``metric`` averaged over its runs on the steps they all logged. A run that did not
+    log the metric is left out of this metric (and listed in ``skipped``)."""
+    curves = {}
+    for label, runs in groups.items():
+        series = []
+        for run in runs:
+            found = run.scalar(metric)
+            if found is None or len(found[0]) == 0:
+                skipped.append(Skipped(run.path, f"no {metric} logged"))
+            else:
+                series.append(found)
+        if not series:
+            continue
+        common = series[0][0]
+        for steps, _ in series[1:]:
+            common = np.intersect1d(common, steps)
+        if len(common) == 0:
+            for run in runs:
+                skipped.append(Skipped(run.path, f"{label}: its seeds share no step of {metric}"))
+            continue
+        values = np.stack([vals[np.searchsorted(steps, common)] for steps, vals in series])
+        curves[label] = Curve(
+            label,
+            common,
+            values.mean(axis=0),
+            values.std(axis=0, ddof=1) if len(series) > 1 else np.zeros(len(common)),
+            confidence_half_width(values),
+            values,
+        )
+    return curves
+
+
+def plot_curves(
+    panels: dict[str, dict[str, Curve]], path: Path, title: str, order: list[str] | None = None
+) -> Path:
+    """One panel per metric: a line per method (mean over seeds) with its 95 % band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(panels)
+    cols = 2 if n > 1 else 1
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 3.8 * rows), squeeze=False)
+    labels = order or sorted({label for curves in panels.values() for label in curves})
+    colours = {label: plt.cm.tab10(k % 10) for k, label in enumerate(labels)}
+    for ax, (name, curves) in zip(axes.flat, panels.items(), strict=False):
+        for label in labels:
+            if label not in curves:
+                continue
+            c = curves[label]
+            ax.plot(c.steps, c.mean, color=colours[label], label=f"{label} ({c.seeds})", lw=1.4)
+            ax.fill_between(
+                c.steps, c.mean - c.half_width, c.mean + c.half_width, color=colours[label], alpha=0.2
+            )
+        _zoom(ax, [curves[label] for label in labels if label in curves])
+        ax.set_title(name)
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    handles, names = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=min(len(names), 5), fontsize=8, frameon=False)
+    fig.suptitle(title + "  (mean over seeds, 95 % confidence band; seeds in brackets)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(names) - 1) // 5), 1, 0.96))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _zoom(ax, curves: list[Curve]) -> None:
+    """Y limits from the means after step 0: the untrained policy's first evaluation (a reward of
+    -200 on map10) would otherwise flatten every learning curve. Bands may be clipped."""
+    later = [c.mean[c.steps > 0] for c in curves if (c.steps > 0).any()]
+    if not later:
+        return
+    lo, hi = min(v.min() for v in later), max(v.max() for v in later)
+    margin = 0.1 * (hi - lo) or 1.0
+    ax.set_ylim(lo - margin, hi + margin)
+
+
+def final_rows(curves_by_metric: dict[str, dict[str, Curve]], order: list[str]) -> list[dict[str, object]]:
+    """Per method, every metric's mean and std over seeds at its last common step."""
+    rows = []
+    for label in order:
+        row: dict[str, object] = {"method": label}
+        for metric, curves in curves_by_metric.items():
+            c = curves.get(label)
+            name = metric.split("/")[-1]
+            if c is None:
+                row[f"{name}_mean"], row[f"{name}_std"] = float("nan"), float("nan")
+                continue
+            if "seeds" not in row:  # of the first metric (the reward): a run may lack later ones
+                row["seeds"], row["env_steps"] = c.seeds, int(c.steps[-1])
+            row[f"{name}_mean"], row[f"{name}_std"] = float(c.mean[-1]), float(c.std[-1])
+        rows.append(row)
+    return rows
+
+
+def milestone_steps(curve: Curve, fractions: tuple[float, ...] = (1 / 3, 2 / 3, 1.0)) -> list[int]:
+    """The logged steps nearest to fractions of the curve's last step (the paper's 0.67M/1.33M/2M)."""
+    last = curve.steps[-1]
+    return [int(curve.steps[np.abs(curve.steps - f * last).argmin()]) for f in fractions]
+
+
+def milestone_values(curve: Curve, steps: list[int]) -> list[tuple[float, float]]:
+    """(mean, std over seeds) of the curve at each of ``steps``; NaN past the curve's last step (a
+    method with a shorter run)."""
+    out = []
+    for s in steps:
+        if s > curve.steps[-1]:
+            out.append((float("nan"), float("nan")))
+            continue
+        k = int(np.abs(curve.steps - s).argmin())
+        out.append((float(curve.mean[k]), float(curve.std[k])))
+    return out

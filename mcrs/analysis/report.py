@@ -1,0 +1,383 @@
+"""``mcrs-report``: figures and tables of the paper's section 6 from run directories.
+
+    mcrs-report outputs/experiments/baselines --out reports/baselines_map10 --env map10
+    mcrs-report outputs/experiments/delta outputs/eval/comm_range --out reports/delta
+    mcrs-report outputs/experiments/baselines --out reports/tsne --tsne       (figure 9, from saved buffers)
+
+It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs.analysis.runs),
+keeps one map, groups training runs into methods (an algorithm plus the settings swept within it, e.g.
+``cnn_semu lambda=0.5``; the seeds of a method are averaged), and writes into ``--out``:
+
+- ``learning_curves.png``: episode reward, uncertainty, collisions and targets found of the greedy
+  evaluations against env steps (figures 6-7, 10, 11-12), mean and 95 % band over seeds;
+- ``q_tot.png``: the mean Q_tot of replayed transitions (figure 8b);
+- ``final.md|csv``: every evaluation metric at the last step, with the heuristics evaluated by
+  ``mcrs-eval`` at the same R_c as extra rows;
+- ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
+  in the paper's layout when delta was swept;
+- ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
+  several ranges, and from training runs that differ in ``env.comm_range``;
+- ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
+- ``report.md``: all of it, plus every run that was skipped and why.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from mcrs.analysis import comm_range as cr
+from mcrs.analysis import tsne
+from mcrs.analysis.curves import (
+    CURVE_METRICS,
+    FINAL_METRICS,
+    Q_TOT,
+    Curve,
+    aggregate,
+    final_rows,
+    milestone_steps,
+    milestone_values,
+    plot_curves,
+)
+from mcrs.analysis.runs import (
+    EvaluationRow,
+    Runs,
+    Skipped,
+    TrainingRun,
+    find_runs,
+    label_fields,
+    run_labels,
+    select_map,
+)
+from mcrs.analysis.tables import markdown, mean_std, write_csv
+
+#: Row order of tables and legends: the paper's baselines first, its method last.
+ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
+HEURISTIC_ORDER = ("random", "lawnmower", "greedy")
+
+
+def _steps(s: int) -> str:
+    return f"{s / 1e6:.2f}M" if s >= 1_000_000 else f"{s / 1e3:.1f}k"
+
+
+class Report:
+    """Collects the sections of ``report.md`` while the figures and tables are written."""
+
+    def __init__(self, out: Path, env_name: str, runs: Runs) -> None:
+        self.out, self.env_name, self.runs = out, env_name, runs
+        self.sections: list[str] = []
+        out.mkdir(parents=True, exist_ok=True)
+
+    def add(self, title: str, body: str) -> None:
+        self.sections.append(f"## {title}\n\n{body}\n")
+        print(f"\n{title}\n\n{body}", flush=True)
+
+    def write(self) -> Path:
+        unique = sorted({(str(s.path), s.reason) for s in self.runs.skipped})
+        skipped = "\n".join(f"- `{p}`: {r}" for p, r in unique) or "none"
+        n_train, n_eval = len(self.runs.training), len({e.path for e in self.runs.evaluations})
+        head = (
+            f"# Report: {self.env_name}\n\n{n_train} training runs and {n_eval} evaluation results read; "
+            f"{len(unique)} skipped.\n"
+        )
+        text = "\n".join([head, *self.sections, f"## Skipped\n\n{skipped}\n"])
+        path = self.out / "report.md"
+        path.write_text(text)
+        if unique:
+            print(f"\nskipped {len(unique)}:\n{skipped}", flush=True)
+        return path
+
+
+# ------------------------------------------------------------------------------------------ training
+def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], list[str]]:
+    labels = run_labels(training)
+    fields = label_fields(training)
+    groups: dict[str, list[TrainingRun]] = {}
+    for run in sorted(training, key=lambda r: str(r.path)):
+        groups.setdefault(labels[run.path], []).append(run)
+
+    def order(label: str) -> tuple:
+        first = groups[label][0]
+        rank = ALGO_ORDER.index(first.algo_name) if first.algo_name in ALGO_ORDER else len(ALGO_ORDER)
+        values = tuple(
+            str(first.setting(n)) if not isinstance(first.setting(n), float) else first.setting(n)
+            for n in fields[first.algo_name]
+        )
+        return (rank, first.algo_name, values)
+
+    return groups, sorted(groups, key=order)
+
+
+def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
+    """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
+    by_policy: dict[str, list[EvaluationRow]] = {}
+    for row in evaluations:
+        if row.is_heuristic and (comm_range is None or row.comm_range == comm_range):
+            by_policy.setdefault(row.policy, []).append(row)
+    rows = []
+    names = sorted(by_policy, key=lambda p: (HEURISTIC_ORDER.index(p) if p in HEURISTIC_ORDER else 9, p))
+    for policy in names:
+        group = by_policy[policy]
+        row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
+        for metric in FINAL_METRICS:
+            name = metric.split("/")[-1]
+            values = np.array([g.means[name] for g in group if name in g.means])
+            row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
+            row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def report_training(report: Report) -> dict[str, dict[str, Curve]]:
+    runs = report.runs
+    groups, order = _groups(runs.training)
+    panels = {name: aggregate(groups, metric, runs.skipped) for metric, name in CURVE_METRICS.items()}
+    finals = {metric: aggregate(groups, metric, []) for metric in FINAL_METRICS}
+    order = [label for label in order if label in panels["episode reward"]]
+    if not order:
+        report.add("Learning curves", "no training run logged eval/episode_reward")
+        return {}
+    png = plot_curves(
+        panels, report.out / "learning_curves.png", f"{report.env_name}: greedy evaluation", order
+    )
+
+    comm_ranges = {r.setting("env.comm_range") for r in runs.training}
+    rows = final_rows(finals, order)
+    rows += _heuristic_rows(runs.evaluations, comm_ranges.pop() if len(comm_ranges) == 1 else None)
+    write_csv(report.out / "final.csv", rows)
+    header = ["method", "seeds", "env steps", *(FINAL_METRICS[m] for m in FINAL_METRICS)]
+    table = [
+        [
+            str(r["method"]),
+            str(r.get("seeds", "")),
+            _steps(int(r.get("env_steps", 0))) if r.get("env_steps") else "-",
+            *(mean_std(r[f"{m.split('/')[-1]}_mean"], r[f"{m.split('/')[-1]}_std"]) for m in FINAL_METRICS),
+        ]
+        for r in rows
+    ]
+    final_md = markdown(header, table)
+    (report.out / "final.md").write_text(final_md + "\n")
+    report.add(
+        "Learning curves and final evaluation",
+        f"![learning curves]({png.name})\n\nAt the last common evaluation step of each method "
+        f"(mean ± std over seeds; heuristics: over evaluation seeds):\n\n{final_md}",
+    )
+    _report_milestones(report, groups, panels["episode reward"], order)
+    q_tot = aggregate(groups, Q_TOT, [])
+    if q_tot:
+        png = plot_curves(
+            {"mean Q_tot of replayed transitions": q_tot, "episode reward": panels["episode reward"]},
+            report.out / "q_tot.png",
+            f"{report.env_name}: Q_tot (figure 8b)",
+            [label for label in order if label in q_tot],
+        )
+        report.add("Mean Q_tot (figure 8b)", f"![Q_tot]({png.name})")
+    return panels
+
+
+def _report_milestones(
+    report: Report, groups: dict[str, list[TrainingRun]], rewards: dict[str, Curve], order: list[str]
+) -> None:
+    longest = max((rewards[label] for label in order), key=lambda c: c.steps[-1])
+    steps = milestone_steps(longest)
+    rows, table = [], []
+    for label in order:
+        values = milestone_values(rewards[label], steps)
+        row: dict[str, object] = {"method": label, "seeds": rewards[label].seeds}
+        for s, (m, sd) in zip(steps, values, strict=True):
+            row[f"reward_{s}_mean"], row[f"reward_{s}_std"] = m, sd
+        rows.append(row)
+        table.append(
+            [
+                label,
+                str(rewards[label].seeds),
+                *(mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"]) for s in steps),
+            ]
+        )
+    write_csv(report.out / "milestones.csv", rows)
+    md = markdown(["method", "seeds", *(_steps(s) for s in steps)], table)
+    (report.out / "milestones.md").write_text(md + "\n")
+    report.add("Episode reward at thirds of the budget", md)
+
+    by_delta = [
+        (groups[label][0].setting("algo.memory.delta"), groups[label][0].algo_name, label) for label in order
+    ]
+    swept = any(
+        "algo.memory.delta" in f for f in label_fields([r for g in groups.values() for r in g]).values()
+    )
+    if not swept:
+        return
+    rows4, table4 = [], []
+    for delta, algo, label in sorted(
+        by_delta,
+        key=lambda x: (x[0] is None, x[0] or 0.0, ALGO_ORDER.index(x[1]) if x[1] in ALGO_ORDER else 99),
+    ):
+        if delta is None:
+            continue
+        values = milestone_values(rewards[label], steps)
+        rows4.append(
+            {
+                "delta": delta,
+                "algorithm": algo,
+                **{f"reward_{s}": m for s, (m, _) in zip(steps, values, strict=True)},
+            }
+        )
+        table4.append([f"{delta:g}", algo, *(mean_std(m, sd) for m, sd in values)])
+    write_csv(report.out / "table4.csv", rows4)
+    md4 = markdown(["delta", "algorithm", *(_steps(s) for s in steps)], table4)
+    (report.out / "table4.md").write_text(md4 + "\n")
+    report.add("Table 4: episode reward by delta (mean over seeds)", md4)
+
+
+# ------------------------------------------------------------------------------------ communication
+def report_comm_range(report: Report) -> None:
+    curves = {}
+    evaluations = [e for e in report.runs.evaluations]
+    for label, curve in cr.curves_from_evaluations(evaluations).items():
+        if len(curve.ranges) > 1:
+            curves[f"{label} (evaluated at R_c)"] = curve
+    training = report.runs.training
+    if len({r.setting("env.comm_range") for r in training}) > 1:
+        final: dict[tuple[str, float], dict[str, list[float]]] = {}
+        for run in training:
+            metrics = final.setdefault((run.algo_name, float(run.setting("env.comm_range"))), {})
+            for name in cr.RANGE_METRICS:
+                found = run.scalar(f"eval/{name}")
+                if found is not None and len(found[1]):
+                    metrics.setdefault(name, []).append(float(found[1][-1]))
+        curves.update(cr.curves_from_training(final))
+    if not curves:
+        return
+    png = cr.plot_range_curves(
+        curves, report.out / "comm_range.png", f"{report.env_name}: communication range"
+    )
+    rows, table = [], []
+    for label, c in sorted(curves.items()):
+        for k, rc in enumerate(c.ranges):
+            row = {"policy": label, "comm_range": float(rc), "seeds": int(c.seeds[k])}
+            row.update({f"{m}_mean": float(c.mean[m][k]) for m in cr.RANGE_METRICS})
+            rows.append(row)
+            table.append(
+                [label, f"{rc:g}", str(c.seeds[k]), *(f"{c.mean[m][k]:.2f}" for m in cr.RANGE_METRICS)]
+            )
+    write_csv(report.out / "comm_range.csv", rows)
+    md = markdown(["policy", "R_c", "seeds", *cr.RANGE_METRICS.values()], table)
+    (report.out / "comm_range.md").write_text(md + "\n")
+    report.add("Communication range (figure 5)", f"![communication range]({png.name})\n\n{md}")
+
+
+# ---------------------------------------------------------------------------------------------- t-SNE
+def _memory_run(training: list[TrainingRun], embedding: str) -> TrainingRun | None:
+    runs = [
+        r
+        for r in training
+        if r.setting("algo.memory.enabled")
+        and r.setting("algo.memory.embedding") == embedding
+        and (r.path / "checkpoints" / "last.pt").is_file()
+    ]
+    return min(runs, key=lambda r: (r.seed, str(r.path))) if runs else None
+
+
+def report_tsne(report: Report, samples: int, seed: int) -> None:
+    training = report.runs.training
+    cnn, fc = _memory_run(training, "cnn"), _memory_run(training, "fc")
+    source = cnn or fc or _memory_run(training, "random")
+    if source is None:
+        report.add("t-SNE of memory states (figure 9)", "not made: no run with a saved episodic memory")
+        return
+    sample = tsne.sample_memory(source, samples, seed)
+    features = {
+        "raw state": sample.state,
+        "random projection (EMC)": tsne.random_projection_keys(sample, seed=seed),
+    }
+    for name, run in (("SEMU keys (FC)", fc), ("CNN-SEMU keys", cnn)):
+        if run is None:
+            report.runs.skipped.append(Skipped(Path(name), "t-SNE panel not made: no such run with last.pt"))
+        else:
+            features[name] = tsne.trained_embedding_keys(run, sample)
+    returns = sample.returns.numpy().astype(np.float64)
+    panels, scores, rows = {}, {}, []
+    for name, x in features.items():
+        x = x.numpy()
+        print(f"t-SNE of {len(x)} states: {name} ...", flush=True)
+        panels[name] = tsne.tsne_2d(x, seed)
+        scores[name] = tsne.return_locality(panels[name], returns, seed)
+        in_space = tsne.return_locality(tsne.standardise(x.astype(np.float64)), returns, seed)
+        rows.append([name, f"{x.shape[1]}", f"{in_space:.3f}", f"{scores[name]:.3f}"])
+    png = tsne.plot_tsne(panels, returns, scores, report.out / "tsne.png")
+    md = markdown(
+        ["representation", "dims", "return locality (representation)", "return locality (t-SNE)"], rows
+    )
+    source_text = (
+        f"{len(returns)} states drawn from the saved D_E of `{source.path}` ({source.algo_name}); "
+        "the same states in every panel. Return locality: mean |H_i - H_j| over the 10 nearest "
+        "neighbours / over random pairs (1 = no relation between distance and return)."
+    )
+    (report.out / "tsne.md").write_text(f"{source_text}\n\n{md}\n")
+    report.add("t-SNE of memory states (figure 9)", f"![t-SNE]({png.name})\n\n{source_text}\n\n{md}")
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mcrs-report",
+        description="Figures and tables of the paper's section 6 from mcrs-train runs and mcrs-eval results.",
+    )
+    parser.add_argument("paths", nargs="+", type=Path, help="run directories, or folders holding runs")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="folder for the figures, tables and report.md"
+    )
+    parser.add_argument("--env", default=None, help="the map to report (default: the map with the most runs)")
+    parser.add_argument("--tsne", action="store_true", help="also make figure 9 from saved episodic buffers")
+    parser.add_argument("--tsne-samples", type=int, default=20_000, help="states in the t-SNE (paper: 20000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the t-SNE and of its sample")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.tsne_samples < 2:
+        raise SystemExit(f"mcrs-report: error: --tsne-samples={args.tsne_samples}: must be >= 2")
+    runs = find_runs(args.paths)
+    env_name = select_map(runs, args.env)
+    if env_name is None or (not runs.training and not runs.evaluations):
+        reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
+        where = f"map {args.env}" if args.env else "the paths"
+        raise SystemExit(f"mcrs-report: error: no readable runs of {where} ({reasons})")
+    report = Report(args.out, env_name, runs)
+    if runs.training:
+        report_training(report)
+    report_comm_range(report)
+    if args.tsne:
+        report_tsne(report, args.tsne_samples, args.seed)
+    if not runs.training and not any(
+        len(c.ranges) > 1 for c in cr.curves_from_evaluations(runs.evaluations).values()
+    ):
+        rows = _heuristic_rows(runs.evaluations, None)
+        report.add(
+            "Evaluations",
+            markdown(
+                ["policy", "seeds", *(FINAL_METRICS[m] for m in FINAL_METRICS)],
+                [
+                    [
+                        str(r["method"]),
+                        str(r["seeds"]),
+                        *(
+                            mean_std(r[f"{m.split('/')[-1]}_mean"], r[f"{m.split('/')[-1]}_std"])
+                            for m in FINAL_METRICS
+                        ),
+                    ]
+                    for r in rows
+                ],
+            ),
+        )
+    path = report.write()
+    print(f"\nreport: {path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

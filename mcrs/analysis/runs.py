@@ -1,0 +1,304 @@
+"""Finding and reading the run directories that ``mcrs-report`` turns into figures and tables.
+
+Two kinds of directory count as runs:
+
+- an ``mcrs-train`` run: ``config.yaml`` (the resolved config) beside ``logs/scalars/<group>/<name>.csv``
+  (TorchRL's CSV logger, one ``step,value`` row per point) and ``checkpoints/``;
+- an ``mcrs-eval`` result: ``metrics.csv`` with one row per policy (map, R_c, seed, mean and std of
+  every episode metric).
+
+Anything else under the given paths is ignored; a directory that looks like a run but cannot be read is
+reported as skipped, with the reason.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+
+#: The Hydra configs (mcrs/conf links to the repo's conf/).
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+#: Config fields that never tell two runs' methods apart: seeds, resources, reporting, run bookkeeping.
+NOT_A_SETTING = (
+    "seed",
+    "resume",
+    "threads",
+    "device",
+    "logger",
+    "experiment",
+    "budget",
+    "train.total_env_steps",
+    "train.eval_interval",
+    "train.checkpoint_interval",
+    "train.collector",
+    "train.collector_workers",
+    "train.save_replay",
+)
+#: Short names of the swept fields in labels (the paper's symbols).
+SHORT_NAMES = {
+    "algo.memory_weight": "lambda",
+    "algo.memory.delta": "delta",
+    "env.comm_range": "R_c",
+    "algo.incentive_threshold": "R_thr",
+}
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A run left out of (part of) the report, and why."""
+
+    path: Path
+    reason: str
+
+
+@dataclass
+class TrainingRun:
+    """One ``mcrs-train`` run directory."""
+
+    path: Path
+    config: dict[str, Any]
+    _cache: dict[str, tuple[np.ndarray, np.ndarray] | None] = field(default_factory=dict, repr=False)
+
+    @property
+    def env_name(self) -> str:
+        return str(self.config["env"]["name"])
+
+    @property
+    def algo_name(self) -> str:
+        return str(self.config["algo"]["name"])
+
+    @property
+    def seed(self) -> int:
+        return int(self.config["seed"])
+
+    def setting(self, dotted: str) -> Any:
+        """The value of a dotted config field (``algo.memory.delta``), or None when absent."""
+        node: Any = self.config
+        for part in dotted.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return None
+            node = node[part]
+        return node
+
+    def scalar(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(steps, values)`` of the logged metric ``name`` (``eval/episode_reward``), sorted by step;
+        None when the run did not log it. A resumed run's repeated steps keep the last value."""
+        if name not in self._cache:
+            path = self.path / "logs" / "scalars" / f"{name}.csv"
+            self._cache[name] = _read_scalar_csv(path) if path.is_file() else None
+        return self._cache[name]
+
+
+@dataclass(frozen=True)
+class EvaluationRow:
+    """One policy's results in one ``mcrs-eval`` run (one row of its ``metrics.csv``)."""
+
+    path: Path
+    policy: str
+    env_name: str
+    comm_range: float
+    seed: int
+    episodes: int
+    means: dict[str, float]
+
+    @property
+    def is_heuristic(self) -> bool:
+        return "/" not in self.policy and not self.policy.endswith(".pt")
+
+
+@dataclass
+class Runs:
+    """Everything found under the report's paths."""
+
+    training: list[TrainingRun] = field(default_factory=list)
+    evaluations: list[EvaluationRow] = field(default_factory=list)
+    skipped: list[Skipped] = field(default_factory=list)
+
+
+def _read_scalar_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    points: dict[int, float] = {}
+    with open(path, newline="") as f:
+        for row in csv.reader(f):
+            if len(row) == 2:
+                points[int(float(row[0]))] = float(row[1])
+    steps = np.array(sorted(points), dtype=np.int64)
+    return steps, np.array([points[s] for s in steps], dtype=np.float64)
+
+
+def _is_hidden(path: Path, root: Path) -> bool:
+    return any(part.startswith(".") for part in path.relative_to(root).parts)
+
+
+def find_runs(paths: list[Path]) -> Runs:
+    """All training runs and evaluation results under ``paths`` (each a run or a folder of runs)."""
+    runs = Runs()
+    seen: set[Path] = set()
+    for root in paths:
+        root = Path(root)
+        if not root.exists():
+            runs.skipped.append(Skipped(root, "no such file or directory"))
+            continue
+        candidates = [root / "config.yaml", root / "metrics.csv"] if root.is_dir() else [root]
+        if root.is_dir():
+            candidates += sorted(root.rglob("config.yaml")) + sorted(root.rglob("metrics.csv"))
+        for file in candidates:
+            if not file.is_file() or file in seen or (root.is_dir() and _is_hidden(file, root)):
+                continue
+            seen.add(file)
+            if file.name == "config.yaml":
+                _add_training_run(file.parent, runs)
+            elif file.name == "metrics.csv":
+                _add_evaluation(file, runs)
+    return runs
+
+
+def _add_training_run(run_dir: Path, runs: Runs) -> None:
+    if not (run_dir / "checkpoints").is_dir() and not (run_dir / "logs").is_dir():
+        return  # a config.yaml that is not an mcrs-train run (e.g. a user's own file)
+    try:
+        config = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
+    except Exception as error:  # unreadable YAML: say so, keep going
+        runs.skipped.append(Skipped(run_dir, f"config.yaml cannot be read ({type(error).__name__})"))
+        return
+    if not isinstance(config, dict) or not all(k in config for k in ("env", "algo", "seed")):
+        runs.skipped.append(Skipped(run_dir, "config.yaml is not an mcrs-train config (no env/algo/seed)"))
+        return
+    if not (run_dir / "logs" / "scalars").is_dir():
+        backend = (config.get("logger") or {}).get("backend", "?")
+        runs.skipped.append(
+            Skipped(run_dir, f"no CSV metrics (logger.backend={backend}); the report reads logger=csv runs")
+        )
+        return
+    runs.training.append(TrainingRun(run_dir, config))
+
+
+def _add_evaluation(path: Path, runs: Runs) -> None:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    needed = {"policy", "env", "comm_range", "seed", "episodes"}
+    if not rows or not needed <= set(rows[0]):
+        missing = sorted(needed - set(rows[0])) if rows else ["every row"]
+        runs.skipped.append(Skipped(path.parent, f"metrics.csv lacks {', '.join(missing)} (rerun mcrs-eval)"))
+        return
+    for row in rows:
+        means = {k[: -len("_mean")]: float(v) for k, v in row.items() if k.endswith("_mean")}
+        runs.evaluations.append(
+            EvaluationRow(
+                path.parent,
+                row["policy"],
+                row["env"],
+                float(row["comm_range"]),
+                int(row["seed"]),
+                int(row["episodes"]),
+                means,
+            )
+        )
+
+
+def flatten(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"algo.memory.delta": 0.0013, ...}``: lists become tuples so values compare and hash."""
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{name}."))
+        else:
+            out[name] = tuple(value) if isinstance(value, list) else value
+    return out
+
+
+def _is_setting(name: str) -> bool:
+    return not any(name == n or name.startswith(n + ".") for n in NOT_A_SETTING)
+
+
+def budget_fields() -> set[str]:
+    """The fields that the budget presets set (conf/budget/*.yaml): run length, batch sizes, buffer sizes."""
+    out: set[str] = set()
+    for path in sorted(CONFIG_DIR.joinpath("budget").glob("*.yaml")):
+        out |= {
+            k for k in flatten(OmegaConf.to_container(OmegaConf.load(path))) if not k.startswith("hydra.")
+        }
+    return out
+
+
+def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
+    """Per algorithm name, the settings that differ between its runs (the swept ones, e.g. delta).
+
+    Runs of different budgets differ in many fields at once (steps, batch and buffer sizes): they are told
+    apart by ``budget`` alone. The memory's fields do not count for an algorithm without a memory.
+    """
+    by_algo: dict[str, list[dict[str, Any]]] = {}
+    for run in runs:
+        by_algo.setdefault(run.algo_name, []).append(flatten(run.config))
+    budget = budget_fields()
+    out = {}
+    for algo, configs in by_algo.items():
+        names = sorted({k for c in configs for k in c})
+        memory = any(c.get("algo.memory.enabled") for c in configs)
+        varying = [
+            n
+            for n in names
+            if _is_setting(n)
+            and n not in budget
+            and (memory or not n.startswith("algo.memory."))
+            and len({repr(c.get(n)) for c in configs}) > 1
+        ]
+        if len({c.get("budget") for c in configs}) > 1:
+            varying.insert(0, "budget")
+        out[algo] = varying
+    return out
+
+
+def _short(name: str) -> str:
+    return SHORT_NAMES.get(name, name.split(".")[-1])
+
+
+def _format(value: Any) -> str:
+    if value is None:
+        return "none"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def run_labels(runs: list[TrainingRun]) -> dict[Path, str]:
+    """A label per run: its algorithm, plus the settings swept within that algorithm
+    (``cnn_semu lambda=0.5``). Runs with the same label are seeds of one method."""
+    fields = label_fields(runs)
+    labels = {}
+    for run in runs:
+        parts = [f"{_short(n)}={_format(run.setting(n))}" for n in fields[run.algo_name]]
+        labels[run.path] = " ".join([run.algo_name, *parts])
+    return labels
+
+
+def select_map(runs: Runs, env_name: str | None) -> str | None:
+    """Keep the runs of one map (``env_name``, or the map with the most runs); the others are skipped
+    with the reason. Returns the map's name (None when there is nothing to report)."""
+    names = Counter([r.env_name for r in runs.training] + [e.env_name for e in runs.evaluations])
+    if not names:
+        return None
+    chosen = env_name or names.most_common(1)[0][0]
+    hint = " (pass --env to report it)" if env_name is None else ""
+    kept = []
+    for run in runs.training:
+        if run.env_name == chosen:
+            kept.append(run)
+        else:
+            runs.skipped.append(Skipped(run.path, f"map {run.env_name}, the report is on {chosen}{hint}"))
+    runs.training = kept
+    evaluations = []
+    for row in runs.evaluations:
+        if row.env_name == chosen:
+            evaluations.append(row)
+        else:
+            runs.skipped.append(
+                Skipped(row.path, f"evaluation on map {row.env_name}, the report is on {chosen}{hint}")
+            )
+    runs.evaluations = evaluations
+    return chosen

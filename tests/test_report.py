@@ -1,0 +1,268 @@
+"""mcrs-report on small synthetic run directories whose numbers are known, and on a real saved buffer."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from scipy import stats
+
+from mcrs.analysis.curves import confidence_half_width
+from mcrs.analysis.report import main as report_main
+from mcrs.analysis.runs import find_runs, run_labels, select_map
+from mcrs.analysis.tsne import return_locality
+from mcrs.experiment.config import Config
+
+STEPS = [0, 10_000, 20_000, 30_000]
+METRICS = ("episode_reward", "uncertainty", "collisions", "targets_found")
+
+
+def make_run(
+    root: Path,
+    name: str,
+    *,
+    algo: str = "qmix",
+    seed: int = 0,
+    env: str = "map10",
+    reward: list[float] | None = None,
+    metrics: tuple[str, ...] = METRICS,
+    steps: list[int] = STEPS,
+    **settings: object,
+) -> Path:
+    """A run directory as mcrs-train writes it: the full config, CSV scalars, a checkpoints folder."""
+    run = root / name
+    config = OmegaConf.to_container(OmegaConf.structured(Config))
+    config["env"] = {"name": env, "comm_range": 5.0, "max_steps": 50}
+    config["algo"]["name"] = algo
+    config["seed"] = seed
+    for dotted, value in settings.items():
+        node = config
+        *parents, last = dotted.split("__")
+        for part in parents:
+            node = node[part]
+        node[last] = value
+    (run / "checkpoints").mkdir(parents=True)
+    OmegaConf.save(OmegaConf.create(config), run / "config.yaml")
+    reward = reward or [float(k + seed) for k in range(len(steps))]
+    for metric in metrics:
+        folder = run / "logs" / "scalars" / "eval"
+        folder.mkdir(parents=True, exist_ok=True)
+        values = reward if metric == "episode_reward" else [float(len(metric))] * len(steps)
+        (folder / f"{metric}.csv").write_text(
+            "".join(f"{s},{v}\n" for s, v in zip(steps, values, strict=True))
+        )
+    q_folder = run / "logs" / "scalars" / "train"
+    q_folder.mkdir(parents=True, exist_ok=True)
+    (q_folder / "q_taken_mean.csv").write_text("".join(f"{s},{s / 1000}\n" for s in steps))
+    return run
+
+
+def make_evaluation(root: Path, name: str, policy: str, comm_range: float, seed: int, found: float) -> Path:
+    folder = root / name
+    folder.mkdir(parents=True)
+    with open(folder / "metrics.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            [
+                "policy",
+                "env",
+                "comm_range",
+                "seed",
+                "episodes",
+                "episode_reward_mean",
+                "episode_reward_std",
+                "targets_found_mean",
+                "targets_found_std",
+                "uncertainty_mean",
+                "uncertainty_std",
+            ]
+        )
+        writer.writerow(
+            [policy, "map10", f"{comm_range:g}", seed, 4, 10 * found, 1, found, 0.5, 20 - found, 1]
+        )
+    return folder
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_confidence_half_width_is_student_t() -> None:
+    values = np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    expected = stats.t.ppf(0.975, 2) * 1.0 / np.sqrt(3)
+    assert confidence_half_width(values) == pytest.approx([expected, 0.0])
+    assert confidence_half_width(values[:1]).tolist() == [0.0, 0.0]  # one seed: no band
+
+
+def test_seeds_are_averaged_per_method_and_heuristics_are_rows(tmp_path: Path) -> None:
+    for seed in range(3):
+        make_run(tmp_path, f"qmix_{seed}", seed=seed, reward=[0, 10 + seed, 20 + seed, 30 + 2 * seed])
+        make_run(tmp_path, f"cnn_{seed}", algo="cnn_semu", seed=seed, algo__memory__enabled=True)
+    for seed in range(2):
+        make_evaluation(tmp_path, f"greedy_{seed}", "greedy", 5.0, seed, found=3 + seed)
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    rows = {r["method"]: r for r in read_csv(out / "final.csv")}
+    assert list(rows) == ["qmix", "cnn_semu", "greedy (heuristic)"]  # the paper's order, then heuristics
+    assert float(rows["qmix"]["episode_reward_mean"]) == pytest.approx(32.0)  # (30 + 32 + 34) / 3
+    assert float(rows["qmix"]["episode_reward_std"]) == pytest.approx(2.0)
+    assert rows["qmix"]["seeds"] == "3" and rows["qmix"]["env_steps"] == "30000"
+    assert float(rows["greedy (heuristic)"]["targets_found_mean"]) == pytest.approx(3.5)
+    milestones = {r["method"]: r for r in read_csv(out / "milestones.csv")}
+    assert float(milestones["qmix"]["reward_10000_mean"]) == pytest.approx(11.0)
+    for figure in ("learning_curves.png", "q_tot.png"):
+        assert (out / figure).stat().st_size > 10_000
+    text = (out / "report.md").read_text()
+    assert "6 training runs and 2 evaluation results read; 0 skipped" in text
+    assert not (out / "table4.md").exists()  # delta was not swept
+
+
+def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> None:
+    for algo in ("emc", "cnn_semu"):
+        for delta in (1.3e-3, 1.3e-1):
+            for seed in range(2):
+                make_run(
+                    tmp_path,
+                    f"{algo}_{delta}_{seed}",
+                    algo=algo,
+                    seed=seed,
+                    reward=[0.0, delta * 100, 2 + delta, 3.0 + (algo == "emc")],
+                    algo__memory__enabled=True,
+                    algo__memory__delta=delta,
+                )
+    runs = find_runs([tmp_path])
+    assert sorted(set(run_labels(runs.training).values())) == [
+        "cnn_semu delta=0.0013",
+        "cnn_semu delta=0.13",
+        "emc delta=0.0013",
+        "emc delta=0.13",
+    ]
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    table = read_csv(out / "table4.csv")
+    assert [(r["delta"], r["algorithm"]) for r in table] == [
+        ("0.0013", "emc"),
+        ("0.0013", "cnn_semu"),
+        ("0.13", "emc"),
+        ("0.13", "cnn_semu"),
+    ]
+    assert float(table[2]["reward_10000"]) == pytest.approx(13.0)  # 0.13 * 100 at a third of 30k
+    assert float(table[2]["reward_30000"]) == pytest.approx(4.0)
+    assert "| 0.13   |       emc | 13.00 ± 0.00 |" in (out / "table4.md").read_text()
+
+
+def test_lambda_sweep_labels(tmp_path: Path) -> None:
+    for weight in (0.01, 0.5):
+        make_run(
+            tmp_path, f"l{weight}", algo="cnn_semu", algo__memory_weight=weight, algo__memory__enabled=True
+        )
+    labels = run_labels(find_runs([tmp_path]).training)
+    assert sorted(labels.values()) == ["cnn_semu lambda=0.01", "cnn_semu lambda=0.5"]
+
+
+def test_mixed_maps_are_skipped_with_the_reason(tmp_path: Path, capsys) -> None:
+    make_run(tmp_path, "a", env="map10")
+    make_run(tmp_path, "b", env="map10", seed=1)
+    make_run(tmp_path, "c", env="map20")
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    text = (out / "report.md").read_text()
+    assert "# Report: map10" in text
+    assert f"`{tmp_path / 'c'}`: map map20, the report is on map10 (pass --env to report it)" in text
+    assert "skipped 1" in capsys.readouterr().out
+    assert read_csv(out / "final.csv")[0]["seeds"] == "2"
+    report_main([str(tmp_path), "--out", str(tmp_path / "r20"), "--env", "map20"])
+    assert read_csv(tmp_path / "r20" / "final.csv")[0]["seeds"] == "1"
+
+
+def test_missing_metrics_skip_the_run_for_that_metric_only(tmp_path: Path) -> None:
+    make_run(tmp_path, "full", seed=0)
+    make_run(tmp_path, "partial", seed=1, metrics=("episode_reward",))
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    text = (out / "report.md").read_text()
+    assert f"`{tmp_path / 'partial'}`: no eval/uncertainty logged" in text
+    row = read_csv(out / "final.csv")[0]
+    assert row["seeds"] == "2"  # both runs count for the reward ...
+    assert float(row["episode_reward_mean"]) == pytest.approx(3.5)
+    assert (out / "learning_curves.png").is_file()  # ... and the figure is still made
+
+
+def test_unreadable_and_foreign_directories_are_reported(tmp_path: Path) -> None:
+    make_run(tmp_path, "good")
+    bad = tmp_path / "bad"
+    (bad / "checkpoints").mkdir(parents=True)
+    (bad / "config.yaml").write_text("env: [unclosed\n")
+    tb = make_run(tmp_path, "tb")
+    for csv_file in (tb / "logs" / "scalars").rglob("*.csv"):
+        csv_file.unlink()
+    (tb / "logs" / "scalars" / "eval").rmdir()
+    (tb / "logs" / "scalars" / "train").rmdir()
+    (tb / "logs" / "scalars").rmdir()
+    old = tmp_path / "old_eval"
+    old.mkdir()
+    (old / "metrics.csv").write_text("policy,env,episodes,episode_reward_mean\ngreedy,map10,4,1.0\n")
+    runs = find_runs([tmp_path, tmp_path / "missing"])
+    reasons = {s.path.name: s.reason for s in runs.skipped}
+    assert reasons["bad"].startswith("config.yaml cannot be read")
+    assert reasons["tb"].startswith("no CSV metrics (logger.backend=csv)")
+    assert reasons["old_eval"] == "metrics.csv lacks comm_range, seed (rerun mcrs-eval)"
+    assert reasons["missing"] == "no such file or directory"
+    assert [r.path.name for r in runs.training] == ["good"]
+
+
+def test_no_runs_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="mcrs-report: error: no readable runs of the paths"):
+        report_main([str(tmp_path), "--out", str(tmp_path / "out")])
+    make_run(tmp_path, "a")
+    with pytest.raises(SystemExit, match="no readable runs of map map15"):
+        report_main([str(tmp_path), "--out", str(tmp_path / "out"), "--env", "map15"])
+
+
+def test_comm_range_from_evaluations(tmp_path: Path) -> None:
+    for rc in (0.0, 5.0, 10.0):
+        for seed in range(2):
+            make_evaluation(tmp_path, f"g{rc}_{seed}", "greedy", rc, seed, found=rc / 5 + seed)
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    rows = read_csv(out / "comm_range.csv")
+    assert [(r["comm_range"], r["seeds"]) for r in rows] == [("0", "2"), ("5", "2"), ("10", "2")]
+    assert [float(r["targets_found_mean"]) for r in rows] == pytest.approx([0.5, 1.5, 2.5])
+    assert (out / "comm_range.png").is_file()
+
+
+def test_comm_range_from_training_runs(tmp_path: Path) -> None:
+    for rc in (0.0, 5.0):
+        for seed in range(2):
+            run = make_run(tmp_path, f"rc{rc}_{seed}", seed=seed, reward=[0, 1, 2, 10 * rc + seed])
+            config = OmegaConf.load(run / "config.yaml")
+            config.env.comm_range = rc
+            OmegaConf.save(config, run / "config.yaml")
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    rows = read_csv(out / "comm_range.csv")
+    assert [r["policy"] for r in rows] == ["qmix (trained at R_c)"] * 2
+    assert [float(r["episode_reward_mean"]) for r in rows] == pytest.approx([0.5, 50.5])
+    assert {r["method"] for r in read_csv(out / "final.csv")} == {"qmix R_c=0", "qmix R_c=5"}
+
+
+def test_return_locality_separates_related_from_unrelated() -> None:
+    rng = np.random.default_rng(0)
+    returns = rng.uniform(0, 10, 500)
+    related = np.stack([returns, rng.normal(0, 0.01, 500)], axis=1)
+    unrelated = rng.normal(size=(500, 2))
+    assert return_locality(related, returns) < 0.1
+    assert 0.8 < return_locality(unrelated, returns) < 1.2
+
+
+def test_select_map_prefers_the_most_runs(tmp_path: Path) -> None:
+    make_run(tmp_path, "a", env="map15")
+    make_run(tmp_path, "b", env="map20")
+    make_run(tmp_path, "c", env="map20", seed=1)
+    runs = find_runs([tmp_path])
+    assert select_map(runs, None) == "map20"
+    assert [r.path.name for r in runs.training] == ["b", "c"]
