@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from mcrs.experiment.logging import flatten_config
+
 #: The Hydra configs (mcrs/conf links to the repo's conf/).
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "conf"
 
@@ -202,16 +204,9 @@ def _add_evaluation(path: Path, runs: Runs) -> None:
         )
 
 
-def flatten(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"algo.memory.delta": 0.0013, ...}``: lists become tuples so values compare and hash."""
-    out: dict[str, Any] = {}
-    for key, value in config.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(flatten(value, f"{name}."))
-        else:
-            out[name] = tuple(value) if isinstance(value, list) else value
-    return out
+def flatten(config: dict[str, Any]) -> dict[str, Any]:
+    """Dotted names to values; lists become tuples so that values compare and hash."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in flatten_config(config).items()}
 
 
 def _is_setting(name: str) -> bool:

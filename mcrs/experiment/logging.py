@@ -38,19 +38,26 @@ def make_logger(
         return logger
     else:
         raise ValueError(f"logger.backend={backend!r}: allowed values are csv, wandb, tensorboard")
-    logger.log_hparams(_flatten(config))
+    logger.log_hparams(_hparams(config))
     return logger
 
 
-def _flatten(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_config(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"algo.memory.delta": 0.0013, ...}``: nested dicts become dotted names, values are kept."""
     out: dict[str, Any] = {}
     for key, value in config.items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
-            out.update(_flatten(value, f"{name}."))
+            out.update(flatten_config(value, f"{name}."))
         else:
-            out[name] = value if isinstance(value, (int, float, str, bool)) else str(value)
+            out[name] = value
     return out
+
+
+def _hparams(config: dict[str, Any]) -> dict[str, Any]:
+    return {
+        k: v if isinstance(v, (int, float, str, bool)) else str(v) for k, v in flatten_config(config).items()
+    }
 
 
 def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
