@@ -132,3 +132,21 @@ def test_evaluation_study_smoke_and_report(study: str, expected: int, tmp_path: 
         assert "| greedy (heuristic)    |     1 |" in (out / "report.md").read_text()
         assert len(list(sweep.glob("*/metrics.csv"))) == 1
         assert expected == len(read_csv(next(sweep.glob("*/metrics.csv"))))
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"), [([], "n_jobs: 2"), (["hydra/launcher=basic"], "BasicLauncher")]
+)
+def test_cpu_budget_uses_two_local_processes_unless_another_launcher_is_named(
+    extra: list[str], expected: str, tmp_path: Path
+) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "mcrs.train", "experiment=lambda", "budget=cpu", *extra]
+        + ["--cfg", "hydra", "-p", "hydra.launcher"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert expected in done.stdout

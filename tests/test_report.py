@@ -134,12 +134,14 @@ def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> 
                     algo__memory__enabled=True,
                     algo__memory__delta=delta,
                 )
+    make_run(tmp_path, "qmix", algo="qmix")  # no memory: no delta label, no table-4 row
     runs = find_runs([tmp_path])
     assert sorted(set(run_labels(runs.training).values())) == [
         "cnn_semu delta=0.0013",
         "cnn_semu delta=0.13",
         "emc delta=0.0013",
         "emc delta=0.13",
+        "qmix",
     ]
     out = tmp_path / "report"
     report_main([str(tmp_path), "--out", str(out)])

@@ -215,8 +215,8 @@ def _report_milestones(
         by_delta,
         key=lambda x: (x[0] is None, x[0] or 0.0, ALGO_ORDER.index(x[1]) if x[1] in ALGO_ORDER else 99),
     ):
-        if delta is None:
-            continue
+        if delta is None or not groups[label][0].setting("algo.memory.enabled"):
+            continue  # delta means nothing without a memory (QMIX's config still carries the default)
         values = milestone_values(rewards[label], steps)
         rows4.append(
             {
