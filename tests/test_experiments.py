@@ -141,8 +141,18 @@ def test_cpu_budget_uses_two_local_processes_unless_another_launcher_is_named(
     extra: list[str], expected: str, tmp_path: Path
 ) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "mcrs.train", "experiment=lambda", "budget=cpu", *extra]
-        + ["--cfg", "hydra", "-p", "hydra.launcher"],
+        [
+            sys.executable,
+            "-m",
+            "mcrs.train",
+            "experiment=lambda",
+            "budget=cpu",
+            *extra,
+            "--cfg",
+            "hydra",
+            "-p",
+            "hydra.launcher",
+        ],
         cwd=tmp_path,
         capture_output=True,
         text=True,
