@@ -1,8 +1,8 @@
 """``mcrs-report``: figures and tables of the paper's section 6 from run directories.
 
-    mcrs-report outputs/experiments/baselines --out reports/baselines_map10 --env map10
-    mcrs-report outputs/experiments/delta outputs/eval/comm_range --out reports/delta
-    mcrs-report outputs/experiments/baselines --out reports/tsne --tsne       (figure 9, from saved buffers)
+    mcrs-report outputs/experiments/baselines --out outputs/reports/baselines_map10 --env map10
+    mcrs-report outputs/experiments/delta outputs/eval/comm_range --out outputs/reports/delta
+    mcrs-report outputs/experiments/baselines --out outputs/reports/tsne --tsne       (figure 9, from saved buffers)
 
 It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs.analysis.runs),
 keeps one map, groups training runs into methods (an algorithm plus the settings swept within it, e.g.
