@@ -268,3 +268,13 @@ def test_select_map_prefers_the_most_runs(tmp_path: Path) -> None:
     runs = find_runs([tmp_path])
     assert select_map(runs, None) == "map20"
     assert [r.path.name for r in runs.training] == ["b", "c"]
+
+
+def test_tsne_without_a_readable_buffer_is_reported_not_raised(tmp_path: Path) -> None:
+    run = make_run(tmp_path, "cnn", algo="cnn_semu", algo__memory__enabled=True)
+    (run / "checkpoints" / "last.pt").write_bytes(b"not a checkpoint")
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--tsne"]) == 0
+    text = (out / "report.md").read_text()
+    assert "## t-SNE of memory states (figure 9)\n\nnot made: checkpoint" in text
+    assert (out / "final.csv").is_file()  # the rest of the report is still written

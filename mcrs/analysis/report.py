@@ -53,6 +53,7 @@ from mcrs.analysis.runs import (
     select_map,
 )
 from mcrs.analysis.tables import markdown, mean_std, write_csv
+from mcrs.experiment.checkpoint import CheckpointError
 
 #: Row order of tables and legends: the paper's baselines first, its method last.
 ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
@@ -352,7 +353,10 @@ def main(argv: list[str] | None = None) -> int:
         report_training(report)
     report_comm_range(report)
     if args.tsne:
-        report_tsne(report, args.tsne_samples, args.seed)
+        try:
+            report_tsne(report, args.tsne_samples, args.seed)
+        except (ValueError, CheckpointError) as error:  # an empty or unreadable buffer: say so, keep the rest
+            report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
     if not runs.training and not any(
         len(c.ranges) > 1 for c in cr.curves_from_evaluations(runs.evaluations).values()
     ):
