@@ -94,6 +94,7 @@ class Report:
 
 # ------------------------------------------------------------------------------------------ training
 def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], list[str]]:
+    """Runs by method label, and the labels in the paper's algorithm order, then by swept value."""
     labels = run_labels(training)
     fields = label_fields(training)
     groups: dict[str, list[TrainingRun]] = {}
@@ -103,8 +104,8 @@ def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], 
     def order(label: str) -> tuple:
         first = groups[label][0]
         rank = ALGO_ORDER.index(first.algo_name) if first.algo_name in ALGO_ORDER else len(ALGO_ORDER)
-        values = tuple(
-            str(first.setting(n)) if not isinstance(first.setting(n), float) else first.setting(n)
+        values = tuple(  # numbers before anything else, so that mixed types still sort
+            (0, float(v), "") if isinstance(v := first.setting(n), (int, float)) else (1, 0.0, str(v))
             for n in fields[first.algo_name]
         )
         return (rank, first.algo_name, values)
