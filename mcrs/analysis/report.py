@@ -113,6 +113,18 @@ def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], 
     return groups, sorted(groups, key=order)
 
 
+def _final_table(rows: list[dict[str, object]]) -> str:
+    """Markdown of ``final_rows``/``_heuristic_rows``: method, seeds, env steps, ``mean ± std`` per metric."""
+    header = ["method", "seeds", "env steps", *FINAL_METRICS.values()]
+    table = []
+    for r in rows:
+        steps = int(r.get("env_steps", 0))
+        cells = [str(r["method"]), str(r.get("seeds", "")), _steps(steps) if steps else "-"]
+        names = [m.split("/")[-1] for m in FINAL_METRICS]
+        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"]) for n in names])
+    return markdown(header, table)
+
+
 def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
     """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
     by_policy: dict[str, list[EvaluationRow]] = {}
@@ -136,8 +148,8 @@ def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) 
 def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     runs = report.runs
     groups, order = _groups(runs.training)
-    panels = {name: aggregate(groups, metric, runs.skipped) for metric, name in CURVE_METRICS.items()}
-    finals = {metric: aggregate(groups, metric, []) for metric in FINAL_METRICS}
+    finals = {m: aggregate(groups, m, runs.skipped if m in CURVE_METRICS else []) for m in FINAL_METRICS}
+    panels = {name: finals[metric] for metric, name in CURVE_METRICS.items()}
     order = [label for label in order if label in panels["episode reward"]]
     if not order:
         report.add("Learning curves", "no training run logged eval/episode_reward")
@@ -150,17 +162,7 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     rows = final_rows(finals, order)
     rows += _heuristic_rows(runs.evaluations, comm_ranges.pop() if len(comm_ranges) == 1 else None)
     write_csv(report.out / "final.csv", rows)
-    header = ["method", "seeds", "env steps", *(FINAL_METRICS[m] for m in FINAL_METRICS)]
-    table = [
-        [
-            str(r["method"]),
-            str(r.get("seeds", "")),
-            _steps(int(r.get("env_steps", 0))) if r.get("env_steps") else "-",
-            *(mean_std(r[f"{m.split('/')[-1]}_mean"], r[f"{m.split('/')[-1]}_std"]) for m in FINAL_METRICS),
-        ]
-        for r in rows
-    ]
-    final_md = markdown(header, table)
+    final_md = _final_table(rows)
     (report.out / "final.md").write_text(final_md + "\n")
     report.add(
         "Learning curves and final evaluation",
@@ -235,10 +237,10 @@ def _report_milestones(
 
 
 # ------------------------------------------------------------------------------------ communication
-def report_comm_range(report: Report) -> None:
+def report_comm_range(report: Report) -> bool:
+    """Figure 5 from whatever varies R_c; False when nothing does."""
     curves = {}
-    evaluations = [e for e in report.runs.evaluations]
-    for label, curve in cr.curves_from_evaluations(evaluations).items():
+    for label, curve in cr.curves_from_evaluations(report.runs.evaluations).items():
         if len(curve.ranges) > 1:
             curves[f"{label} (evaluated at R_c)"] = curve
     training = report.runs.training
@@ -252,7 +254,7 @@ def report_comm_range(report: Report) -> None:
                     metrics.setdefault(name, []).append(float(found[1][-1]))
         curves.update(cr.curves_from_training(final))
     if not curves:
-        return
+        return False
     png = cr.plot_range_curves(
         curves, report.out / "comm_range.png", f"{report.env_name}: communication range"
     )
@@ -269,6 +271,7 @@ def report_comm_range(report: Report) -> None:
     md = markdown(["policy", "R_c", "seeds", *cr.RANGE_METRICS.values()], table)
     (report.out / "comm_range.md").write_text(md + "\n")
     report.add("Communication range (figure 5)", f"![communication range]({png.name})\n\n{md}")
+    return True
 
 
 # ---------------------------------------------------------------------------------------------- t-SNE
@@ -352,33 +355,14 @@ def main(argv: list[str] | None = None) -> int:
     report = Report(args.out, env_name, runs)
     if runs.training:
         report_training(report)
-    report_comm_range(report)
+    has_ranges = report_comm_range(report)
     if args.tsne:
         try:
             report_tsne(report, args.tsne_samples, args.seed)
         except (ValueError, CheckpointError) as error:  # an empty or unreadable buffer: say so, keep the rest
             report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
-    if not runs.training and not any(
-        len(c.ranges) > 1 for c in cr.curves_from_evaluations(runs.evaluations).values()
-    ):
-        rows = _heuristic_rows(runs.evaluations, None)
-        report.add(
-            "Evaluations",
-            markdown(
-                ["policy", "seeds", *(FINAL_METRICS[m] for m in FINAL_METRICS)],
-                [
-                    [
-                        str(r["method"]),
-                        str(r["seeds"]),
-                        *(
-                            mean_std(r[f"{m.split('/')[-1]}_mean"], r[f"{m.split('/')[-1]}_std"])
-                            for m in FINAL_METRICS
-                        ),
-                    ]
-                    for r in rows
-                ],
-            ),
-        )
+    if not runs.training and not has_ranges:  # evaluations only: their table
+        report.add("Evaluations", _final_table(_heuristic_rows(runs.evaluations, None)))
     path = report.write()
     print(f"\nreport: {path}", flush=True)
     return 0

@@ -14,6 +14,7 @@ reported as skipped, with the reason.
 from __future__ import annotations
 
 import csv
+import functools
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -213,14 +214,15 @@ def _is_setting(name: str) -> bool:
     return not any(name == n or name.startswith(n + ".") for n in NOT_A_SETTING)
 
 
-def budget_fields() -> set[str]:
+@functools.cache
+def budget_fields() -> frozenset[str]:
     """The fields that the budget presets set (conf/budget/*.yaml): run length, batch sizes, buffer sizes."""
     out: set[str] = set()
     for path in sorted(CONFIG_DIR.joinpath("budget").glob("*.yaml")):
         out |= {
             k for k in flatten(OmegaConf.to_container(OmegaConf.load(path))) if not k.startswith("hydra.")
         }
-    return out
+    return frozenset(out)
 
 
 def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
