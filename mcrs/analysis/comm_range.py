@@ -16,7 +16,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from mcrs.analysis.curves import confidence_half_width
-from mcrs.analysis.runs import EvaluationRow
+from mcrs.analysis.runs import EvaluationRow, is_heuristic_policy
 
 #: The panels of figure 5 (and the reward).
 RANGE_METRICS = {
@@ -39,7 +39,7 @@ class RangeCurve:
 
 def policy_label(policy: str) -> str:
     """A heuristic's name, or ``trained <algo>`` for a checkpoint (read from its run's config)."""
-    if "/" not in policy and not policy.endswith(".pt"):
+    if is_heuristic_policy(policy):
         return policy
     path = Path(policy)
     for run_dir in (path, path.parent, path.parent.parent):

@@ -113,7 +113,12 @@ class EvaluationRow:
 
     @property
     def is_heuristic(self) -> bool:
-        return "/" not in self.policy and not self.policy.endswith(".pt")
+        return is_heuristic_policy(self.policy)
+
+
+def is_heuristic_policy(policy: str) -> bool:
+    """A heuristic's name, as opposed to a checkpoint or run directory given to ``mcrs-eval policy=``."""
+    return "/" not in policy and not policy.endswith(".pt")
 
 
 @dataclass
