@@ -65,6 +65,34 @@ def test_target_network_is_updated_on_schedule(tmp_path: Path) -> None:
     assert torch.equal(learner.loss.target_agent_network_params["fc1", "weight"], learner.agent.fc1.weight)
 
 
+@pytest.mark.parametrize(("num_envs", "interval", "expected_at"), [
+    (4, 6, [8, 12, 20, 24, 32, 36, 44, 48]),  # one copy per multiple of 6 crossed (not every 8)
+    (4, 8, [8, 16, 24, 32, 40, 48]),
+    (4, 20, [20, 40]),
+    (4, 5, [8, 12, 16, 20, 28, 32, 36, 40, 48]),  # 24 and 44 cross no multiple of 5
+])  # fmt: skip
+def test_target_updates_once_per_interval_whatever_num_envs(
+    num_envs: int, interval: int, expected_at: list[int], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # 50 episodes of 10 steps in batches of num_envs: the copies happen at the first batch boundary at or
+    # after each multiple of the interval, so their number is floor(episodes / interval), never less.
+    trainer = Trainer(
+        compose_config(
+            "train.total_env_steps=480",
+            f"train.num_envs={num_envs}",
+            f"train.target_update_episodes={interval}",
+        ),
+        tmp_path,
+    )
+    copies: list[int] = []
+    monkeypatch.setattr(
+        trainer.learner.target_updater, "step", lambda: copies.append(trainer.counters.episodes)
+    )
+    trainer.train()
+    assert copies == expected_at
+    assert len(copies) == trainer.counters.episodes // interval
+
+
 def test_resume_gives_the_same_parameters_as_a_straight_run(tmp_path: Path) -> None:
     straight = Trainer(compose_config("train.total_env_steps=200"), tmp_path / "straight")
     straight.train()

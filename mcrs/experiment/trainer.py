@@ -58,7 +58,7 @@ class Counters:
     updates: int = 0
     iteration: int = 0  # collector batches
     update_credit: float = 0.0  # fractional learner updates owed (updates_per_episode < 1)
-    last_target_update: int = 0  # episode count at the last target update
+    next_target_update: int = 0  # episode count at which the target networks are next copied
     next_eval: int = 0
     next_checkpoint: int = 0
     next_log: int = 0
@@ -208,7 +208,9 @@ class Trainer:
         if self.episodic is not None:  # every sampled batch carries the memory's H(phi(s_{t+1}))
             self.replay.append_transform(self.episodic.lookup_transform())
         self.counters = Counters(
-            next_checkpoint=t.checkpoint_interval, next_embedding=cfg.algo.memory.embedding_interval
+            next_checkpoint=t.checkpoint_interval,
+            next_embedding=cfg.algo.memory.embedding_interval,
+            next_target_update=t.target_update_episodes,
         )
         self.last_eval: dict[str, float] = {}
         if resume:
@@ -287,9 +289,11 @@ class Trainer:
                         for key, value in stats.items():
                             train_stats.setdefault(f"train/{key}", []).append(value)
                         c.update_credit -= 1.0
-                if c.episodes - c.last_target_update >= t.target_update_episodes:
+                if c.episodes >= c.next_target_update:  # once per target_update_episodes episodes
                     self.learner.target_updater.step()
-                    c.last_target_update = c.episodes
+                    c.next_target_update += t.target_update_episodes * (
+                        1 + (c.episodes - c.next_target_update) // t.target_update_episodes
+                    )
                 timer["update"] += time.perf_counter() - start
 
                 if c.env_steps >= c.next_log:
