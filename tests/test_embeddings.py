@@ -299,16 +299,61 @@ def test_trainer_arguments_checked() -> None:
 
 
 # ----------------------------------------------------------------------------------------------- training
-def test_embedding_loss_is_eq_31() -> None:
+def test_embedding_loss_is_eq_31_with_per_value_means() -> None:
+    """Both terms are means over their values (EMU's MSELoss): the state term is not a sum over D."""
     emb = make_embedding("fc", 30, hidden_dim=8)
     state, time, returns = torch.rand(6, 30), torch.rand(6), torch.randn(6)
     loss, stats = embedding_loss(emb, state, time, returns, state_weight=0.25)
     state_hat, return_hat = emb.reconstruct(emb(state, time), time)
     loss_return = ((returns - return_hat) ** 2).mean()
-    loss_state = ((state - state_hat) ** 2).sum(-1).mean()
+    loss_state = ((state - state_hat) ** 2).mean()
     torch.testing.assert_close(loss, loss_return + 0.25 * loss_state)
     assert stats["loss_return"] == pytest.approx(loss_return.item(), rel=1e-5)
     assert stats["loss_state"] == pytest.approx(loss_state.item(), rel=1e-5)
+    assert stats["loss_state_weighted"] == pytest.approx(0.25 * loss_state.item(), rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("kind", "name"), [("fc", "map10"), ("cnn", "map10"), ("cnn", "map15"), ("cnn", "map20")]
+)
+def test_the_return_term_outweighs_the_weighted_state_term_on_real_states(kind: str, name: str) -> None:
+    """Eq. 31 with lambda_1 = 0.1 on real rollouts of each map: in every fit (fresh and trained) the
+    return term carries at least the weight of lambda_1 times the reconstruction term."""
+    from mcrs.benchmarks.memory import rollout
+    from mcrs.env.config import scenario
+
+    config = scenario(name)
+    state, _, reward = rollout(config, 8, seed=0)
+    returns = reward.flip(1).cumsum(1).flip(1)  # undiscounted returns-to-go: real scale and spread
+    T = state.shape[1]
+    time = (torch.arange(T, dtype=torch.float32) / T).expand(state.shape[0], T)
+    data = (state.flatten(0, 1), time.flatten(), returns.flatten())
+    emb = make_embedding(kind, config.state_dim, (config.width, config.height), hidden_dim=32, seed=0)
+    trainer = EmbeddingTrainer(emb, batch_size=100, samples=800, state_weight=0.1)
+    for _ in range(3):
+        stats = trainer.fit(lambda n: data, generator=torch.Generator().manual_seed(0))
+        assert stats["loss_return"] >= stats["loss_state_weighted"] > 0
+
+
+def test_embedding_gradients_are_clipped() -> None:
+    """The optimiser sees gradients of norm at most grad_clip (Adam's step size hides the clip in the
+    parameters, so the test looks at the gradients the optimiser is given)."""
+    emb = make_embedding("fc", 30, hidden_dim=8, seed=0)
+    state, time, returns = torch.rand(64, 30), torch.rand(64), torch.randn(64)
+    trainer = EmbeddingTrainer(emb, batch_size=64, samples=64, grad_clip=0.01)
+    seen: list[float] = []
+    original = trainer.optimizer.step
+
+    def step(*args, **kwargs):
+        norms = [p.grad.norm() for p in emb.parameters() if p.grad is not None]
+        seen.append(float(torch.linalg.vector_norm(torch.stack(norms))))
+        return original(*args, **kwargs)
+
+    trainer.optimizer.step = step
+    trainer.fit(lambda n: (state, time, returns))
+    assert seen and seen[0] == pytest.approx(0.01, rel=1e-4)
+    with pytest.raises(ValueError, match="grad_clip must be positive"):
+        EmbeddingTrainer(emb, grad_clip=0.0)
 
 
 def _synthetic_sampler(state_dim: int, cells: int, seed: int):

@@ -67,12 +67,25 @@ class Reference:
     """Algorithm 1 as written: one transition at a time, brute-force nearest key, plain Python control.
 
     Same conventions as the memory: transitions episode by episode, backwards in time; FIFO ring with the
-    batch's eviction first; nearest = smallest float32 squared distance on standardised keys, strictly
-    below float32(delta^2), lowest slot on ties; EMU counters as documented.
+    batch's eviction first; within delta = float32 squared distance on standardised keys strictly below
+    float32(delta^2) (ball) or every |difference| <= float32(delta) (box); nearest = smallest squared
+    distance, lowest slot on ties; EMU counters, optimality propagation and counter reset as documented.
     """
 
-    def __init__(self, capacity: int, delta: float, gamma: float, max_steps: int, track: bool, k: int = 4):
+    def __init__(
+        self,
+        capacity: int,
+        delta: float,
+        gamma: float,
+        max_steps: int,
+        track: bool,
+        k: int = 4,
+        shape: str = "ball",
+        counter_reset: bool = False,
+    ):
         self.C, self.gamma, self.T, self.track = capacity, gamma, max_steps, track
+        self.shape, self.counter_reset = shape, counter_reset
+        self.delta = torch.tensor(delta, dtype=torch.float32)
         self.delta_sq = torch.tensor(delta * delta, dtype=torch.float32)
         self.keys = torch.zeros(capacity, k)
         self.H = torch.zeros(capacity)
@@ -105,8 +118,13 @@ class Reference:
             want = bool(desirable[e]) if self.track else False
             for t in reversed(range(T)):
                 x, r = keys[e, t], returns[e, t]
-                d2 = squared_distance(((x - mean) / std)[None], (self.keys - mean) / std)
-                d2 = torch.where(self.live & (d2 < self.delta_sq), d2, torch.full_like(d2, INF))
+                zq, zs = ((x - mean) / std)[None], (self.keys - mean) / std
+                d2 = squared_distance(zq, zs)
+                if self.shape == "box":
+                    within = (zq - zs).abs().amax(-1) <= self.delta
+                else:
+                    within = d2 < self.delta_sq
+                d2 = torch.where(self.live & within, d2, torch.full_like(d2, INF))
                 if torch.isinf(d2.min()):
                     s = (self.start + self.size) % self.C
                     self.size += 1
@@ -121,11 +139,16 @@ class Reference:
                 if self.track:
                     self.n_call[s] += 1
                     self.n_xi[s] += int(want)
-                if self.H[s] < r or (self.track and want and not self.xi[s]):
+                desirability_shift = self.track and want and not self.xi[s]
+                if self.H[s] < r or desirability_shift:
                     stats["shifted"] += 1
                     self.keys[s], self.H[s], self.step[s] = x, r, t
                     self.source[s] = (self.batches, e, t)
                     self.xi[s] = self.xi[s] or want
+                    if desirability_shift and self.counter_reset:
+                        self.n_call[s], self.n_xi[s] = 1, 1
+                if self.track and self.xi[s]:  # EMU: the earlier states of this episode are desirable
+                    want = True
         self.batches += 1
         stats["evicted"] = evict
         return stats
@@ -176,9 +199,13 @@ def run_both(memory: EpisodicMemory, ref: Reference, state, counts, reward, desi
 
 
 def brute_lookup(memory: EpisodicMemory, keys: torch.Tensor):
-    z = memory.index.standardise(keys)
-    d2 = squared_distance(z[:, None], memory.index.standardise(memory.keys)[None])
-    d2 = torch.where(memory.live & (d2 < memory.index.delta_sq), d2, torch.full_like(d2, INF))
+    z, stored = memory.index.standardise(keys)[:, None], memory.index.standardise(memory.keys)[None]
+    d2 = squared_distance(z, stored)
+    if memory.index.shape == "box":
+        within = (z - stored).abs().amax(-1) <= memory.index.delta_f32
+    else:
+        within = d2 < memory.index.delta_sq
+    d2 = torch.where(memory.live & within, d2, torch.full_like(d2, INF))
     best, slot = d2.min(1)
     hit = torch.isfinite(best)
     return torch.where(hit, memory.returns[slot], 0.0), hit, torch.where(hit, slot, -1)
@@ -308,10 +335,13 @@ def test_equidistant_entries_resolve_to_the_lowest_slot() -> None:
     assert memory.returns[7] == 0.0
 
 
-@pytest.mark.parametrize("track", [False, True])
+@pytest.mark.parametrize(
+    ("track", "shape", "counter_reset"),
+    [(False, "ball", False), (False, "box", False), (True, "ball", False), (True, "box", True)],
+)
 @pytest.mark.parametrize("spread", [0.0005, 0.003])
 def test_batched_insert_equals_the_sequential_reference(
-    track: bool, spread: float, monkeypatch: pytest.MonkeyPatch
+    track: bool, shape: str, counter_reset: bool, spread: float, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Clustered keys force many interactions inside each batch (shared entries, batch keys within delta,
     new entries hit later in the same batch), across several batches with eviction."""
@@ -333,8 +363,10 @@ def test_batched_insert_equals_the_sequential_reference(
         gamma=gamma,
         track_desirability=track,
         check_states=False,  # synthetic states: keys written into the maps
+        shape=shape,
+        counter_reset=counter_reset,
     )
-    ref = Reference(capacity, delta, gamma, MAP10.max_steps, track)
+    ref = Reference(capacity, delta, gamma, MAP10.max_steps, track, shape=shape, counter_reset=counter_reset)
     batches: list = []
     interacting = 0
     for b in range(6):
@@ -347,8 +379,10 @@ def test_batched_insert_equals_the_sequential_reference(
         interacting += stats.hits
     assert ref.size == len(memory) and interacting > 300
     assert sum(walked) > 300  # many transitions interact
-    if spread > 0.001:
-        assert sum(walked) < 6 * 300 / 2  # and many do not: both paths are exercised
+    if track:  # EMU's propagation chains the transitions of an episode: all are walked in order
+        assert sum(walked) == 6 * 300
+    elif spread > 0.001:
+        assert sum(walked) < 6 * 300 * 0.75  # and many do not: both paths are exercised
     queries = torch.cat(
         [memory.keys[:300] + 0.001, clustered_keys(4, 50, 40, spread, generator).reshape(-1, 4)]
     )
@@ -524,19 +558,41 @@ def test_emu_counters_on_a_hand_built_case() -> None:
     assert stats == InsertStats(transitions=4, new=0, hits=4, shifted=4, evicted=0)
     assert memory.n_call[:4].tolist() == [2, 2, 2, 2] and memory.n_xi[:4].tolist() == [1, 1, 1, 1]
     assert memory.xi[:4].tolist() == [True] * 4 and memory.returns[:4].tolist() == [4.0, 2.0, 1.0, 0.5]
-    # A non-desirable episode with higher returns: a normal shift, xi stays True, N_xi unchanged.
+    # A non-desirable episode with higher returns: normal shifts, xi stays True. Its last state (walked
+    # first, slot 0) hits a desirable entry, so EMU's propagation makes its earlier states desirable:
+    # N_xi grows on slots 1-3 only.
     reward = torch.tensor([[0.0, 0.0, 0.0, 16.0]])
     stats = memory.insert(*synthetic_batch(keys), reward, torch.tensor([False]))
-    assert stats.shifted == 4 and memory.xi[:4].all() and memory.n_xi[:4].tolist() == [1] * 4
+    assert stats.shifted == 4 and memory.xi[:4].all() and memory.n_xi[:4].tolist() == [1, 2, 2, 2]
     assert memory.n_call[:4].tolist() == [3] * 4
     # A desirable episode with lower returns on desirable entries: hits only.
     stats = memory.insert(*synthetic_batch(keys), torch.zeros(1, 4), torch.tensor([True]))
-    assert stats.shifted == 0 and memory.n_xi[:4].tolist() == [2] * 4
+    assert stats.shifted == 0 and memory.n_xi[:4].tolist() == [2, 3, 3, 3]
     ratio = memory.desirable_ratio(torch.tensor([0, 1, -1]))
-    assert torch.allclose(ratio, torch.tensor([0.5, 0.5, 0.0]))
+    assert torch.allclose(ratio, torch.tensor([0.5, 0.75, 0.0]))
     # A new entry from a desirable episode starts with N_call = 1, N_xi = xi = 1.
     memory.insert(*synthetic_batch(BASE[:1].unsqueeze(0) + 5), torch.zeros(1, 1), torch.tensor([True]))
     assert memory.n_call[4] == 1 and memory.n_xi[4] == 1 and bool(memory.xi[4])
+    # Propagation reaches new entries too: a non-desirable episode whose last state meets slot 4 (xi set)
+    # writes its earlier, unseen state as desirable.
+    keys = torch.stack([BASE[0] + 9, BASE[0] + 5]).unsqueeze(0)
+    stats = memory.insert(*synthetic_batch(keys), torch.zeros(1, 2), torch.tensor([False]))
+    assert stats == InsertStats(transitions=2, new=1, hits=1, shifted=0, evicted=0)
+    assert memory.n_xi[4] == 1 and memory.n_call[4] == 2  # the hit itself was not desirable
+    assert bool(memory.xi[5]) and memory.n_xi[5] == 1
+
+
+@pytest.mark.parametrize("counter_reset", [False, True])
+def test_emu_counter_reset_restarts_the_counters_on_a_desirability_shift(counter_reset: bool) -> None:
+    memory = hand_memory(track_desirability=True, counter_reset=counter_reset)
+    keys = BASE[:1].unsqueeze(0)
+    for _ in range(3):  # three non-desirable visits: N_call = 3, N_xi = 0
+        memory.insert(*synthetic_batch(keys), torch.ones(1, 1), torch.tensor([False]))
+    assert memory.n_call[0] == 3 and memory.n_xi[0] == 0
+    stats = memory.insert(*synthetic_batch(keys), torch.zeros(1, 1), torch.tensor([True]))
+    assert stats.shifted == 1 and bool(memory.xi[0]) and memory.returns[0] == 0.0  # re-anchored, lower H
+    expected = (1, 1) if counter_reset else (4, 1)  # EMU's flag_memory_cnt_reset, or the running counts
+    assert (int(memory.n_call[0]), int(memory.n_xi[0])) == expected
 
 
 def test_tracking_requires_the_desirable_flags() -> None:

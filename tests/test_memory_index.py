@@ -12,9 +12,13 @@ INF = float("inf")
 
 def brute_force(index: GridIndex, queries: torch.Tensor, keys: torch.Tensor, live: torch.Tensor):
     """Nearest live slot within delta (lowest slot on ties) and the full within-delta matrix."""
-    z = index.standardise(queries)
-    d2 = squared_distance(z[:, None, :], index.standardise(keys)[None, :, :])
-    within = (d2 < index.delta_sq) & live[None, :]
+    z, stored = index.standardise(queries)[:, None, :], index.standardise(keys)[None, :, :]
+    d2 = squared_distance(z, stored)
+    if index.shape == "box":  # EMU: np.allclose(z, stored, rtol=0, atol=delta)
+        within = ((z - stored).abs() <= torch.tensor(index.delta, dtype=torch.float32)).all(-1)
+    else:
+        within = d2 < torch.tensor(index.delta**2, dtype=torch.float32)
+    within &= live[None, :]
     masked = torch.where(within, d2, torch.full_like(d2, INF))
     best, slot = masked.min(1)  # first minimum: the lowest slot
     return torch.where(torch.isfinite(best), slot, -1), within
@@ -35,13 +39,14 @@ def check(index: GridIndex, queries: torch.Tensor, keys: torch.Tensor, live: tor
     return int(hit.sum())
 
 
+@pytest.mark.parametrize("shape", ["ball", "box"])
 @pytest.mark.parametrize("key_dim", [2, 4])
-def test_random_queries_match_brute_force(key_dim: int) -> None:
+def test_random_queries_match_brute_force(key_dim: int, shape: str) -> None:
     generator = torch.Generator().manual_seed(key_dim)
     capacity, delta = 4000, 0.08
     keys = torch.randn(capacity, key_dim, generator=generator) * 3 + 1
     live = torch.rand(capacity, generator=generator) < 0.7
-    index = GridIndex(key_dim, delta, capacity)
+    index = GridIndex(key_dim, delta, capacity, shape=shape)
     index.rebuild(keys, live.nonzero().squeeze(1))
     assert torch.allclose(index.mean, keys[live].mean(0), atol=1e-5)
     assert torch.allclose(index.std, keys[live].std(0, correction=0), rtol=1e-5)
@@ -51,11 +56,12 @@ def test_random_queries_match_brute_force(key_dim: int) -> None:
     assert 500 < hits < queries.shape[0]  # both outcomes occur
 
 
+@pytest.mark.parametrize("shape", ["ball", "box"])
 @pytest.mark.parametrize("key_dim", [2, 4])
-def test_points_on_cube_borders_and_at_distance_delta(key_dim: int) -> None:
+def test_points_on_cube_borders_and_at_distance_delta(key_dim: int, shape: str) -> None:
     """Keys exactly on cube borders, queries a hair inside and outside delta along every axis, duplicates."""
     delta = 0.01
-    index = GridIndex(key_dim, delta, 4096)
+    index = GridIndex(key_dim, delta, 4096, shape=shape)
     side = index.side
     lattice = torch.arange(-3, 4, dtype=torch.float64) * side
     grid = torch.stack(torch.meshgrid(*[lattice] * key_dim, indexing="ij"), -1).reshape(-1, key_dim)
@@ -73,6 +79,7 @@ def test_points_on_cube_borders_and_at_distance_delta(key_dim: int) -> None:
                 offset[axis] = sign * step
                 queries.append(grid[:40] + offset)
     queries.append(grid[:40] + torch.full((key_dim,), delta / key_dim**0.5, dtype=torch.float64))
+    queries.append(grid[:40] + torch.full((key_dim,), delta * 0.99, dtype=torch.float64))  # a box corner
     queries = torch.cat(queries).to(torch.float32)
     # Also nudge queries bit by bit across the strict boundary d^2 = float32(delta^2).
     base = keys[:20].clone()
@@ -191,3 +198,28 @@ def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:
     args = {"key_dim": 4, "delta": 0.1, "capacity": 10, **kwargs}
     with pytest.raises(ValueError, match=message):
         GridIndex(**args)
+
+
+def test_box_and_ball_differ_exactly_where_their_shapes_do() -> None:
+    """A key at a box corner (every coordinate 0.9 delta away) is in EMU's box, outside the ball; a key one
+    delta-hair away along one axis is in both; a key 1.1 delta away along one axis is in neither."""
+    delta, key_dim = 0.1, 4
+    keys = torch.tensor([[0.0] * 4, [9.0] * 4])
+    live = torch.ones(2, dtype=torch.bool)
+    corner = torch.full((1, key_dim), 0.9 * delta)
+    axis = torch.tensor([[0.99 * delta, 0, 0, 0]])
+    outside = torch.tensor([[1.1 * delta, 0, 0, 0]])
+    queries = torch.cat([corner, axis, outside])
+    found = {}
+    for shape in ("ball", "box"):
+        index = GridIndex(key_dim, delta, 2, shape=shape)
+        index.mean, index.std = torch.zeros(key_dim), torch.ones(key_dim)
+        index.rebuild(keys, torch.arange(2), refresh=False)
+        found[shape] = index.nearest(queries, keys, live)[0].tolist()
+        check(index, queries, keys, live)
+    assert found == {"ball": [-1, 0, -1], "box": [0, 0, -1]}
+
+
+def test_an_unknown_shape_is_refused_naming_the_choices() -> None:
+    with pytest.raises(ValueError, match=r"shape must be one of ball, box, got 'cube'"):
+        GridIndex(4, 0.1, 10, shape="cube")

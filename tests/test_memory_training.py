@@ -44,11 +44,14 @@ def test_each_memory_algorithm_trains_and_logs_its_diagnostics(algo: str, tmp_pa
     trainer = Trainer(cfg, tmp_path)
     result = trainer.train()
     assert math.isfinite(result["episode_reward"])
-    # 200 env steps of 10-step episodes: 200 transitions inserted (hits update instead of adding).
+    # 200 env steps of 10-step episodes: 20 x 11 states s_0..s_10 inserted (hits update instead of adding).
     size = scalars(tmp_path, "memory/size")
-    assert size and 0 < size[-1][1] <= 200 and len(trainer.episodic.memory) == size[-1][1]
-    for name in ("train/memory_hit_rate", "train/q_taken_mean", "memory/insert_new"):
+    assert size and 0 < size[-1][1] <= 220 and len(trainer.episodic.memory) == size[-1][1]
+    names = ("train/memory_hit_rate", "train/q_taken_mean", "memory/insert_new", "memory/insert_hit_rate",
+             "memory/lookup_hit_rate", "memory/foreign_hit_rate", "memory/tolerance")  # fmt: skip
+    for name in names:
         assert scalars(tmp_path, name), name
+    assert all(0 <= v <= 1 for _, v in scalars(tmp_path, "memory/foreign_hit_rate"))
     if cfg.algo.memory.embedding != "random":  # phi trained at 80 and 160 env steps
         losses = scalars(tmp_path, "memory/embedding_loss")
         assert [step for step, _ in losses] and all(math.isfinite(v) for _, v in losses)
@@ -80,10 +83,9 @@ def test_cnn_semu_on_other_mixers(mixer: str, tmp_path: Path) -> None:
 
 
 def test_memory_hits_reach_the_loss(tmp_path: Path) -> None:
-    """With a huge delta every look-up hits: the memory term is active and logged as such."""
-    trainer = Trainer(
-        memory_config("algo=cnn_semu", "algo.memory.delta=1e6", "train.total_env_steps=80"), tmp_path
-    )
+    """With a huge tolerance every look-up hits: the memory term is active and logged as such."""
+    overrides = ("algo.memory.delta=1e6", "algo.memory.delta_rule=literal", "train.total_env_steps=80")
+    trainer = Trainer(memory_config("algo=cnn_semu", *overrides), tmp_path)
     trainer.train()
     assert scalars(tmp_path, "train/memory_hit_rate")[-1][1] == pytest.approx(1.0)
     assert scalars(tmp_path, "train/loss_memory")[-1][1] > 0
@@ -128,6 +130,15 @@ def test_resume_continues_with_the_same_memory(algo: str, tmp_path: Path) -> Non
         ("algo.memory.enabled=false", r"need the episodic memory: set algo\.memory\.enabled=true"),
         ("algo.memory.cnn_channels=[4,4]", r"algo\.memory\.cnn_channels=\[4, 4\]: must be 3 positive"),
         ("algo.curiosity_decay_rate=2", r"algo\.curiosity_decay_rate=2\.0: must be in \[0, 1\]"),
+        (
+            "algo.memory.delta_rule=side",
+            r"algo\.memory\.delta_rule='side': allowed values are volume, literal",
+        ),
+        (
+            "algo.memory.neighbourhood=cube",
+            r"algo\.memory\.neighbourhood='cube': allowed values are ball, box",
+        ),
+        ("algo.memory.embedding_grad_clip=0", r"algo\.memory\.embedding_grad_clip=0\.0: must be > 0"),
     ],
 )
 def test_bad_memory_settings_are_refused_at_start(override: str, message: str) -> None:

@@ -84,6 +84,10 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("algo.memory.embedding_lr=0", f"algo.memory.embedding_lr=0.0: {POSITIVE}"),
     ("algo.memory.embedding_lr=nan", f"algo.memory.embedding_lr=nan: {POSITIVE}"),
     ("algo.memory.state_weight=-0.1", "algo.memory.state_weight=-0.1: must be >= 0"),
+    ("algo.memory.delta_rule=side", "algo.memory.delta_rule='side': allowed values are volume, literal"),
+    ("algo.memory.neighbourhood=cube", "algo.memory.neighbourhood='cube': allowed values are ball, box"),
+    ("algo.memory.embedding_grad_clip=0", "algo.memory.embedding_grad_clip=0.0: must be > 0"),
+    ("algo.memory.embedding_grad_clip=-1", "algo.memory.embedding_grad_clip=-1.0: must be > 0"),
     # model
     ("model.name=lstm", "model.name='lstm': allowed values are gru"),
     ("model.hidden_dim=0", f"model.hidden_dim=0: {POSITIVE}"),
@@ -197,6 +201,7 @@ WRONG_TYPES = [
     "algo.memory.cnn_channels=abc",
     "algo.memory.cnn_channels=[a,b,c]",
     "algo.memory.key_dim=2.5",
+    "algo.memory.counter_reset=maybe",
     "algo.curiosity_decay_cycle=often",
     "model.hidden_dim=wide",
     "model.agent_id=maybe",

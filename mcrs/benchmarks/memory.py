@@ -32,14 +32,18 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 
 from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.benchmarks.env_throughput import resident_bytes
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import MCRSCore
+from mcrs.experiment.config import MemoryConfig
 from mcrs.memory.codec import StateCodec
+from mcrs.memory.delta import DELTA_RULES, match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
+from mcrs.memory.index import SHAPES
 
 GOAL_MAP = "map20"
 GOAL_ENTRIES = 1_000_000
@@ -52,7 +56,6 @@ GOAL_GIB = 1.5
 GOAL_RATIO = 20.0
 GIB = 2**30
 EXTRA_READS = 8  # readings added to random cells of each synthetic state
-DELTA = 1.3e-3
 
 
 def rollout(config: EnvConfig, episodes: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -140,13 +143,24 @@ def reference_lookups(memory: EpisodicMemory, keys: torch.Tensor) -> tuple[str, 
         )
     stored = memory.index.standardise(memory.keys[slots]).numpy()
     returns = memory.returns[slots].numpy()
+    tolerance = memory.delta
     start = time.perf_counter()
     tree = cKDTree(stored)
     build = time.perf_counter() - start
     start = time.perf_counter()
     for z in queries.numpy():  # one transition at a time, as the reference code does
+        if memory.shape == "box":  # the entries in the box (Chebyshev ball), then the nearest of them
+            inside = tree.query_ball_point(z, r=tolerance, p=np.inf)
+            if inside:
+                d2 = ((stored[inside] - z) ** 2).sum(1)
+                ind = inside[int(np.argmin(d2))]
+                _ = returns[ind]
+                found.append(int(slots[ind]))
+            else:
+                found.append(-1)
+            continue
         dist, ind = tree.query(z, k=1)
-        if dist < DELTA:
+        if dist < tolerance:
             _ = returns[ind]
             found.append(int(slots[ind]))
         else:
@@ -167,7 +181,20 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=5, help="timed repetitions (median) of insert/look-up")
     parser.add_argument("--chunk", type=int, default=4096, help="states per chunk when re-embedding")
     parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    defaults = MemoryConfig()
+    parser.add_argument("--delta", type=float, default=defaults.delta, help="the paper's delta (table 3)")
+    parser.add_argument(
+        "--delta-rule",
+        choices=DELTA_RULES,
+        default=defaults.delta_rule,
+        help="what delta means (docs/MEMORY.md)",
+    )
+    parser.add_argument(
+        "--neighbourhood", choices=SHAPES, default=defaults.neighbourhood, help="ball or EMU's box"
+    )
     args = parser.parse_args(argv)
+    if not args.delta > 0:
+        parser.error(f"--delta must be > 0, got {args.delta}")
     for name in ("entries", "episodes", "lookups", "repeats", "chunk"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
@@ -196,12 +223,14 @@ def _run(args: argparse.Namespace, command: str) -> None:
         GOAL_LOOKUPS,
     )
     transitions = args.episodes * config.max_steps
+    tolerance = match_tolerance(args.delta, args.delta_rule, args.neighbourhood, 4)
     print(
         f"MCRS episodic-memory benchmark: device=cpu, torch threads={torch.get_num_threads()}, "
         f"cpus={os.cpu_count()}, load average {load_average()}\n"
         f"command: {command}\n"
         f"{args.map}: state {config.state_dim} floats, T={config.max_steps}; {args.entries:,} entries, "
-        f"CNN embedding (key_dim 4), delta {DELTA:g}; insert batches of {args.episodes} episodes "
+        f"CNN embedding (key_dim 4), delta {args.delta:g} read as {args.delta_rule} ({args.neighbourhood} of "
+        f"tolerance {tolerance:.4g}); insert batches of {args.episodes} episodes "
         f"({transitions:,} transitions); look-ups of {args.lookups:,} keys; medians of {args.repeats}",
         flush=True,
     )
@@ -210,7 +239,12 @@ def _run(args: argparse.Namespace, command: str) -> None:
     gc.collect()
     rss_before = resident_bytes()
     memory = EpisodicMemory(
-        embedding, codec, capacity=max(args.entries, transitions), delta=DELTA, max_steps=config.max_steps
+        embedding,
+        codec,
+        capacity=max(args.entries, transitions),
+        delta=tolerance,
+        max_steps=config.max_steps,
+        shape=args.neighbourhood,
     )
     start = time.perf_counter()
     fill(memory, config, args.entries, seed=1)
@@ -247,7 +281,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
     generator = torch.Generator().manual_seed(7)
     slots = memory.live_slots()
     stored = memory.keys[slots[torch.randint(0, len(slots), (args.lookups // 2,), generator=generator)]]
-    stored = stored + memory.index.std * DELTA * 0.1
+    stored = stored + memory.index.std * tolerance * 0.1
     fresh_state = rollout(config, max(1, -(-args.lookups // config.max_steps)), seed=200)[0]
     fresh_time = memory.normalised_time(torch.arange(config.max_steps)).expand(fresh_state.shape[0], -1)
     with torch.no_grad():

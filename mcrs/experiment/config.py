@@ -16,6 +16,8 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from mcrs.env.config import _device_problem, from_mapping
+from mcrs.memory.delta import DELTA_RULES
+from mcrs.memory.index import SHAPES
 from mcrs.models.mixers import MIXERS
 
 OPTIMIZERS = ("rmsprop", "adam")
@@ -32,6 +34,7 @@ class ConfigError(ValueError):
 
 EMBEDDINGS = ("random", "fc", "cnn")
 INCENTIVES = ("none", "fixed", "change")
+NEIGHBOURHOODS = SHAPES  # the index's shapes
 
 
 @dataclass
@@ -44,12 +47,18 @@ class MemoryConfig:
     hidden_dim: int = 64  # width of the encoder and decoder layers
     cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])  # the CNN's three conv layers
     capacity: int = 1_000_000  # entries; the oldest are evicted when full
-    delta: float = 1.3e-3  # a stored key within delta (standardised keys) is "the same state"
+    delta: float = 1.3e-3  # table 3 / eq. 35; what it means is delta_rule's (mcrs/memory/delta.py)
+    delta_rule: str = (
+        "volume"  # volume: delta is eq. 35's key-space volume per entry | literal: the tolerance
+    )
+    neighbourhood: str = "box"  # box: EMU's |z_i - z'_i| <= tol in every dimension | ball: Euclidean < tol
     embedding_interval: int = 10_000  # t_emb: env steps between trainings of the embedding
     embedding_samples: int = 102_400  # memory entries drawn per training of the embedding
     embedding_batch: int = 1024
     embedding_lr: float = 5e-4
     state_weight: float = 0.1  # lambda_1 of eq. 31: weight of the state reconstruction
+    embedding_grad_clip: float = 10.0  # gradient-norm clip of the embedding's training (EMU: pymarl's 10)
+    counter_reset: bool = False  # EMU's flag_memory_cnt_reset: a desirability shift restarts N_call, N_xi
 
 
 @dataclass
@@ -240,6 +249,8 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
     a, mem = cfg.algo, cfg.algo.memory
     _choice(errors, "algo.incentive", a.incentive, INCENTIVES)
     _choice(errors, "algo.memory.embedding", mem.embedding, EMBEDDINGS)
+    _choice(errors, "algo.memory.delta_rule", mem.delta_rule, DELTA_RULES)
+    _choice(errors, "algo.memory.neighbourhood", mem.neighbourhood, NEIGHBOURHOODS)
     if a.memory_weight < 0 or not math.isfinite(a.memory_weight):
         errors.append(f"algo.memory_weight={a.memory_weight}: must be >= 0 (lambda of eq. 32)")
     _positive(errors, "algo.curiosity_scale", a.curiosity_scale, allow_zero=True)
@@ -261,6 +272,10 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
         _positive(errors, f"algo.memory.{name}", getattr(mem, name))
     _positive(errors, "algo.memory.embedding_lr", mem.embedding_lr)
     _positive(errors, "algo.memory.state_weight", mem.state_weight, allow_zero=True)
+    if not mem.embedding_grad_clip > 0:
+        errors.append(
+            f"algo.memory.embedding_grad_clip={mem.embedding_grad_clip}: must be > 0 (inf: no clipping)"
+        )
     if len(mem.cnn_channels) != 3 or any(c < 1 for c in mem.cnn_channels):
         errors.append(f"algo.memory.cnn_channels={list(mem.cnn_channels)}: must be 3 positive channel counts")
     if mem.enabled and mem.key_dim > 8:

@@ -1,7 +1,7 @@
 """The episodic-memory side of a run (paper Algorithm 2, lines 4-11): D_E, the embedding phi and its
 training.
 
-    after each collection:        insert the new episodes into D_E (Algorithm 1)
+    after each collection:        insert the new episodes, s_0 .. s_T, into D_E (Algorithm 1)
     every t_emb env steps:        train phi on a sample of D_E (eq. 31), then re-embed every stored state
     at every learner update:      the replay buffer's EpisodicLookup transform attaches H(phi(s_{t+1}))
 
@@ -19,6 +19,7 @@ from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
 from mcrs.memory.codec import StateCodec
+from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
 from mcrs.memory.transform import EpisodicLookup
 from mcrs.models.embeddings import EmbeddingTrainer, make_embedding
@@ -46,15 +47,18 @@ class EpisodicSide:
         self.incentive, self.threshold = a.incentive, float(a.incentive_threshold)
         self.max_steps = env_config.max_steps
         self.embedding = build_embedding(cfg, env_config).to(device)
+        self.tolerance = match_tolerance(mem.delta, mem.delta_rule, mem.neighbourhood, mem.key_dim)
         self.memory = EpisodicMemory(
             self.embedding,
             StateCodec(env_config),
             capacity=mem.capacity,
-            delta=mem.delta,
+            delta=self.tolerance,
             gamma=a.gamma,
             max_steps=env_config.max_steps,
             track_desirability=a.incentive != "none",
             device=device,
+            shape=mem.neighbourhood,
+            counter_reset=mem.counter_reset,
         )
         self.trainer = (
             EmbeddingTrainer(
@@ -63,18 +67,24 @@ class EpisodicSide:
                 batch_size=mem.embedding_batch,
                 samples=mem.embedding_samples,
                 state_weight=mem.state_weight,
+                grad_clip=mem.embedding_grad_clip,
             )
             if self.embedding.trainable
             else None
         )
         self.interval = int(mem.embedding_interval)
+        self.lookup = EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
 
     def lookup_transform(self) -> EpisodicLookup:
         """The replay-buffer transform that attaches the memory to sampled batches."""
-        return EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
+        return self.lookup
 
-    def insert(self, batch: TensorDictBase, last_eval_reward: float | None) -> dict[str, float]:
-        """Algorithm 1 on a collector batch ``[E, T]`` of whole episodes; returns diagnostics."""
+    def insert(
+        self, batch: TensorDictBase, episode: torch.Tensor, last_eval_reward: float | None
+    ) -> dict[str, float]:
+        """Algorithm 1 on a collector batch ``[E, T]`` of whole episodes (ids ``episode [E]``); returns
+        diagnostics. The terminal states s_T go in too, with H = 0 (as EMC stores them), so the last
+        transition of every episode has a memory to look up."""
         reward = batch.get(("next", "reward"))[..., 0]
         desirable = None
         if self.incentive != "none":
@@ -82,8 +92,14 @@ class EpisodicSide:
             threshold = self.threshold if self.incentive == "fixed" else last_eval_reward
             threshold = float("inf") if threshold is None else threshold
             desirable = reward.sum(-1) >= threshold
-        stats = self.memory.insert(batch.get("state"), batch.get("state_counts"), reward, desirable)
+        states, counts = (
+            torch.cat([batch.get(key), batch.get(("next", key))[:, -1:]], dim=1)
+            for key in ("state", "state_counts")
+        )
+        reward = torch.cat([reward, reward.new_zeros(reward.shape[0], 1)], dim=1)  # R_T = 0
+        stats = self.memory.insert(states, counts, reward, desirable, episode)
         out = {f"memory/insert_{k}": float(v) for k, v in vars(stats).items()}
+        out["memory/insert_hit_rate"] = stats.hits / max(stats.transitions, 1)
         if desirable is not None:
             out["memory/desirable_episodes"] = float(desirable.float().mean())
         return out
@@ -97,7 +113,9 @@ class EpisodicSide:
         return {f"memory/embedding_{k}": float(v) for k, v in stats.items()}
 
     def statistics(self) -> dict[str, float]:
-        return {f"memory/{k}": float(v) for k, v in self.memory.statistics().items()}
+        """The buffer's scalars, the tolerance in use, and the replay look-ups' hit rates since the last call."""
+        stats = {**self.memory.statistics(), "tolerance": self.tolerance, **self.lookup.pop_statistics()}
+        return {f"memory/{k}": float(v) for k, v in stats.items()}
 
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {"memory": self.memory.state_dict(), "embedding": self.embedding.state_dict()}

@@ -259,7 +259,10 @@ class Trainer:
                 self.collector.start_batch(batch_seed(int(self.cfg.seed), c.iteration))
                 batch = self.collector.next_batch(collector_iter)
                 self._check_finite(batch)
-                self.replay.extend(episodes_from_rollout(batch))
+                episodes = episodes_from_rollout(batch)
+                episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
+                episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
+                self.replay.extend(episodes)
                 for name in METRICS:
                     train_stats.setdefault(f"train/{name}", []).append(
                         batch.get(("next", "metrics", name))[:, -1].mean()
@@ -272,7 +275,7 @@ class Trainer:
                 if self.episodic is not None:  # Algorithm 1 on the new episodes; phi every t_emb steps
                     start = time.perf_counter()
                     last_reward = self.last_eval.get("episode_reward")
-                    for key, value in self.episodic.insert(batch, last_reward).items():
+                    for key, value in self.episodic.insert(batch, episode_ids, last_reward).items():
                         train_stats.setdefault(key, []).append(torch.tensor(value))
                     if c.env_steps >= c.next_embedding:
                         for key, value in self.episodic.train_embedding().items():

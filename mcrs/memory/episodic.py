@@ -1,12 +1,15 @@
 """The episodic buffer D_E (paper Algorithm 1; spec "Episodic buffer D_E"), batched and exact.
 
 An entry holds a key ``x = phi(s, t/T)`` (float32 ``[key_dim]``), the highest return ``H`` seen from it,
-the state ``s`` in the compact bit-exact form of :class:`~mcrs.memory.codec.StateCodec`, and the step
-``t`` (the embedding's time input is ``t / T`` in float32, :meth:`EpisodicMemory.normalised_time`).
+the state ``s`` in the compact bit-exact form of :class:`~mcrs.memory.codec.StateCodec`, the step ``t``
+(the embedding's time input is ``t / T`` in float32, :meth:`EpisodicMemory.normalised_time`) and the id
+of the episode that wrote it (so a look-up can tell another trajectory's memory from its own).
 Everything is a preallocated tensor of ``capacity`` rows (1M map20 entries: about 0.9 GiB); look-ups go
 through the exact grid index of :mod:`mcrs.memory.index`, which is kept current at every insertion.
-"Nearest within delta" is the smallest float32 squared distance between standardised keys, strictly
-below ``delta^2``, the lowest slot on ties.
+"Within delta" is a Euclidean ball (squared distance strictly below ``delta^2``) or EMU's per-dimension
+box (every ``|z_i - z'_i| <= delta``) on standardised keys (``shape``); "nearest" is the smallest float32
+squared distance among those, the lowest slot on ties. What delta the paper means is
+:mod:`mcrs.memory.delta`'s business: this class takes the tolerance itself.
 
 **Insertion (Algorithm 1).** The transitions of a batch ``[E, T]`` are taken in the order episode
 0..E-1, each walked backwards t = T-1..0, with ``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``. For each: the
@@ -18,10 +21,15 @@ transition cannot see or be seen by the rest of the batch, so it is resolved fro
 only the others (rare) are walked in order, in plain Python over precomputed candidate lists.
 
 **EMU (``track_desirability``).** Each entry also counts N_call (hits) and N_xi (hits from desirable
-episodes) and carries xi (reached by a desirable episode). On a hit: N_call += 1, N_xi += desirable; the
-entry shifts when ``H < R`` *or* when a desirable episode meets an entry with xi False; a shift sets
-``H <- R`` (in the second case possibly lower: EMU's reference re-anchors the entry on the desirable
-trajectory) and ``xi <- xi or desirable``. A new entry starts with N_call = 1, N_xi = xi = desirable.
+transitions) and carries xi (reached by a desirable transition). A transition is desirable when its
+episode is, or - EMU's optimality propagation - when a later transition of its episode (walked earlier,
+backwards in time) hit an entry whose xi is set: desirability spreads backwards from any state known to
+lead to a desirable outcome. On a hit: N_call += 1, N_xi += desirable; the entry shifts when ``H < R``
+*or* when a desirable transition meets an entry with xi False; a shift sets ``H <- R`` (in the second case
+possibly lower: EMU's reference re-anchors the entry on the desirable trajectory) and
+``xi <- xi or desirable``; with ``counter_reset`` (EMU's ``flag_memory_cnt_reset``, off by default there
+and here) that second kind of shift also restarts N_call = N_xi = 1. A new entry starts with N_call = 1,
+N_xi = xi = desirable. Tracking walks every transition in order (the propagation chains them).
 
 **Eviction (FIFO ring, batched).** Before a batch of n transitions is resolved, if ``size + n >
 capacity`` the ``size + n - capacity`` oldest entries (insertion order) are evicted, so the whole batch
@@ -56,8 +64,9 @@ from torch import nn
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.index import MAX_KEY_DIM, GridIndex
 
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: the writing episode of every entry
 MAX_STEPS_LIMIT = 2**15  # steps are stored as int16
+UNKNOWN_EPISODE = -1
 
 
 @dataclass
@@ -107,10 +116,13 @@ class EpisodicMemory:
             ``key_dim`` attribute. It is called under ``torch.no_grad`` / ``inference_mode``.
         codec: the :class:`StateCodec` of the env's map.
         capacity: number of entries (table 3: 1M).
-        delta: match radius on standardised keys (table 3: 1.3e-3).
+        delta: match tolerance on standardised keys: the ball's radius or the box's half-side
+            (:func:`mcrs.memory.delta.match_tolerance` turns the paper's delta into it).
         gamma: discount of the returns H.
         max_steps: T of the env (the embedding's time input is ``t / T``); default: the codec's.
         track_desirability: keep EMU's N_call, N_xi and xi.
+        counter_reset: EMU's ``flag_memory_cnt_reset``: a desirability shift restarts N_call = N_xi = 1.
+        shape: ``"ball"`` or EMU's ``"box"`` (see :mod:`mcrs.memory.index`).
         device: where every tensor of the memory lives.
         stale_fraction: rebuild the index when stale records exceed this fraction of the entries.
         check_states: check that inserted states have the maps of their counts (a sample of each batch;
@@ -127,6 +139,8 @@ class EpisodicMemory:
         max_steps: int | None = None,
         track_desirability: bool = False,
         device: torch.device | str = "cpu",
+        shape: str = "ball",
+        counter_reset: bool = False,
         stale_fraction: float = 0.25,
         check_states: bool = True,
     ) -> None:
@@ -149,6 +163,7 @@ class EpisodicMemory:
         self.key_dim, self.capacity, self.delta = int(key_dim), capacity, float(delta)
         self.gamma, self.max_steps = float(gamma), max_steps
         self.track_desirability = bool(track_desirability)
+        self.counter_reset = bool(counter_reset)
         self.device = torch.device(device)
         self.stale_fraction = float(stale_fraction)
         self.check_states = bool(check_states)
@@ -160,6 +175,7 @@ class EpisodicMemory:
         self.codes = torch.empty(C, codec.n_cells, 2, dtype=torch.uint8, device=dev)
         self.positions = torch.empty(C, codec.n_positions, 2, dtype=codec.position_dtype, device=dev)
         self.live = torch.zeros(C, dtype=torch.bool, device=dev)
+        self.episode = torch.full((C,), UNKNOWN_EPISODE, dtype=torch.int64, device=dev)
         if self.track_desirability:
             self.n_call = torch.zeros(C, dtype=torch.int32, device=dev)
             self.n_xi = torch.zeros(C, dtype=torch.int32, device=dev)
@@ -167,7 +183,8 @@ class EpisodicMemory:
         self.start = 0  # slot of the oldest entry
         self.size = 0
         self.stats_size = 0  # entries when the statistics were last refreshed
-        self.index = GridIndex(self.key_dim, self.delta, C, dev)
+        self.index = GridIndex(self.key_dim, self.delta, C, dev, shape=shape)
+        self.shape = shape
 
     # ------------------------------------------------------------------------------------ basics
     def __len__(self) -> int:
@@ -175,7 +192,7 @@ class EpisodicMemory:
 
     def nbytes(self) -> int:
         """Bytes held by the buffer: storage, index records and decode tables."""
-        tensors = [self.keys, self.returns, self.step, self.codes, self.positions, self.live]
+        tensors = [self.keys, self.returns, self.step, self.codes, self.positions, self.live, self.episode]
         if self.track_desirability:
             tensors += [self.n_call, self.n_xi, self.xi]
         return sum(t.numel() * t.element_size() for t in tensors) + self.index.nbytes() + self.codec.nbytes()
@@ -252,6 +269,11 @@ class EpisodicMemory:
         value = torch.where(hit, self.returns[slot.clamp(min=0)], 0.0)
         return value, hit, slot
 
+    def written_by(self, slot: torch.Tensor) -> torch.Tensor:
+        """The id of the episode whose transition the entries ``slot`` hold (-1 for slot -1 or unknown)."""
+        slot = slot.to(self.device)
+        return torch.where(slot >= 0, self.episode[slot.clamp(min=0)], UNKNOWN_EPISODE)
+
     def desirable_ratio(self, slot: torch.Tensor) -> torch.Tensor:
         """EMU's N_xi / N_call of the entries ``slot`` (float32; 0 where slot is -1)."""
         if not self.track_desirability:
@@ -285,10 +307,15 @@ class EpisodicMemory:
         counts: torch.Tensor,
         reward: torch.Tensor,
         desirable: torch.Tensor | None = None,
+        episode: torch.Tensor | None = None,
     ) -> InsertStats:
         """Algorithm 1 on whole episodes: ``state [E, T, D]``, ``counts [E, T, cells, 2]`` (the env's
         ``state_counts`` of the same states), ``reward [E, T]`` (r_t of s_t -> s_{t+1}), ``desirable [E]``
-        (EMU; required when tracking desirability)."""
+        (EMU; required when tracking desirability), ``episode [E]`` (int ids of the episodes, recorded
+        with the entries they write; -1 when not given).
+
+        ``T`` may be ``max_steps + 1``: the terminal state s_T is stored too, with a reward of 0 after it
+        (so H(s_T) = 0, as EMC stores it) and the last transition has a memory to look up."""
         D, cells = self.codec.state_dim, self.codec.n_cells
         if state.dim() != 3 or state.shape[2] != D:
             raise ValueError(f"state must have shape [E, T, {D}], got {tuple(state.shape)}")
@@ -297,8 +324,10 @@ class EpisodicMemory:
             raise ValueError(f"counts must have shape {[E, T, cells, 2]}, got {tuple(counts.shape)}")
         if reward.shape != (E, T):
             raise ValueError(f"reward must have shape {[E, T]}, got {tuple(reward.shape)}")
-        if self.max_steps < T:
-            raise ValueError(f"episodes have {T} steps, more than max_steps={self.max_steps}")
+        if self.max_steps + 1 < T:
+            raise ValueError(
+                f"episodes have {T} states, more than max_steps + 1 = {self.max_steps + 1} (s_0 .. s_T)"
+            )
         n = E * T
         if n > self.capacity:
             raise ValueError(
@@ -306,6 +335,8 @@ class EpisodicMemory:
             )
         if self.track_desirability and (desirable is None or desirable.shape != (E,)):
             raise ValueError(f"desirable must be a bool tensor of shape [{E}] with track_desirability")
+        if episode is not None and episode.shape != (E,):
+            raise ValueError(f"episode must be an int tensor of shape [{E}], got {tuple(episode.shape)}")
         if n == 0:
             return InsertStats(0, 0, 0, 0, 0)
         dev, C = self.device, self.capacity
@@ -325,6 +356,9 @@ class EpisodicMemory:
             wanted = desirable.to(dev, torch.bool).repeat_interleave(T)
         else:
             wanted = torch.zeros(n, dtype=torch.bool, device=dev)
+        if episode is None:
+            episode = torch.full((E,), UNKNOWN_EPISODE, dtype=torch.int64)
+        written = episode.to(dev, torch.int64).repeat_interleave(T)
         codes, positions = self.codec.encode(
             counts.reshape(n, cells, 2), state.reshape(n, D), check_maps=self.check_states
         )
@@ -339,7 +373,7 @@ class EpisodicMemory:
             self.stats_size = n
         z = self.index.standardise(x)
         write = (self.start + self.size) % C  # slot of the first new entry
-        outcome = _resolve(self, z, returns, wanted, write)
+        outcome = _resolve(self, z, returns, wanted, write, T)
 
         # Apply: new entries (consecutive ring slots: slice copies), then the shifts (row copies; a new
         # entry may be shifted later in the same batch, so this second write must come after).
@@ -347,7 +381,7 @@ class EpisodicMemory:
         new_slots = (write + torch.arange(nu, device=dev)) % C
         old_slots = outcome.shift_slots[~outcome.shift_is_new]
         old_cubes = self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots)))
-        batch = {"keys": x, "returns": returns, "step": step}
+        batch = {"keys": x, "returns": returns, "step": step, "episode": written}
         rows = {"codes": codes.view(n, -1), "positions": positions.view(n, -1)}
         first = min(nu, C - write)
         for slot, lo, hi in ((write, 0, first), (0, first, nu)):
@@ -368,11 +402,7 @@ class EpisodicMemory:
                 _row_view(getattr(self, name)).index_copy_(
                     0, outcome.shift_slots, _row_view(values.index_select(0, flat[source]))
                 )
-        if self.track_desirability:
-            new_wanted = wanted.index_select(0, outcome.new_from)
-            self.n_call[new_slots] = 1
-            self.n_xi[new_slots] = new_wanted.to(torch.int32)
-            self.xi[new_slots] = new_wanted
+        if self.track_desirability:  # every changed slot (new ones included) is in count_slots
             self.n_call[outcome.count_slots] = outcome.n_call
             self.n_xi[outcome.count_slots] = outcome.n_xi
             self.xi[outcome.count_slots] = outcome.xi
@@ -460,6 +490,7 @@ class EpisodicMemory:
             "step": self.step[slots].cpu(),
             "codes": self.codes[slots].cpu(),
             "positions": self.positions[slots].cpu(),
+            "episode": self.episode[slots].cpu(),
         }
         if self.track_desirability:
             state.update(
@@ -494,6 +525,7 @@ class EpisodicMemory:
         start = int(state["start"]) if state["capacity"] == self.capacity else 0
         dev = self.device
         self.live.zero_()
+        self.episode.fill_(UNKNOWN_EPISODE)
         self.start, self.size = start, size
         slots = self.live_slots()
         self.codes = torch.empty(self.capacity, *self.codes.shape[1:], dtype=state["codes"].dtype, device=dev)
@@ -503,6 +535,7 @@ class EpisodicMemory:
         self.codes[slots] = state["codes"].to(dev)
         self.positions[slots] = state["positions"].to(dev, self.positions.dtype)
         self.live[slots] = True
+        self.episode[slots] = state["episode"].to(dev)
         if self.track_desirability:
             self.n_call[slots] = state["n_call"].to(dev)
             self.n_xi[slots] = state["n_xi"].to(dev)
@@ -542,15 +575,16 @@ class _Outcome:
 
 
 def _resolve(
-    memory: EpisodicMemory, z: torch.Tensor, R: torch.Tensor, wanted: torch.Tensor, write: int
+    memory: EpisodicMemory, z: torch.Tensor, R: torch.Tensor, wanted: torch.Tensor, write: int, T: int
 ) -> _Outcome:
-    """Algorithm 1 for the transitions ``z [n, d]`` (standardised keys, in order) against ``memory``.
+    """Algorithm 1 for the transitions ``z [n, d]`` (standardised keys, in order; ``T`` per episode)
+    against ``memory``.
 
     Independent transitions (no batch key within delta, no stored neighbour within delta shared with
-    another transition) are resolved from the batched look-up; the interacting ones sequentially.
+    another transition) are resolved from the batched look-up; the interacting ones sequentially. With
+    EMU's desirability every transition is walked in order: the propagation within an episode chains them.
     """
     index, dev = memory.index, memory.device
-    track = memory.track_desirability
     n = z.shape[0]
     cubes = index.query_cubes(z)
     query, slot, d2 = index.within(
@@ -560,7 +594,9 @@ def _resolve(
 
     interacting = torch.zeros(n, dtype=torch.bool, device=dev)
     interacting[bi] = True
-    if slot.numel():
+    if memory.track_desirability:
+        interacting[:] = True
+    elif slot.numel():
         _, inverse, shared = torch.unique(slot, return_inverse=True, return_counts=True)
         interacting[query[shared[inverse] > 1]] = True
 
@@ -576,34 +612,24 @@ def _resolve(
     new_free = free & (nearest < 0)
     target = nearest[hit_j]
     shift = memory.returns[target] < R[hit_j]
-    if track:
-        shift |= wanted[hit_j] & ~memory.xi[target]
     shift_slots, shift_from = target[shift], hit_j[shift]
-    count_slots = target
-    if track:
-        n_call = memory.n_call[target] + 1
-        n_xi = memory.n_xi[target] + wanted[hit_j].to(torch.int32)
-        xi = memory.xi[target] | (shift & wanted[hit_j])
-    else:
-        n_call = n_xi = xi = torch.zeros(0, device=dev)
     hits, shifts = int(hit_j.numel()), int(shift.sum())
     new_mask = new_free
+    empty = torch.zeros(0, dtype=torch.int64, device=dev)
+    count_slots, n_call, n_xi, xi = empty, empty.int(), empty.int(), empty.bool()
 
     group = interacting.nonzero().squeeze(1)
     shift_is_new = torch.zeros(shift_slots.numel(), dtype=torch.bool, device=dev)
     if group.numel():
-        seq = _sequential(memory, group, query, slot, d2, bi, bj, bd2, R, wanted, new_free, write)
+        seq = _sequential(memory, group, query, slot, d2, bi, bj, bd2, R, wanted, new_free, write, T)
         new_mask = new_free.clone()
         new_mask[seq["new"]] = True
         shift_slots = torch.cat([shift_slots, seq["owner_slots"]])
         shift_from = torch.cat([shift_from, seq["owner_from"]])
         shift_is_new = torch.cat([shift_is_new, seq["owner_is_new"]])
         hits, shifts = hits + seq["hits"], shifts + seq["shifts"]
-        if track:
-            count_slots = torch.cat([count_slots, seq["count_slots"]])
-            n_call = torch.cat([n_call, seq["n_call"]])
-            n_xi = torch.cat([n_xi, seq["n_xi"]])
-            xi = torch.cat([xi, seq["xi"]])
+        if memory.track_desirability:
+            count_slots, n_call, n_xi, xi = seq["count_slots"], seq["n_call"], seq["n_xi"], seq["xi"]
     return _Outcome(
         new_from=new_mask.nonzero().squeeze(1),
         shift_slots=shift_slots,
@@ -616,6 +642,18 @@ def _resolve(
         hits=hits,
         shifts=shifts,
     )
+
+
+def _by_distance(
+    owner: torch.Tensor, item: torch.Tensor, d2: torch.Tensor, n: int
+) -> tuple[list[int], list[int], list[float]]:
+    """Candidate lists in CSR form: ``(start [n + 1], item, d2)`` with the candidates of ``owner`` j at
+    ``start[j]:start[j + 1]``, sorted by distance, ties in the given order (the inputs come sorted by
+    owner then item, and the sort is stable)."""
+    order = torch.sort((owner << 32) | d2.view(torch.int32).to(torch.int64), stable=True).indices
+    counts = torch.bincount(owner, minlength=n)
+    start = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    return start.tolist(), item[order].tolist(), d2[order].tolist()
 
 
 def _sequential(
@@ -631,27 +669,27 @@ def _sequential(
     wanted: torch.Tensor,
     new_free: torch.Tensor,
     write: int,
+    T: int,
 ) -> dict[str, Any]:
-    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending).
+    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending); with desirability
+    tracking ``group`` is every transition, and ``wanted`` spreads backwards within an episode
+    (transitions ``e*T .. e*T + T-1`` walk it from s_{T-1} down) from any hit on an entry with xi set.
 
-    Their candidates are precomputed: stored neighbours within delta (valid while the entry still holds
-    its old key) and earlier batch keys within delta (valid while some entry holds that key). Independent
+    Their candidates are precomputed, each transition's sorted by distance (then slot, or then position
+    in the batch): stored neighbours within delta (valid while the entry still holds its old key: the
+    first valid one is the best) and earlier batch keys within delta (valid while some entry holds that
+    key: scanned until the distance exceeds the best found, as ties compare slots). Independent
     transitions touch none of these, except that their new entries take slots: a new entry of transition
     j takes slot ``write + (new entries before j)``.
     """
     dev, C, track = memory.device, memory.capacity, memory.track_desirability
     in_group = torch.zeros_like(new_free)
     in_group[group] = True
+    n = new_free.numel()
     sel = in_group[query]
-    g_query, g_slot, g_d2 = query[sel].tolist(), slot[sel].tolist(), d2[sel].tolist()
+    s_start, g_slot, g_d2 = _by_distance(query[sel], slot[sel], d2[sel], n)
     sel = bj < bi  # neighbours earlier in the order
-    p_i, p_j, p_d2 = bi[sel].tolist(), bj[sel].tolist(), bd2[sel].tolist()
-    stored: dict[int, list[tuple[float, int]]] = {}
-    for j, s, d in zip(g_query, g_slot, g_d2, strict=True):
-        stored.setdefault(j, []).append((d, s))
-    earlier: dict[int, list[tuple[float, int]]] = {}
-    for j, i, d in zip(p_i, p_j, p_d2, strict=True):
-        earlier.setdefault(j, []).append((d, i))
+    e_start, e_from, e_d2 = _by_distance(bi[sel], bj[sel], bd2[sel], n)
     touched = sorted(set(g_slot))
     touched_t = torch.tensor(touched, dtype=torch.int64, device=dev)
     H = dict(zip(touched, memory.returns[touched_t].tolist(), strict=True))
@@ -662,6 +700,8 @@ def _sequential(
     members = group.tolist()
     new_before = (torch.cumsum(new_free.to(torch.int64), 0) - new_free.to(torch.int64))[group].tolist()
     R_g, want_g = R[group].tolist(), wanted[group].tolist()
+    reset = memory.counter_reset
+    propagated_episode = -1  # the episode whose later transitions hit a desirable entry
 
     owner: dict[int, int] = {}  # slot -> transition whose key/state it holds now (changed in this batch)
     holder: dict[int, int] = {}  # transition -> slot holding its key
@@ -670,12 +710,17 @@ def _sequential(
     new: list[int] = []
     hits = shifts = 0
     for j, before, r, want in zip(members, new_before, R_g, want_g, strict=True):
+        want = want or (track and j // T == propagated_episode)
         best: tuple[float, int] | None = None
-        for d, s in stored.get(j, ()):
-            if s not in owner and (best is None or (d, s) < best):
-                best = (d, s)
-        for d, i in earlier.get(j, ()):
-            s = holder.get(i)
+        for k in range(s_start[j], s_start[j + 1]):
+            if g_slot[k] not in owner:
+                best = (g_d2[k], g_slot[k])
+                break
+        for k in range(e_start[j], e_start[j + 1]):
+            d = e_d2[k]
+            if best is not None and d > best[0]:
+                break
+            s = holder.get(e_from[k])
             if s is not None and (best is None or (d, s) < best):
                 best = (d, s)
         if best is None:  # a new entry
@@ -692,13 +737,18 @@ def _sequential(
             n_call[s] += 1
             n_xi[s] += int(want)
             counted.add(s)
-        if H[s] < r or (track and want and not xi[s]):
+        desirability_shift = track and want and not xi[s]
+        if H[s] < r or desirability_shift:
             shifts += 1
             if s in owner:
                 del holder[owner[s]]
             owner[s], holder[j], H[s] = j, s, r
             if track:
                 xi[s] = xi[s] or bool(want)
+                if desirability_shift and reset:
+                    n_call[s], n_xi[s] = 1, 1
+        if track and xi[s]:  # EMU's optimality propagation: earlier states of this episode are desirable
+            propagated_episode = j // T
 
     owner_slots = sorted(owner)
     result: dict[str, Any] = {

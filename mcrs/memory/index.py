@@ -11,11 +11,16 @@ tests, reference implementation)::
 
     squared_distance(z_q, z_p) < float32(delta ** 2)
 
-with :func:`squared_distance` summing the float32 squared differences dimension by dimension in order.
+with :func:`squared_distance` summing the float32 squared differences dimension by dimension in order
+(``shape="ball"``), or, with ``shape="box"`` (EMU's ``np.allclose(..., rtol=0, atol=delta)``)::
+
+    max_i |z_q[i] - z_p[i]| <= float32(delta)
+
+In both shapes the nearest candidate is the one of smallest squared distance (lowest slot on ties).
 
 **Grid.** Space is cut into cubes of side ``2 delta (1 + 2^-10)``; a key lives in the cube
 ``floor(z / side)`` (computed in float64 from the float32 z). A point within delta of a query differs from
-it by less than ``delta (1 + 2^-11)`` in every dimension (float32 subtraction is correctly rounded, so the
+it by less than ``delta (1 + 2^-11)`` in every dimension (in either shape) (float32 subtraction is correctly rounded, so the
 computed distance bounds the true difference up to a relative 2^-22), so it lies in one of the cubes met by
 ``[z - reach, z + reach]`` per dimension, ``reach = delta (1 + 2^-11)``: since ``2 reach < side``, at most
 two per dimension, ``2^d`` cubes in all (d = 4: 16). The float64 cube arithmetic is exact enough for
@@ -53,6 +58,7 @@ REACH_MARGIN = 2.0**-11  # reach = delta (1 + REACH_MARGIN): 2 reach < side
 MAX_CANDIDATES = 1 << 22  # candidates verified per chunk (bounds the temporary memory)
 MAX_OCCUPANCY_BITS = 26  # at most 64 MiB of occupancy table
 NO_MATCH = torch.iinfo(torch.int64).max
+SHAPES = ("ball", "box")  # Euclidean ball of radius delta | EMU's per-dimension box of half-side delta
 
 
 def squared_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -123,12 +129,20 @@ class GridIndex:
 
     Args:
         key_dim: dimension d of the keys (1..8; a query checks 2^d cubes).
-        delta: the match radius on standardised keys (> 0).
+        delta: the match tolerance on standardised keys (> 0): the ball's radius or the box's half-side.
         capacity: number of slots (record values carry the slot number).
         device: where the records live (the keys' device).
+        shape: ``"ball"`` or ``"box"`` (see the module docstring).
     """
 
-    def __init__(self, key_dim: int, delta: float, capacity: int, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self,
+        key_dim: int,
+        delta: float,
+        capacity: int,
+        device: torch.device | str = "cpu",
+        shape: str = "ball",
+    ) -> None:
         if isinstance(key_dim, bool) or not isinstance(key_dim, int) or not 1 <= key_dim <= MAX_KEY_DIM:
             raise ValueError(
                 f"key_dim must be an int in [1, {MAX_KEY_DIM}] (2^key_dim cubes per query), got {key_dim!r}"
@@ -137,11 +151,14 @@ class GridIndex:
             raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
         if isinstance(capacity, bool) or not isinstance(capacity, int) or not 1 <= capacity < 2**31:
             raise ValueError(f"capacity must be an int in [1, 2^31), got {capacity!r}")
-        self.key_dim, self.delta, self.capacity = key_dim, float(delta), capacity
+        if shape not in SHAPES:
+            raise ValueError(f"shape must be one of {', '.join(SHAPES)}, got {shape!r}")
+        self.key_dim, self.delta, self.capacity, self.shape = key_dim, float(delta), capacity, shape
         self.device = torch.device(device)
         self.side = 2.0 * self.delta * (1.0 + SIDE_MARGIN)
         self.reach = self.delta * (1.0 + REACH_MARGIN)
         self.delta_sq = torch.tensor(self.delta * self.delta, dtype=torch.float32, device=self.device)
+        self.delta_f32 = torch.tensor(self.delta, dtype=torch.float32, device=self.device)
         self.slot_bits = slot_bits_for(capacity)
         # (hash + 1) << slot_bits must stay below 2^63: the hash has at most 62 - slot_bits bits.
         self.hash_bits = (62 - self.slot_bits) // key_dim
@@ -378,6 +395,14 @@ class GridIndex:
             candidate = keys.index_select(0, slot)
             if not standardised:
                 candidate = self.standardise(candidate)
-            d2 = squared_distance(z.index_select(0, query), candidate)
-            close = d2 < self.delta_sq
+            mine = z.index_select(0, query)
+            d2 = squared_distance(mine, candidate)
+            close = self.matches(mine, candidate, d2)
             yield query[close], slot[close], d2[close]
+
+    def matches(self, a: torch.Tensor, b: torch.Tensor, d2: torch.Tensor | None = None) -> torch.Tensor:
+        """Whether standardised keys ``a`` and ``b`` ``[..., d]`` are within delta (this index's shape);
+        ``d2`` may pass their :func:`squared_distance`."""
+        if self.shape == "box":
+            return (a - b).abs().amax(-1) <= self.delta_f32
+        return (squared_distance(a, b) if d2 is None else d2) < self.delta_sq

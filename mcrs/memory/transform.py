@@ -24,20 +24,33 @@ class EpisodicLookup(Transform):
 
     The last row (no transition) is padding: no hit.
 
+    When the batch carries the id of each episode (``episode_key``, ``[B, T+1]`` int), the transform also
+    counts, over the look-ups since :meth:`pop_statistics`, how many hit and how many hit an entry written
+    by *another* episode (``foreign``): the memory only adds to a trajectory's own return when that happens.
+
     Args:
         memory: an :class:`~mcrs.memory.EpisodicMemory` (``lookup(state, time) -> (value, hit, slot)``).
         max_steps: the episode length T (the embedding's time input is t / T).
         state_key: where the batch keeps the states ``s_0 .. s_T``.
         with_ratio: also write the desirability ratio (EMU's incentive).
+        episode_key: where the batch keeps the episode ids (optional in the batch).
     """
 
-    def __init__(self, memory, max_steps: int, state_key: NestedKey = "state", with_ratio: bool = False):
+    def __init__(
+        self,
+        memory,
+        max_steps: int,
+        state_key: NestedKey = "state",
+        with_ratio: bool = False,
+        episode_key: NestedKey = "episode",
+    ):
         out_keys: list[NestedKey] = ["memory_return", "memory_hit"] + (["memory_ratio"] if with_ratio else [])
         super().__init__(in_keys=[state_key], out_keys=out_keys)
         if max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         self.memory, self.max_steps = memory, int(max_steps)
-        self.state_key, self.with_ratio = state_key, with_ratio
+        self.state_key, self.with_ratio, self.episode_key = state_key, with_ratio, episode_key
+        self._counts = torch.zeros(3, dtype=torch.int64)  # look-ups, hits, foreign hits
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = tensordict.get(self.state_key)
@@ -55,7 +68,19 @@ class EpisodicLookup(Transform):
         if self.with_ratio:
             ratio = torch.where(hit, self.memory.desirable_ratio(slot.clamp(min=0)), torch.zeros_like(value))
             tensordict.set("memory_ratio", torch.cat([ratio, pad], 1).unsqueeze(-1))
+        episode = tensordict.get(self.episode_key, None)
+        if episode is not None:
+            foreign = hit & (self.memory.written_by(slot) != episode[:, 1:].to(slot.device))
+            self._counts += torch.stack([torch.tensor(hit.numel()), hit.sum().cpu(), foreign.sum().cpu()])
         return tensordict
+
+    def pop_statistics(self) -> dict[str, float]:
+        """``lookup_hit_rate`` and ``foreign_hit_rate`` (per look-up) since the last call; empty if none."""
+        lookups, hits, foreign = self._counts.tolist()
+        self._counts.zero_()
+        if not lookups:
+            return {}
+        return {"lookup_hit_rate": hits / lookups, "foreign_hit_rate": foreign / lookups}
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict  # nothing to do when episodes are written

@@ -359,9 +359,12 @@ def embedding_loss(
     returns: torch.Tensor,
     state_weight: float = 0.1,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Paper eq. 31: ``mean ||H - H_hat||^2 + state_weight * mean ||s - s_hat||^2``.
+    """Paper eq. 31: ``mean (H - H_hat)^2 + state_weight * mean (s - s_hat)^2``.
 
-    ``||s - s_hat||^2`` is the squared L2 norm over the state's D values (eq. 31), averaged over the batch.
+    Both terms are means over their values, as EMU's reference computes them (``MSELoss`` on H and on
+    s): the state term is the mean over the batch *and* the state's D values. A sum over the D values
+    (hundreds of belief cells) would make the reconstruction outweigh the return by that factor, and
+    eq. 31 with lambda_1 = 0.1 means the return term to dominate, so that keys carry return semantics.
     ``returns`` must already be scaled (see :class:`EmbeddingTrainer`).
     """
     if not embedding.trainable:
@@ -369,9 +372,14 @@ def embedding_loss(
     keys = embedding(state, time)
     state_hat, return_hat = embedding.reconstruct(keys, time)
     loss_return = (return_hat - returns).square().mean()
-    loss_state = (state_hat - state).square().sum(-1).mean()
+    loss_state = (state_hat - state).square().mean()
     loss = loss_return + state_weight * loss_state
-    stats = {"loss": loss.item(), "loss_return": loss_return.item(), "loss_state": loss_state.item()}
+    stats = {
+        "loss": loss.item(),
+        "loss_return": loss_return.item(),
+        "loss_state": loss_state.item(),
+        "loss_state_weighted": state_weight * loss_state.item(),
+    }
     return loss, stats
 
 
@@ -382,10 +390,13 @@ class EmbeddingTrainer:
     """Trains a trainable embedding on a sample of the episodic buffer (EMU: 102,400 samples, batches of 1024).
 
     ``fit(sample)`` draws ``samples`` entries in one call ``sample(samples) -> (state [n, D], time [n],
-    returns [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches. The returns are
-    standardised by the mean and std of the drawn sample before the loss: ours reach hundreds, and raw
-    returns would make the return term dwarf the reconstruction term (and the decoder's return head start
-    far off). The ranking of returns, which is what shapes the keys, is unchanged by this affine map.
+    returns [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches, each gradient
+    clipped to norm ``grad_clip`` (EMU clips at pymarl's 10). The returns are standardised by the mean and
+    std of the drawn sample before the loss: ours reach hundreds, a decoder head would need thousands of
+    Adam steps to reach raw returns, and the affine map keeps their ranking, which is what shapes the
+    keys. In raw units the return term would outweigh the state term std(H)^2 times more, so standardised
+    returns are the conservative choice: the return term still dominates (eq. 31's lambda_1 = 0.1, both
+    terms per-value means), and the trainer reports both terms, weighted, for every fit.
     """
 
     def __init__(
@@ -395,6 +406,7 @@ class EmbeddingTrainer:
         batch_size: int = 1024,
         samples: int = 102_400,
         state_weight: float = 0.1,
+        grad_clip: float = 10.0,
     ) -> None:
         if not embedding.trainable:
             raise TypeError(f"{type(embedding).__name__} is not trainable: there is nothing to fit")
@@ -408,10 +420,13 @@ class EmbeddingTrainer:
             )
         if not state_weight >= 0:
             raise ValueError(f"state_weight must be non-negative, got {state_weight!r}")
+        if not grad_clip > 0:
+            raise ValueError(f"grad_clip must be positive (inf: no clipping), got {grad_clip!r}")
         self.embedding = embedding
         self.batch_size = batch_size
         self.samples = samples
         self.state_weight = state_weight
+        self.grad_clip = float(grad_clip)
         self.optimizer = torch.optim.Adam(embedding.parameters(), lr=lr)
 
     def fit(self, sample: Sampler, generator: torch.Generator | None = None) -> dict[str, float]:
@@ -432,7 +447,7 @@ class EmbeddingTrainer:
         returns = (returns - mean) / std
         steps = n // self.batch_size
         order = torch.randperm(n, generator=generator).to(device)
-        totals = {"loss": 0.0, "loss_return": 0.0, "loss_state": 0.0}
+        totals = {"loss": 0.0, "loss_return": 0.0, "loss_state": 0.0, "loss_state_weighted": 0.0}
         self.embedding.train()
         for step in range(steps):
             idx = order[step * self.batch_size : (step + 1) * self.batch_size]
@@ -441,6 +456,7 @@ class EmbeddingTrainer:
             )
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.embedding.parameters(), self.grad_clip)
             self.optimizer.step()
             for key in totals:
                 totals[key] += stats[key]
