@@ -120,10 +120,7 @@ class Reference:
                 x, r = keys[e, t], returns[e, t]
                 zq, zs = ((x - mean) / std)[None], (self.keys - mean) / std
                 d2 = squared_distance(zq, zs)
-                if self.shape == "box":
-                    within = (zq - zs).abs().amax(-1) <= self.delta
-                else:
-                    within = d2 < self.delta_sq
+                within = (zq - zs).abs().amax(-1) <= self.delta if self.shape == "box" else d2 < self.delta_sq
                 d2 = torch.where(self.live & within, d2, torch.full_like(d2, INF))
                 if torch.isinf(d2.min()):
                     s = (self.start + self.size) % self.C

@@ -89,7 +89,7 @@ def test_the_default_reading_merges_states_of_real_rollouts() -> None:
 def test_foreign_hits_count_entries_written_by_other_episodes() -> None:
     """The second batch repeats the first's episodes under new ids: its states find the first batch's
     entries (equal returns do not shift them), so every replayed hit is foreign."""
-    side, stats, foreign = _insert_two_batches(seeds=(0, 0))
+    _side, stats, foreign = _insert_two_batches(seeds=(0, 0))
     assert stats[1]["memory/insert_hit_rate"] > 0.99  # (a few keys were shifted away within batch 1)
     assert foreign > 0.9
 
