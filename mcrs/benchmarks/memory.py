@@ -15,10 +15,14 @@ default sizes (1M map20 entries):
   index): <= 10 s;
 * the buffer's size (``nbytes``) <= 1.5 GiB, with the process's resident-memory growth next to it.
 
-The buffer is filled quickly, not by a million insertions: real env rollouts (random allowed actions) are
-tiled and perturbed - a few extra readings on random cells, UAVs moved by one cell - into valid compact
-states written straight into the storage, then ``refresh_keys`` computes every key (that run is the
-re-embedding figure). The state values do not change the cost of any measured operation.
+The buffer is filled quickly, not by a million insertions: real env rollouts (random allowed actions, 1024
+episodes) are tiled and perturbed - a few extra readings on random cells, UAVs moved by one cell - into
+valid compact states written straight into the storage, then ``refresh_keys`` computes every key (that run
+is the re-embedding figure). At the default tolerance (eq. 35's volume, a box of half-side 0.095) the key
+distribution matters: a look-up verifies every entry of 16 cells of twice that side. A run's buffer holds
+states that Algorithm 1 kept apart (a state within the tolerance of an entry merges into it); the fill's
+perturbed copies of 1024 episodes (about 10 per state at 1M entries) are denser than that, so the figures
+are an upper bound.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ GOAL_GIB = 1.5
 GOAL_RATIO = 20.0
 GIB = 2**30
 EXTRA_READS = 8  # readings added to random cells of each synthetic state
+FILL_EPISODES = 1024  # rolled-out episodes the synthetic states are perturbed copies of
 
 
 def rollout(config: EnvConfig, episodes: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -82,7 +87,7 @@ def fill(memory: EpisodicMemory, config: EnvConfig, entries: int, seed: int, chu
     Bypasses Algorithm 1 on purpose: a million insertions would take minutes and measure nothing new.
     """
     codec = memory.codec
-    state, counts, _ = rollout(config, 32, seed)
+    state, counts, _ = rollout(config, FILL_EPISODES, seed)
     base_codes, base_positions = codec.encode(counts.flatten(0, 1), state.flatten(0, 1))
     base_step = torch.arange(config.max_steps, dtype=torch.int16).repeat(state.shape[0])
     generator = torch.Generator().manual_seed(seed + 1)
