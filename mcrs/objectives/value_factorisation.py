@@ -31,6 +31,14 @@ latter is feed-forward: it is run on every step of the batch at once (on a copy 
 so the taken actions are never overwritten by its greedy ones), and items may start mid-episode.
 A missing key raises a ``KeyError`` naming the key and where it usually comes from.
 
+The episodic-memory terms read, when switched on (row t describes the transition t -> t+1; see
+:class:`mcrs.memory.EpisodicLookup`, the replay-buffer transform that attaches them)::
+
+    memory_return [B, T+1, 1]        H(phi(s_{t+1})): the highest return stored near s_{t+1}
+    memory_hit    [B, T+1]           a stored key lies within delta of phi(s_{t+1})
+    memory_ratio  [B, T+1, 1]        N_xi / N_call of that entry (EMU's desirability), incentive="fixed"
+    intrinsic_reward [B, T+1, 1]     a reward added to the TD target only (EMC's curiosity), optional
+
 - ``memory_weight`` (lambda, eq. 32): ``loss += lambda * sum_hits (r_t + gamma H - Q_tot)^2 / n_valid``; a
   transition without a memory contributes nothing (the sum runs over hits, the mean over all valid
   transitions, so the term's weight grows with the hit rate, as EMC's does).
@@ -71,9 +79,6 @@ KEY_ORIGINS = {
     "reward": "written by episodes_from_rollout from ('next', reward_key)",
     "done": "written by episodes_from_rollout",
     "terminated": "written by episodes_from_rollout",
-    "memory_return": "attached by mcrs.memory.EpisodicLookup, the replay-buffer transform",
-    "memory_hit": "attached by mcrs.memory.EpisodicLookup, the replay-buffer transform",
-    "memory_ratio": "attached by mcrs.memory.EpisodicLookup, the replay-buffer transform",
     "action_value": "written by the TorchRL agent network (QValueActor's action_value_key)",
 }
 REWARD_REDUCTIONS = ("mean", "sum")
@@ -91,8 +96,8 @@ class ValueFactorisationLoss(LossModule):
         agent_network: the shared recurrent agent (:class:`RecurrentAgent`), or a TorchRL
             ``TensorDictModule`` writing per-agent action values ``[*B, N, A]`` at the ``action_value`` key
             (e.g. ``QValueActor`` over ``MultiAgentMLP``; feed-forward, no recurrence).
-        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer` or
-            :class:`~mcrs.models.mixers.DMAQMixer`.
+        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer`,
+            :class:`~mcrs.models.mixers.DMAQMixer` or :class:`~mcrs.models.mixers.QPLEXMixer`.
         gamma: discount factor.
         td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
         double_q: pick the bootstrap action with the online network (True) or the target network.
@@ -321,8 +326,8 @@ class ValueFactorisationLoss(LossModule):
         if intrinsic is not None:  # EMC's curiosity: in the TD target only
             target_reward = target_reward + intrinsic[:, :-1]
         if self.uses_memory:
-            memory_return = self.require(tensordict, "memory_return")[:, :-1]
-            hit = self.require(tensordict, "memory_hit")[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
+            memory_return = tensordict.get(keys.memory_return)[:, :-1]
+            hit = tensordict.get(keys.memory_hit)[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
             stats["memory_hit_rate"] = hit.sum() / n_valid
 
         with torch.no_grad():
@@ -337,7 +342,7 @@ class ValueFactorisationLoss(LossModule):
             if self.incentive != "none":  # EMU: r_p = gamma * ratio * max(H(s') - Q_target(s'), 0)
                 gap = (memory_return - next_q_tot[:, 1:]).clamp(min=0.0) * hit
                 if self.incentive == "fixed":
-                    gap = gap * self.require(tensordict, "memory_ratio")[:, :-1]
+                    gap = gap * tensordict.get(keys.memory_ratio)[:, :-1]
                 incentive = self.gamma * gap
                 target_reward = target_reward + incentive
                 stats["incentive_mean"] = incentive.sum() / n_valid
