@@ -1,9 +1,12 @@
 """Whole episodes in a TorchRL replay buffer.
 
-A collector batch ``[E, T]`` (TorchRL layout: ``("next", key)`` holds step t+1) becomes ``E`` items of the
-*episode layout* ``[T + 1]`` read by :class:`~mcrs.objectives.ValueFactorisationLoss`: observations,
-masks and states for steps ``0..T`` (each stored once, not twice as root and ``"next"``), actions, rewards
-and done flags for transitions ``0..T-1`` with one padding row. pymarl stores episodes the same way.
+A collector batch ``[E, T]`` (TorchRL layout: ``("next", key)`` holds step t+1) becomes one item of the
+*episode layout* ``[T + 1]`` per episode, read by :class:`~mcrs.objectives.ValueFactorisationLoss`:
+observations, masks and states for steps ``0..L`` (each stored once, not twice as root and ``"next"``),
+actions, rewards and done flags for transitions ``0..L-1``, padded to ``T + 1`` rows. pymarl stores
+episodes the same way. Episodes that end early (terminated or truncated at any step; the collector resets
+the env and the row goes on with the next episode) become items of their own, padded and masked
+(``filled``), so every transition of the batch is kept.
 """
 
 from __future__ import annotations
@@ -19,43 +22,91 @@ from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer
 STEP_KEYS: tuple[NestedKey, ...] = (("agents", "observation"), ("agents", "action_mask"), "state")
 
 
+def _require(batch: TensorDictBase, key: NestedKey, origin: str) -> torch.Tensor:
+    value = batch.get(key, None)
+    if value is None:
+        raise KeyError(f"episodes_from_rollout: the collector batch has no {key!r} ({origin})")
+    return value
+
+
 def episodes_from_rollout(
     batch: TensorDictBase,
     step_keys: Sequence[NestedKey] = STEP_KEYS,
     action_key: NestedKey = ("agents", "action"),
     reward_key: NestedKey = "reward",
+    *,
+    whole_episodes: bool = True,
 ) -> TensorDict:
-    """Convert a collector batch ``[E, T]`` of whole episodes into the episode layout ``[E, T + 1]``.
+    """Convert a collector batch ``[E, T]`` into the episode layout ``[M, T + 1]``, one item per episode.
 
-    Every row must be one complete episode: it starts after a reset and its last step is done. Our
-    environment guarantees this when ``frames_per_batch = num_envs * max_steps``.
+    A row may hold several episodes: each one that ends early (``("next", "done")``, terminated or
+    truncated) and the one after it become separate items, padded to ``T + 1`` rows: ``filled`` is False,
+    ``done`` True, actions and rewards 0, and the step keys repeat the episode's final next step.
+    Per-agent rewards (``reward_key=("agents", "reward")``, ``[E, T, N, 1]``) are kept per agent.
+
+    ``whole_episodes=True`` (a recurrent agent, unrolled from a reset): every row starts at a reset
+    (checked when the batch has ``step_count``) and ends with a done step; our environment guarantees
+    both when ``frames_per_batch = num_envs * max_steps``. ``whole_episodes=False`` (a feed-forward agent):
+    rows may start and end mid-episode, as a collector cuts them; the cut transition gets ``done`` but not
+    ``terminated``, so its target bootstraps from the stored next step and nothing is thrown away.
     """
     if batch.batch_dims != 2:
         raise ValueError(
             f"expected a collector batch [num_envs, T], got batch_size {tuple(batch.batch_size)}"
         )
-    done = batch.get(("next", "done"))
-    if not bool(done[:, -1].all()):
-        raise ValueError(
-            "every row of the batch must end with a finished episode: set frames_per_batch to "
-            "num_envs * max_steps so that collection stays aligned with episodes"
-        )
-    if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
-        raise ValueError("every row of the batch must start with a reset (step_count 0)")
     E, T = batch.batch_size
-    out = TensorDict(batch_size=[E, T + 1], device=batch.device)
+    done = _require(batch, ("next", "done"), "the env's done flags")
+    terminated = _require(batch, ("next", "terminated"), "the env's terminated flags")
+    ends = done.reshape(E, T, -1).any(-1)  # [E, T]: the transition ends an episode
+    if whole_episodes:
+        if not bool(ends[:, -1].all()):
+            rows = (~ends[:, -1]).nonzero().flatten().tolist()
+            raise ValueError(
+                f"rows {rows[:8]} of the batch do not end with a done step: the collector cut an episode. "
+                "A recurrent agent needs whole episodes: set frames_per_batch to num_envs * max_steps for a "
+                "task of fixed episode length; with a feed-forward agent pass whole_episodes=False, which "
+                "keeps the cut piece and bootstraps from it"
+            )
+        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
+            raise ValueError(
+                "every row of the batch must start with a reset (step_count 0); with a feed-forward agent "
+                "pass whole_episodes=False"
+            )
+    else:
+        ends = ends.clone()
+        ends[:, -1] = True  # the batch's cut: done (bootstrap), never terminated
+
+    # Items: one per episode piece, in row-major order. starts/ends mark each piece's first/last step.
+    starts = torch.zeros_like(ends)
+    starts[:, 0] = True
+    starts[:, 1:] = ends[:, :-1]
+    row, first = starts.nonzero(as_tuple=True)  # [M]
+    last = ends.nonzero(as_tuple=True)[1]  # [M]: the same order, one end per piece
+    M, device = row.numel(), batch.device
+    p = torch.arange(T + 1, device=ends.device)
+    filled = p < (last - first + 1).unsqueeze(-1)  # [M, T+1]
+    t = (first.unsqueeze(-1) + p).clamp(max=T - 1)  # source step of every item row (clamped on padding)
+    rows = row.unsqueeze(-1).expand(M, T + 1)
+
+    def where(value: torch.Tensor, other: torch.Tensor | float | bool) -> torch.Tensor:
+        mask = filled.view(M, T + 1, *([1] * (value.dim() - 2)))
+        other = other if isinstance(other, torch.Tensor) else torch.full_like(value, other)
+        return torch.where(mask, value, other)
+
+    out = TensorDict(batch_size=[M, T + 1], device=device)
     for key in step_keys:
-        out.set(key, torch.cat([batch.get(key), batch.get(("next", key))[:, -1:]], dim=1))
-
-    def padded(value: torch.Tensor, fill: float | bool = 0) -> torch.Tensor:
-        return torch.cat([value, torch.full_like(value[:, :1], fill)], dim=1)
-
-    out.set(action_key, padded(batch.get(action_key)))
-    out.set("reward", padded(batch.get(("next", reward_key))))
-    out.set("done", padded(done, True))
-    out.set("terminated", padded(batch.get(("next", "terminated")), False))
-    filled = torch.ones(E, T + 1, dtype=torch.bool, device=batch.device)
-    filled[:, -1] = False
+        origin = "a step key: the env must write it at reset and at every step (step_keys=...)"
+        value = _require(batch, key, origin)[rows, t]
+        final = _require(batch, ("next", key), origin)[row, last].unsqueeze(1)  # o_L of each item
+        out.set(key, where(value, final.expand_as(value)))
+    action = _require(batch, action_key, "the policy's action (action_key=...)")
+    out.set(action_key, where(action[rows, t], 0))
+    reward = _require(
+        batch, ("next", reward_key), "the env's reward; per-agent rewards: reward_key=('agents', 'reward')"
+    )
+    out.set("reward", where(reward[rows, t], 0))
+    out.set("done", where(ends.view(E, T, 1)[rows, t].to(done.dtype), True))
+    out.set("terminated", where(terminated.reshape(E, T, -1).any(-1, keepdim=True)[rows, t], False))
     out.set("filled", filled)
     return out
 

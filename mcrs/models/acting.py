@@ -6,15 +6,24 @@ closed form instead of its per-frame ``step`` loop) and a :class:`~torchrl.envs.
 carries the recurrent state and the last action from one step to the next. At ``step_count == 0`` the
 hidden state and the last action are reset, so the policy needs no reset hook.
 
-Keys (``group`` is ``"agents"``)::
+Keys (``group`` is ``"agents"``; ``E`` envs, ``N`` agents, ``A`` actions, ``H`` hidden width)::
 
-    reads   (group, "observation"), (group, "action_mask"), (group, "rnn_hidden"), (group, "last_action"),
-            "step_count"
-    writes  (group, "action_value"), (group, "action"), (group, "chosen_action_value"),
+    reads   (group, "observation")          [E, N, obs]   the env
+            (group, "action_mask")          [E, N, A]     the env (bool)
+            (group, "rnn_hidden")           [E, N, H]     recurrent_primer (a transform of the env)
+            (group, "last_action")          [E, N]        recurrent_primer
+            "step_count"                    [E, 1]        TorchRL's StepCounter (MCRSEnv writes its own)
+    writes  (group, "action_value")         [E, N, A]
+            (group, "action")               [E, N]        int64
+            (group, "chosen_action_value")  [E, N, 1]
             ("next", group, "rnn_hidden"), ("next", group, "last_action")
+
+A missing key raises a ``KeyError`` that names the transform providing it.
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -36,9 +45,23 @@ class AgentStep(TensorDictModuleBase):
         self.in_keys = [(g, "observation"), (g, "rnn_hidden"), (g, "last_action"), "step_count"]
         self.out_keys = [(g, "action_value"), ("next", g, "rnn_hidden")]
 
+    #: Where each key read by the step usually comes from (for the missing-key error).
+    ORIGINS: ClassVar[dict[str, str]] = {
+        "observation": "the env's per-agent observation",
+        "rnn_hidden": "add recurrent_primer(num_envs, n_agents, hidden_dim, group) to the env's transforms",
+        "last_action": "add recurrent_primer(num_envs, n_agents, hidden_dim, group) to the env's transforms",
+        "step_count": "add TorchRL's StepCounter() to the env's transforms",
+    }
+
     @torch.no_grad()  # acting never needs gradients: training unrolls whole episodes instead
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         g = self.group
+        missing = [key for key in self.in_keys if tensordict.get(key, None) is None]
+        if missing:
+            hints = "; ".join(
+                f"{key!r}: {self.ORIGINS[key[-1] if isinstance(key, tuple) else key]}" for key in missing
+            )
+            raise KeyError(f"AgentStep reads {self.in_keys}; missing {hints}")
         obs = tensordict.get((g, "observation"))
         first = (tensordict.get("step_count") == 0).view(*obs.shape[:-2], 1)  # [E, 1]
         hidden = tensordict.get((g, "rnn_hidden")).masked_fill(first.unsqueeze(-1), 0.0)

@@ -5,7 +5,12 @@
   the paper's default); with ``hypernet_layers=1`` it is TorchRL's mixer unchanged.
 - :class:`DMAQMixer` is QPLEX's ``dmaq`` mixer (duplex dueling with the multi-head attention advantage
   weights). Besides the chosen values and the state it needs the joint action (one-hot) and each agent's
-  greedy value, so ``forward`` takes four inputs.
+  greedy value, so ``forward`` takes four inputs. Our :class:`~mcrs.objectives.ValueFactorisationLoss`
+  passes them.
+- :class:`QPLEXMixer` is the same mixer for TorchRL's ``QMixerLoss`` and any code written for ``QMixer``:
+  ``QMixer``'s constructor plus ``n_actions``, and it reads only keys that TorchRL's ``QValueModule`` and
+  ``QMixerLoss`` write (``chosen_action_value``, the state, ``action_value``), deriving the taken action
+  and the greedy value from them.
 
 Every mixer maps chosen values ``[*B, N, 1]`` (and the state ``[*B, *state_shape]``) to ``[*B, 1]``.
 Wrapped in a :class:`~tensordict.nn.TensorDictModule` they read and write these keys (see
@@ -15,7 +20,12 @@ Wrapped in a :class:`~tensordict.nn.TensorDictModule` they read and write these 
     "state"                             [*B, S]     QMixer, DMAQMixer
     ("agents", "action_one_hot")        [*B, N, A]  DMAQMixer
     ("agents", "max_action_value")      [*B, N, 1]  DMAQMixer
+    ("agents", "action_value")          [*B, N, A]  QPLEXMixer (every action's value, masked ones very low)
     "chosen_action_value"               [*B, 1]     output
+
+The state can be any tensor of shape ``[*B, *state_shape]``; a task without a global state (VMAS) can
+pass the agents' stacked observations: ``state_key=("agents", "observation")``,
+``state_shape=(N, obs_dim)``.
 """
 
 from __future__ import annotations
@@ -24,6 +34,8 @@ import math
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
@@ -31,6 +43,14 @@ from torchrl.modules.models.multiagent import Mixer, VDNMixer
 from torchrl.modules.models.multiagent import QMixer as TorchRLQMixer
 
 MIXERS = ("qmix", "vdn", "qplex")
+#: What a mixer's inputs usually come from, for the errors of :func:`mixer_module` users and of the loss.
+KEY_ORIGINS = {
+    "chosen_action_value": "written by TorchRL's QValueModule/QValueActor (and by QMixerLoss for the taken "
+    "actions)",
+    "action_value": "written by TorchRL's QValueModule/QValueActor (action_value_key)",
+    "action_one_hot": "no TorchRL module writes it: use QPLEXMixer, which reads action_value instead",
+    "max_action_value": "no TorchRL module writes it: use QPLEXMixer, which reads action_value instead",
+}
 
 
 def _hypernet(in_dim: int, out_dim: int, hidden: int, layers: int, device) -> nn.Module:
@@ -181,6 +201,84 @@ class DMAQMixer(Mixer):
         return (v_tot + a_tot).view(*batch, 1)
 
 
+class QPLEXMixer(DMAQMixer):
+    """QPLEX for TorchRL's ``QMixerLoss``: ``QMixer``'s constructor plus ``n_actions``, three inputs.
+
+    ``forward(chosen_action_value [*B, N, 1], state [*B, *state_shape], action_value [*B, N, A])``.
+    ``QMixerLoss`` re-runs the value network on a copy of the batch, so there ``(group, "action")`` holds
+    the *greedy* action, not the taken one; the only record of the taken action is
+    ``chosen_action_value``, which the loss gathers from ``action_value`` at the taken action. So the taken
+    action is the entry of ``action_value`` equal to ``chosen_action_value`` (an exact copy, the same test
+    TorchRL's ``QValueModule`` uses for one-hot actions; on an exact tie the first equal action is used),
+    and the greedy value is ``action_value.max(-1)`` (``QValueModule`` has already masked unavailable
+    actions). For the bootstrap value ``QMixerLoss`` passes the greedy choice, whose advantage is 0.
+
+    Args:
+        state_shape: shape of the global state (or of the stacked observations used as one).
+        mixing_embed_dim: hidden width of QPLEX's hypernetworks (its ``hypernet_embed``; its own
+            ``mixing_embed_dim`` is unused in the reference code).
+        n_agents: number of agents.
+        n_actions: number of discrete actions.
+        device: torch device.
+        n_kernels: attention heads of the advantage weights (QPLEX: 4 on SMAC, 10 on matrix games).
+        adv_hypernet_layers: depth of the advantage-weight extractors (1 on SMAC, 3 on matrix games).
+    """
+
+    def __init__(
+        self,
+        state_shape: tuple[int, ...] | torch.Size,
+        mixing_embed_dim: int,
+        n_agents: int,
+        n_actions: int,
+        device=None,
+        *,
+        n_kernels: int = 4,
+        adv_hypernet_layers: int = 1,
+    ) -> None:
+        if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
+            raise ValueError(
+                f"QPLEXMixer: n_actions must be the number of discrete actions (an int >= 1), got "
+                f"{n_actions!r}; the signature is QMixer's plus n_actions: "
+                "(state_shape, mixing_embed_dim, n_agents, n_actions, device)"
+            )
+        super().__init__(
+            tuple(state_shape),
+            n_agents,
+            n_actions,
+            device,
+            hypernet_embed=mixing_embed_dim,
+            n_kernels=n_kernels,
+            adv_hypernet_layers=adv_hypernet_layers,
+            adv_hypernet_embed=mixing_embed_dim,
+        )
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        if len(inputs) != 3:
+            raise ValueError(
+                "QPLEXMixer takes 3 inputs: chosen_action_value [*B, N, 1], state [*B, *state_shape], "
+                f"action_value [*B, N, A] (in_keys of its TensorDictModule); got {len(inputs)}"
+            )
+        chosen, state, action_value = inputs
+        tail = (self.n_agents, self.n_actions)
+        if tuple(action_value.shape[-2:]) != tail or action_value.shape[:-2] != chosen.shape[:-2]:
+            raise ValueError(
+                f"QPLEXMixer expected action_value of shape {(*chosen.shape[:-2], *tail)} (batch dims as "
+                f"chosen_action_value; {KEY_ORIGINS['action_value']}), got {tuple(action_value.shape)}"
+            )
+        action_value = action_value.detach()  # QPLEX's advantage stream is detached anyway
+        match = action_value == chosen.detach()
+        if not bool(match.any(-1).all()):
+            raise ValueError(
+                "QPLEXMixer: some chosen_action_value entries are not in action_value, so the taken action "
+                "cannot be read from them; feed the values QMixerLoss or QValueModule gather from the same "
+                "action_value (for explicit actions use DMAQMixer with action_one_hot and max_action_value)"
+            )
+        taken = match.to(torch.int8).argmax(-1)  # the first exact match
+        one_hot = F.one_hot(taken, self.n_actions).to(chosen.dtype)
+        max_value = action_value.max(-1, keepdim=True).values
+        return super().forward(chosen, state, one_hot, max_value)
+
+
 def make_mixer(
     name: str,
     n_agents: int,
@@ -217,13 +315,38 @@ def mixer_in_keys(mixer: Mixer, group: str = "agents", state_key: NestedKey = "s
     keys: list[NestedKey] = [(group, "chosen_action_value")]
     if mixer.needs_state:
         keys.append(state_key)
-    if isinstance(mixer, DMAQMixer):
+    if isinstance(mixer, QPLEXMixer):
+        keys.append((group, "action_value"))
+    elif isinstance(mixer, DMAQMixer):
         keys += [(group, "action_one_hot"), (group, "max_action_value")]
     return keys
 
 
-def mixer_module(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> TensorDictModule:
-    """Wrap a mixer as a TensorDictModule writing the root ``"chosen_action_value"``."""
-    return TensorDictModule(
+class MixerModule(TensorDictModule):
+    """A mixer as a ``TensorDictModule`` whose missing-key error says where each key usually comes from."""
+
+    def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
+        missing = [key for key in self.in_keys if tensordict.get(key, None) is None]
+        if missing:
+            hints = []
+            for key in missing:
+                name = key[-1] if isinstance(key, tuple) else key
+                origin = KEY_ORIGINS.get(
+                    name,
+                    "the env's global state; a task without one can mix on the stacked observations "
+                    "(state_key=(group, 'observation'), state_shape=(n_agents, obs_dim))",
+                )
+                hints.append(f"{key!r} ({origin})")
+            raise KeyError(f"{type(self.module).__name__} reads {self.in_keys}; missing: {'; '.join(hints)}")
+        return super().forward(tensordict, *args, **kwargs)
+
+
+def mixer_module(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> MixerModule:
+    """Wrap a mixer as a TensorDictModule writing the root ``"chosen_action_value"``.
+
+    The result is what TorchRL's ``QMixerLoss`` takes as ``mixer_network``; with :class:`QPLEXMixer` it
+    reads only keys that ``QValueModule`` and ``QMixerLoss`` write.
+    """
+    return MixerModule(
         mixer, in_keys=mixer_in_keys(mixer, group, state_key), out_keys=["chosen_action_value"]
     )

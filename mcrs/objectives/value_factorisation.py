@@ -7,16 +7,29 @@ TorchRL :class:`~torchrl.modules.models.multiagent.Mixer` (``VDNMixer``, our ``Q
 the target parameters of :meth:`LossModule.convert_to_functional` (so ``HardUpdate``/``SoftUpdate`` work),
 and the return estimators of :mod:`torchrl.objectives.value.functional`.
 
-Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.replay.episodes_from_rollout`)::
+Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.replay.episodes_from_rollout`, which
+turns any TorchRL collector batch into it, splitting episodes that end early). Keys, all renamable with
+:meth:`set_keys`::
 
-    observation   [B, T+1, N, obs]   o_0 .. o_T (o_T is the final next observation)
-    action_mask   [B, T+1, N, A]     bool, allowed actions at every step (the last row masks the targets)
-    state         [B, T+1, *S]       s_0 .. s_T
+    observation   [B, T+1, N, obs]   o_0 .. o_T (o_T is the final next observation); read by the agent
+    action_mask   [B, T+1, N, A]     bool, allowed actions at every step; optional (absent: all allowed)
+    state         [B, T+1, *S]       s_0 .. s_T; QMIX and QPLEX only (VDN reads no state). A task without
+                                     a global state can use the stacked observations (state=observation)
     action        [B, T+1, N]        a_0 .. a_{T-1}, last row padding
-    reward        [B, T+1, 1]        r_t of the transition t -> t+1, last row padding
+    reward        [B, T+1, 1]        r_t of the transition t -> t+1, last row padding; or per agent
+                  [B, T+1, N, 1]     (VMAS' ("agents", "reward")), reduced to a team reward by
+                                     ``reward_reduction`` ("mean", as BenchMARL, or "sum")
     done          [B, T+1, 1]        the transition ends the episode (truncation or termination)
     terminated    [B, T+1, 1]        the transition ends in a terminal state (no bootstrap)
-    filled        [B, T+1]           the transition is real (False on padding and on the last row)
+    filled        [B, T+1]           the transition is real (False on padding and on the last row); optional
+    action_value  [B, T+1, N, A]     written by a TorchRL agent network (below), not read from the batch
+
+The agent network is either our :class:`~mcrs.models.agent.RecurrentAgent` (unrolled over whole episodes
+from a zero hidden state; every item must start at a reset) or any TorchRL ``TensorDictModule`` writing
+per-agent action values at the ``action_value`` key, e.g. a ``QValueActor`` over ``MultiAgentMLP``. The
+latter is feed-forward: it is run on every step of the batch at once (on a copy holding only its in_keys,
+so the taken actions are never overwritten by its greedy ones), and items may start mid-episode.
+A missing key raises a ``KeyError`` naming the key and where it usually comes from.
 
 The episodic-memory terms read, when switched on (row t describes the transition t -> t+1; see
 :class:`mcrs.memory.EpisodicLookup`, the replay-buffer transform that attaches them)::
@@ -33,16 +46,18 @@ The episodic-memory terms read, when switched on (row t describes the transition
   target; ``"change"`` drops the ratio (EMU-change).
 
 Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
-``reward``, ``done``, ``terminated``, ``filled``, ``memory_return``, ``memory_hit``, ``memory_ratio``,
-``intrinsic_reward``), so the loss plugs into other TorchRL multi-agent tasks.
+``reward``, ``done``, ``terminated``, ``filled``, ``action_value``, ``memory_return``, ``memory_hit``,
+``memory_ratio``, ``intrinsic_reward``), so the loss plugs into other TorchRL multi-agent tasks.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch.nn import functional as F
 from torchrl.modules.models.multiagent import Mixer
@@ -50,9 +65,23 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.value.functional import td0_return_estimate, td_lambda_return_estimate
 
 from mcrs.models.agent import RecurrentAgent
-from mcrs.models.mixers import DMAQMixer
+from mcrs.models.mixers import DMAQMixer, QPLEXMixer
 
 NEG_INF = -1e10  # "minus infinity" that stays finite under arithmetic (masked actions)
+
+
+#: Where each key of the episode layout usually comes from (for the missing-key errors).
+KEY_ORIGINS = {
+    "observation": "the env's per-agent observation, kept by episodes_from_rollout(step_keys=...)",
+    "action": "the policy's action, kept by episodes_from_rollout(action_key=...)",
+    "state": "the env's global state, kept by episodes_from_rollout(step_keys=...); a task without one "
+    "can use the stacked observations: loss.set_keys(state=('agents', 'observation'))",
+    "reward": "written by episodes_from_rollout from ('next', reward_key)",
+    "done": "written by episodes_from_rollout",
+    "terminated": "written by episodes_from_rollout",
+    "action_value": "written by the TorchRL agent network (QValueActor's action_value_key)",
+}
+REWARD_REDUCTIONS = ("mean", "sum")
 
 
 def mask_unavailable(q: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
@@ -64,15 +93,19 @@ class ValueFactorisationLoss(LossModule):
     """Double-Q TD loss of a mixed team value ``Q_tot = mixer(Q_1(a_1), ..., Q_N(a_N), s)``.
 
     Args:
-        agent_network: the shared recurrent agent (:class:`RecurrentAgent`).
-        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer` or
-            :class:`~mcrs.models.mixers.DMAQMixer`.
+        agent_network: the shared recurrent agent (:class:`RecurrentAgent`), or a TorchRL
+            ``TensorDictModule`` writing per-agent action values ``[*B, N, A]`` at the ``action_value`` key
+            (e.g. ``QValueActor`` over ``MultiAgentMLP``; feed-forward, no recurrence).
+        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer`,
+            :class:`~mcrs.models.mixers.DMAQMixer` or :class:`~mcrs.models.mixers.QPLEXMixer`.
         gamma: discount factor.
         td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
         double_q: pick the bootstrap action with the online network (True) or the target network.
         memory_weight: lambda of the one-step memory target (eq. 32); 0 switches it off.
         incentive: EMU's episodic incentive: ``"none"``, ``"fixed"`` (scaled by the desirability ratio) or
             ``"change"`` (no ratio).
+        reward_reduction: how per-agent rewards ``[..., N, 1]`` become the team reward: ``"mean"`` or
+            ``"sum"``; a team reward ``[..., 1]`` is used as it is.
     """
 
     INCENTIVES = ("none", "fixed", "change")
@@ -93,6 +126,7 @@ class ValueFactorisationLoss(LossModule):
         memory_hit: NestedKey = "memory_hit"
         memory_ratio: NestedKey = "memory_ratio"
         intrinsic_reward: NestedKey = "intrinsic_reward"
+        action_value: NestedKey = ("agents", "action_value")
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -101,7 +135,7 @@ class ValueFactorisationLoss(LossModule):
         "loss_memory", "memory_hit_rate", "memory_target_mean", "incentive_mean", "intrinsic_mean",
     )  # fmt: skip
 
-    agent_network: RecurrentAgent
+    agent_network: RecurrentAgent | TensorDictModuleBase
     agent_network_params: TensorDictBase
     target_agent_network_params: TensorDictBase
     mixer: Mixer
@@ -110,7 +144,7 @@ class ValueFactorisationLoss(LossModule):
 
     def __init__(
         self,
-        agent_network: RecurrentAgent,
+        agent_network: RecurrentAgent | TensorDictModuleBase,
         mixer: Mixer,
         *,
         gamma: float = 0.99,
@@ -118,8 +152,25 @@ class ValueFactorisationLoss(LossModule):
         double_q: bool = True,
         memory_weight: float = 0.0,
         incentive: str = "none",
+        reward_reduction: str = "mean",
     ) -> None:
         super().__init__()
+        if not isinstance(agent_network, RecurrentAgent | TensorDictModuleBase):
+            raise TypeError(
+                "agent_network must be a RecurrentAgent or a TorchRL TensorDictModule writing per-agent "
+                f"action values (e.g. QValueActor over MultiAgentMLP), got {type(agent_network).__name__}"
+            )
+        if not isinstance(mixer, Mixer):
+            raise TypeError(
+                "mixer must be a TorchRL Mixer (VDNMixer, QMixer, DMAQMixer, QPLEXMixer), not a "
+                f"{type(mixer).__name__}; this loss wraps it itself"
+            )
+        if reward_reduction not in REWARD_REDUCTIONS:
+            raise ValueError(
+                f"reward_reduction must be one of {', '.join(REWARD_REDUCTIONS)}, got {reward_reduction!r}"
+            )
+        self.reward_reduction = reward_reduction
+        self.recurrent = isinstance(agent_network, RecurrentAgent)
         if memory_weight < 0:
             raise ValueError(f"memory_weight must be >= 0, got {memory_weight}")
         if incentive not in self.INCENTIVES:
@@ -141,7 +192,10 @@ class ValueFactorisationLoss(LossModule):
     @property
     def in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
-        in_keys = [keys.observation, keys.action, keys.action_mask, keys.state, keys.reward, keys.done]
+        observations = [keys.observation] if self.recurrent else list(self.agent_network.in_keys)
+        in_keys = [*observations, keys.action, keys.action_mask, keys.reward, keys.done, keys.terminated]
+        if self.mixer.needs_state:
+            in_keys.append(keys.state)
         if self.uses_memory:
             in_keys += [keys.memory_return, keys.memory_hit]
         if self.incentive == "fixed":
@@ -152,25 +206,62 @@ class ValueFactorisationLoss(LossModule):
         """No TorchRL value estimator object: the returns come from its functional estimators."""
 
     # ------------------------------------------------------------------ pieces, public for tests and reuse
-    def agent_inputs(self, episodes: TensorDictBase) -> torch.Tensor:
-        """The agents' inputs ``[B, T+1, N, in]``: observations with the previous actions (and ids)."""
-        keys = self.tensor_keys
-        actions = episodes.get(keys.action)
+    def require(self, tensordict: TensorDictBase, name: str) -> torch.Tensor:
+        """``tensordict[tensor_keys.<name>]``, or a ``KeyError`` naming the key and where it comes from."""
+        key = getattr(self.tensor_keys, name)
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"ValueFactorisationLoss: the batch has no {name} key {key!r} ({KEY_ORIGINS.get(name, '')}); "
+                f"another key can be set with loss.set_keys({name}=...)"
+            )
+        return value
+
+    def agent_inputs(self, episodes: TensorDictBase) -> torch.Tensor | TensorDictBase:
+        """The agents' inputs: for the recurrent agent ``[B, T+1, N, in]`` (observations with the previous
+        actions and ids); for a TorchRL agent a shallow copy of the batch holding only its in_keys."""
+        if not self.recurrent:
+            in_keys = self.agent_network.in_keys
+            missing = [key for key in in_keys if episodes.get(key, None) is None]
+            if missing:
+                raise KeyError(
+                    f"ValueFactorisationLoss: the agent network reads {in_keys}; the batch lacks {missing} "
+                    "(keep them with episodes_from_rollout(step_keys=...))"
+                )
+            return episodes.select(*in_keys)
+        actions = self.require(episodes, "action")
         last_action = torch.cat([torch.full_like(actions[:, :1], -1), actions[:, :-1]], dim=1)
-        return self.agent_network.build_inputs(episodes.get(keys.observation), last_action)
+        return self.agent_network.build_inputs(self.require(episodes, "observation"), last_action)
+
+    def _run_agent(self, inputs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+        if self.recurrent:
+            return self.agent_network.unroll(inputs)
+        out = self.agent_network(inputs.copy())  # a fresh shallow copy: the inputs serve both nets
+        value = out.get(self.tensor_keys.action_value, None)
+        if value is None:
+            raise KeyError(
+                f"ValueFactorisationLoss: the agent network wrote no action_value key "
+                f"{self.tensor_keys.action_value!r} (its out_keys: {self.agent_network.out_keys}); set "
+                "the key it writes with loss.set_keys(action_value=...)"
+            )
+        return value
 
     def agent_values(
-        self, episodes: TensorDictBase, target: bool = False, inputs: torch.Tensor | None = None
+        self,
+        episodes: TensorDictBase,
+        target: bool = False,
+        inputs: torch.Tensor | TensorDictBase | None = None,
     ) -> torch.Tensor:
-        """Per-agent action values ``[B, T+1, N, A]`` from a zero hidden state (online or target net)."""
+        """Per-agent action values ``[B, T+1, N, A]`` (online or target net); the recurrent agent starts
+        every item from a zero hidden state, a TorchRL agent sees every step on its own."""
         inputs = self.agent_inputs(episodes) if inputs is None else inputs
         if not target:
-            return self.agent_network.unroll(inputs)
+            return self._run_agent(inputs)
         with (
             torch.no_grad(),
             self.target_agent_network_params.to_module(self.agent_network, preserve_module_state=False),
         ):
-            return self.agent_network.unroll(inputs)
+            return self._run_agent(inputs)
 
     def mix(
         self,
@@ -184,12 +275,15 @@ class ValueFactorisationLoss(LossModule):
         args: list[torch.Tensor] = [chosen.unsqueeze(-1)]
         if self.mixer.needs_state:
             args.append(state.contiguous())  # TorchRL's mixers view() the state
-        if isinstance(self.mixer, DMAQMixer):
-            args += [F.one_hot(action, self.mixer.n_actions).to(chosen.dtype), max_value.unsqueeze(-1)]
+        mixer = self.mixer
+        if isinstance(mixer, DMAQMixer):
+            args += [F.one_hot(action, mixer.n_actions).to(chosen.dtype), max_value.unsqueeze(-1)]
+            if isinstance(mixer, QPLEXMixer):  # we know the actions: its explicit (DMAQMixer) form
+                mixer = partial(DMAQMixer.forward, mixer)
         if not target:
-            return self.mixer(*args)
+            return mixer(*args)
         with torch.no_grad(), self.target_mixer_params.to_module(self.mixer, preserve_module_state=False):
-            return self.mixer(*args)
+            return mixer(*args)
 
     def targets(self, reward: torch.Tensor, next_value: torch.Tensor, done, terminated) -> torch.Tensor:
         """One-step or TD(lambda) targets ``[B, T, 1]`` with TorchRL's return estimators."""
@@ -202,11 +296,13 @@ class ValueFactorisationLoss(LossModule):
     # ------------------------------------------------------------------ the loss
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
-        action_mask = tensordict.get(keys.action_mask)
-        state = tensordict.get(keys.state)
-        reward = tensordict.get(keys.reward)[:, :-1]
-        terminated = tensordict.get(keys.terminated)[:, :-1].bool()
-        done = tensordict.get(keys.done)[:, :-1].bool()
+        action_mask = tensordict.get(keys.action_mask, None)  # optional: absent means all allowed
+        state = self.require(tensordict, "state") if self.mixer.needs_state else None
+        reward = self.require(tensordict, "reward")[:, :-1]
+        if reward.dim() == 4:  # per-agent rewards [B, T, N, 1] -> the team reward [B, T, 1]
+            reward = reward.mean(-2) if self.reward_reduction == "mean" else reward.sum(-2)
+        terminated = self.require(tensordict, "terminated")[:, :-1].bool()
+        done = self.require(tensordict, "done")[:, :-1].bool()
         filled = tensordict.get(keys.filled, None)
         filled = torch.ones_like(reward[..., 0], dtype=torch.bool) if filled is None else filled[:, :-1]
         done = done.clone()
@@ -214,11 +310,11 @@ class ValueFactorisationLoss(LossModule):
 
         # Both mixers run over all T+1 states (the online one uses rows 0..T-1, the target one rows 1..T):
         # slicing [B, T+1, S] would make TorchRL's mixers copy the state, which costs more than one row.
-        all_actions = tensordict.get(keys.action)  # [B, T+1, N], the last row is padding
+        all_actions = self.require(tensordict, "action")  # [B, T+1, N], the last row is padding
         inputs = self.agent_inputs(tensordict)  # built once for the online and the target network
         q = self.agent_values(tensordict, inputs=inputs)  # [B, T+1, N, A]
         chosen = q.gather(-1, all_actions.unsqueeze(-1)).squeeze(-1)
-        greedy_q = mask_unavailable(q.detach(), action_mask)
+        greedy_q = q.detach() if action_mask is None else mask_unavailable(q.detach(), action_mask)
         q_tot = self.mix(chosen, state, all_actions, greedy_q.max(-1).values)[:, :-1]  # [B, T, 1]
 
         weight = filled.unsqueeze(-1).to(q_tot.dtype)
@@ -235,9 +331,9 @@ class ValueFactorisationLoss(LossModule):
             stats["memory_hit_rate"] = hit.sum() / n_valid
 
         with torch.no_grad():
-            target_q = mask_unavailable(
-                self.agent_values(tensordict, target=True, inputs=inputs), action_mask
-            )
+            target_q = self.agent_values(tensordict, target=True, inputs=inputs)
+            if action_mask is not None:
+                target_q = mask_unavailable(target_q, action_mask)
             chooser = greedy_q if self.double_q else target_q
             next_actions = chooser.argmax(-1)  # [B, T+1, N]: the bootstrap action at every state
             next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
