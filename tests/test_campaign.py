@@ -3,6 +3,7 @@ stopped by a signal."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import signal
@@ -212,3 +213,32 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path)
     assert listing.stdout.startswith(
         f"resume {point.id} (at {record['checkpoint_env_steps']} env steps, estimated "
     )
+
+
+def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS)
+    first, second = load_matrix(matrix)[0]
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    earlier = {
+        "format": RECORD_FORMAT,
+        "version": RECORD_VERSION,
+        "kind": "training",
+        "run_dir": "x",
+        "status": "finished",
+        "checkpoint_env_steps": 100,  # 100 env steps in an hour: a 200-step point needs two
+        "sessions": [{"wall_s": 3600.0}],
+        "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}},
+    }
+    write_record(records / "comm_range" / "smoke" / "earlier.json", earlier)
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
+    out = capsys.readouterr().out
+    for point in (first, second):
+        assert f"not started: {point.id} needs about 2.00 h, 1.50 h left" in out
+        assert not point.run_dir(outputs).exists()
+    assert "campaign: 0 runs ended, 2 not started (time budget)" in out
+    with open(outputs / ".campaign.lock", "a+") as lock:  # a campaign already running here
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(SystemExit, match="another mcrs-campaign run uses"):
+            campaign_main(["run", *args, "--hours", "3"])

@@ -190,7 +190,7 @@ def training_record(run_dir: Path) -> dict[str, Any]:
         total = int(state["config"]["train"]["total_env_steps"])  # a resume may have extended the run
     reward = scalars.get("eval/episode_reward", [])
     final_step = reward[-1][0] if reward else None
-    final = {n.split("/", 1)[1]: dict(scalars[n])[final_step] for n in names if final_step is not None}
+    final = {n.split("/", 1)[1]: dict(scalars[n]).get(final_step) for n in names if final_step is not None}
     logged = max((rows[-1][0] for rows in scalars.values() if rows), default=0)
     return {
         "format": RECORD_FORMAT,

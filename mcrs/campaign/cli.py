@@ -19,7 +19,7 @@ from mcrs.analysis.records import RECORDS_DIR, RecordError, make_record, write_r
 from mcrs.analysis.tables import markdown
 from mcrs.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs.campaign.progress import STATES
-from mcrs.campaign.runner import Campaign
+from mcrs.campaign.runner import Campaign, CampaignBusy
 from mcrs.experiment import checkpoint as ckpt
 
 OUTPUTS_DIR = Path("outputs/campaign")
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         return {"status": cmd_status, "run": cmd_run, "record": cmd_record, "report": cmd_report}[
             args.command
         ](args)
-    except MatrixError as error:
+    except (MatrixError, CampaignBusy) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None
 
 

@@ -10,6 +10,7 @@ recorded as stopped: their last checkpoint stays, and the next ``run`` resumes t
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import shlex
@@ -57,6 +58,10 @@ def _hours(seconds: float | None) -> str:
 
 def _print(*parts: object) -> None:
     print(*parts, flush=True)
+
+
+class CampaignBusy(RuntimeError):
+    """Another ``mcrs-campaign run`` holds the outputs folder."""
 
 
 class Campaign:
@@ -132,7 +137,24 @@ class Campaign:
         return lines
 
     def run(self, hours: float) -> int:
-        """Run the plan within ``hours``; returns 0, or 128 + the signal that stopped it."""
+        """Run the plan within ``hours``; returns 0, or 128 + the signal that stopped it. One campaign
+        at a time per outputs folder: a second one would start the same points."""
+        self.outputs.mkdir(parents=True, exist_ok=True)
+        with open(self.outputs / ".campaign.lock", "a+") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                lock.seek(0)
+                raise CampaignBusy(
+                    f"another mcrs-campaign run uses {self.outputs} (pid {lock.read().strip() or '?'})"
+                ) from None
+            lock.seek(0)
+            lock.truncate()
+            lock.write(str(os.getpid()))
+            lock.flush()
+            return self._run(hours)
+
+    def _run(self, hours: float) -> int:
         deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
