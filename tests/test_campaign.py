@@ -170,7 +170,7 @@ def test_run_resumes_a_partial_point_first_and_records_every_run(tmp_path: Path,
     assert methods == ["qmix R_c=0", "qmix R_c=2"]
 
 
-def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path) -> None:
+def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path, capsys) -> None:
     matrix = tmp_path / "m.yaml"
     fast = "[train.num_envs=2, train.batch_episodes=2, train.replay_episodes=8, train.eval_episodes=2, train.eval_interval=100, train.checkpoint_interval=100, env.max_steps=10]"
     matrix.write_text(
@@ -204,15 +204,9 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path)
     assert "replay" in ckpt.load(last)  # a stopped run is not pruned: it resumes next time
     with pytest.raises(ProcessLookupError):  # the child (its own process group) is gone
         os.killpg(int(out.split("(pid ")[1].split(")")[0]), 0)
-    listing = subprocess.run(
-        [sys.executable, "-m", "mcrs.campaign.cli", "run", *args, "--hours", "1", "--dry-run"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert listing.stdout.startswith(
-        f"resume {point.id} (at {record['checkpoint_env_steps']} env steps, estimated "
-    )
+    assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
+    listing = capsys.readouterr().out
+    assert listing.startswith(f"resume {point.id} (at {record['checkpoint_env_steps']} env steps, estimated ")
 
 
 def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) -> None:

@@ -316,6 +316,7 @@ def write_record(path: Path, record: dict[str, Any], replace: bool = False) -> s
             f.write(dumps(record))
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide a committed file from the machine's other users
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
