@@ -1,4 +1,4 @@
-"""``mcrs-campaign``: the section-6 campaign (conf/campaign/section6.yaml) on one machine.
+"""``mcrs-campaign``: the section-6 campaign (mcrs/campaign/section6.yaml) on one machine.
 
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them

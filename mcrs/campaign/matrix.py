@@ -1,4 +1,4 @@
-"""The campaign's points (conf/campaign/section6.yaml): which mcrs-train runs make which figure.
+"""The campaign's points (mcrs/campaign/section6.yaml): which mcrs-train runs make which figure.
 
 A point is one run: an experiment preset, a map, an algorithm, its swept values and a seed, at the
 campaign's budget. Its run directory and its record path follow from it, so whether it is done can be
@@ -17,8 +17,9 @@ from omegaconf import OmegaConf
 from mcrs.analysis.records import point_name, swept_fields
 from mcrs.analysis.runs import CONFIG_DIR
 
-#: The section-6 campaign.
-DEFAULT_MATRIX = CONFIG_DIR / "campaign" / "section6.yaml"
+#: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
+#: a config group.
+DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
 FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also"}
 
 
