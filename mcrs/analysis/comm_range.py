@@ -57,7 +57,9 @@ def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
     """Per policy label, each metric against R_c, averaged over evaluation seeds."""
     grouped: dict[str, dict[float, list[EvaluationRow]]] = {}
     for row in rows:
-        grouped.setdefault(policy_label(row.policy), {}).setdefault(row.comm_range, []).append(row)
+        grouped.setdefault(row.label or policy_label(row.policy), {}).setdefault(row.comm_range, []).append(
+            row
+        )
     return {
         label: _curve(label, by_range, lambda r, m: r.means.get(m)) for label, by_range in grouped.items()
     }

@@ -44,6 +44,17 @@ class Curve:
         return self.values.shape[0]
 
 
+@dataclass(frozen=True)
+class Reference:
+    """A policy that does not learn (a heuristic), drawn across a learning-curve panel: its mean over
+    evaluation seeds and the 95 % confidence half-width of that mean."""
+
+    label: str
+    mean: float
+    half_width: float
+    seeds: int
+
+
 def confidence_half_width(values: np.ndarray, level: float = 0.95) -> np.ndarray:
     """Half-width of the ``level`` confidence interval of the mean over axis 0 (Student t)."""
     n = values.shape[0]
@@ -87,9 +98,14 @@ def aggregate(groups: dict[str, list[TrainingRun]], metric: str, skipped: list[S
 
 
 def plot_curves(
-    panels: dict[str, dict[str, Curve]], path: Path, title: str, order: list[str] | None = None
+    panels: dict[str, dict[str, Curve]],
+    path: Path,
+    title: str,
+    order: list[str] | None = None,
+    references: dict[str, list[Reference]] | None = None,
 ) -> Path:
-    """One panel per metric: a line per method (mean over seeds) with its 95 % band."""
+    """One panel per metric: a line per method (mean over seeds) with its 95 % band, and per panel the
+    ``references`` (the heuristics) as dashed horizontal lines with their bands."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -110,7 +126,13 @@ def plot_curves(
             ax.fill_between(
                 c.steps, c.mean - c.half_width, c.mean + c.half_width, color=colours[label], alpha=0.2
             )
-        _zoom(ax, [curves[label] for label in labels if label in curves])
+        lines = (references or {}).get(name, [])
+        for k, ref in enumerate(lines):
+            grey = str(0.15 + 0.25 * k)  # black, grey, light grey: apart from the methods' colours
+            style = ("--", ":", "-.")[k % 3]
+            ax.axhline(ref.mean, color=grey, ls=style, lw=1.2, label=f"{ref.label} ({ref.seeds})")
+            ax.axhspan(ref.mean - ref.half_width, ref.mean + ref.half_width, color=grey, alpha=0.12, lw=0)
+        _zoom(ax, [curves[label] for label in labels if label in curves], [r.mean for r in lines])
         ax.set_title(name)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
@@ -126,12 +148,14 @@ def plot_curves(
     return path
 
 
-def _zoom(ax, curves: list[Curve]) -> None:
-    """Y limits from the means after step 0: the untrained policy's first evaluation (a reward of
-    -200 on map10) would otherwise flatten every learning curve. Bands may be clipped."""
+def _zoom(ax, curves: list[Curve], levels: list[float] | None = None) -> None:
+    """Y limits from the means after step 0 and the reference ``levels``: the untrained policy's first
+    evaluation (a reward of -200 on map10) would otherwise flatten every learning curve. Bands may be
+    clipped."""
     later = [c.mean[c.steps > 0] for c in curves if (c.steps > 0).any()]
     if not later:
         return
+    later += [np.array(levels)] if levels else []
     lo, hi = min(v.min() for v in later), max(v.max() for v in later)
     margin = 0.1 * (hi - lo) or 1.0
     ax.set_ylim(lo - margin, hi + margin)

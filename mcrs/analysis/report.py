@@ -36,7 +36,9 @@ from mcrs.analysis.curves import (
     FINAL_METRICS,
     Q_TOT,
     Curve,
+    Reference,
     aggregate,
+    confidence_half_width,
     final_rows,
     milestone_steps,
     milestone_values,
@@ -125,16 +127,20 @@ def _final_table(rows: list[dict[str, object]]) -> str:
     return markdown(header, table)
 
 
-def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
-    """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
+def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> dict[str, list[EvaluationRow]]:
+    """The heuristics' evaluations at the training runs' R_c (any R_c when None), per policy, in order."""
     by_policy: dict[str, list[EvaluationRow]] = {}
     for row in evaluations:
         if row.is_heuristic and (comm_range is None or row.comm_range == comm_range):
             by_policy.setdefault(row.policy, []).append(row)
-    rows = []
     names = sorted(by_policy, key=lambda p: (HEURISTIC_ORDER.index(p) if p in HEURISTIC_ORDER else 9, p))
-    for policy in names:
-        group = by_policy[policy]
+    return {name: by_policy[name] for name in names}
+
+
+def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
+    """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
+    rows = []
+    for policy, group in _heuristics(evaluations, comm_range).items():
         row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
@@ -143,6 +149,24 @@ def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) 
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
     return rows
+
+
+def heuristic_references(
+    evaluations: list[EvaluationRow], comm_range: float | None
+) -> dict[str, list[Reference]]:
+    """Per learning-curve panel, each heuristic's mean over evaluation seeds and its 95 % band: the
+    horizontal lines a learner has to beat."""
+    out: dict[str, list[Reference]] = {}
+    for policy, group in _heuristics(evaluations, comm_range).items():
+        for metric, panel in CURVE_METRICS.items():
+            name = metric.split("/")[-1]
+            values = np.array([g.means[name] for g in group if name in g.means])
+            if len(values):
+                half = float(confidence_half_width(values[:, None])[0])
+                out.setdefault(panel, []).append(
+                    Reference(f"{policy} (heuristic)", float(values.mean()), half, len(values))
+                )
+    return out
 
 
 def report_training(report: Report) -> dict[str, dict[str, Curve]]:
@@ -154,20 +178,27 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     if not order:
         report.add("Learning curves", "no training run logged eval/episode_reward")
         return {}
+    comm_ranges = {r.setting("env.comm_range") for r in runs.training}
+    comm_range = comm_ranges.pop() if len(comm_ranges) == 1 else None
+    references = heuristic_references(runs.evaluations, comm_range)
     png = plot_curves(
-        panels, report.out / "learning_curves.png", f"{report.env_name}: greedy evaluation", order
+        panels,
+        report.out / "learning_curves.png",
+        f"{report.env_name}: greedy evaluation",
+        order,
+        references,
     )
 
-    comm_ranges = {r.setting("env.comm_range") for r in runs.training}
     rows = final_rows(finals, order)
-    rows += _heuristic_rows(runs.evaluations, comm_ranges.pop() if len(comm_ranges) == 1 else None)
+    rows += _heuristic_rows(runs.evaluations, comm_range)
     write_csv(report.out / "final.csv", rows)
     final_md = _final_table(rows)
     (report.out / "final.md").write_text(final_md + "\n")
     report.add(
         "Learning curves and final evaluation",
-        f"![learning curves]({png.name})\n\nAt the last common evaluation step of each method "
-        f"(mean ± std over seeds; heuristics: over evaluation seeds):\n\n{final_md}",
+        f"![learning curves]({png.name})\n\n{_references_caption(references)}At the last common "
+        f"evaluation step of each method (mean ± std over seeds; heuristics: over evaluation seeds):"
+        f"\n\n{final_md}",
     )
     _report_milestones(report, groups, panels["episode reward"], order)
     q_tot = aggregate(groups, Q_TOT, [])
@@ -177,9 +208,25 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
             report.out / "q_tot.png",
             f"{report.env_name}: Q_tot (figure 8b)",
             [label for label in order if label in q_tot],
+            references,
         )
         report.add("Mean Q_tot (figure 8b)", f"![Q_tot]({png.name})")
     return panels
+
+
+def _references_caption(references: dict[str, list[Reference]]) -> str:
+    """Which heuristics the figure draws as horizontal lines, or why none (no evaluation of this map)."""
+    drawn = {
+        f"{r.label.split(' (')[0]} ({r.seeds} evaluation seeds)": None
+        for rs in references.values()
+        for r in rs
+    }
+    if not drawn:
+        return (
+            "No heuristic lines: no heuristic evaluation of this map and R_c was given "
+            "(`mcrs-eval study=heuristics env=<map>`).\n\n"
+        )
+    return f"Horizontal lines: the heuristics {', '.join(drawn)}, mean and 95 % band.\n\n"
 
 
 def _report_milestones(

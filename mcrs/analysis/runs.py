@@ -1,11 +1,13 @@
 """Finding and reading the run directories that ``mcrs-report`` turns into figures and tables.
 
-Two kinds of directory count as runs:
+Three kinds of file count as runs:
 
 - an ``mcrs-train`` run: ``config.yaml`` (the resolved config) beside ``logs/scalars/<group>/<name>.csv``
   (TorchRL's CSV logger, one ``step,value`` row per point) and ``checkpoints/``;
 - an ``mcrs-eval`` result: ``metrics.csv`` with one row per policy (map, R_c, seed, mean and std of
-  every episode metric).
+  every episode metric);
+- a record (``mcrs-campaign record``, mcrs.analysis.records): a small JSON file holding either of the
+  above, so that committed records give the same report as the run directories they came from.
 
 Anything else under the given paths is ignored; a directory that looks like a run but cannot be read is
 reported as skipped, with the reason.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import json
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,12 +64,18 @@ class Skipped:
     reason: str
 
 
+#: The marker and version of a record file (the first key of its JSON, so it is recognised cheaply).
+RECORD_FORMAT = "mcrs-record"
+RECORD_VERSION = 1
+
+
 @dataclass
 class TrainingRun:
-    """One ``mcrs-train`` run directory."""
+    """One ``mcrs-train`` run: its directory, or a record of it (``scalars`` then holds every metric)."""
 
     path: Path
     config: dict[str, Any]
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
     _cache: dict[str, tuple[np.ndarray, np.ndarray] | None] = field(default_factory=dict, repr=False)
 
     @property
@@ -93,6 +102,8 @@ class TrainingRun:
     def scalar(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
         """``(steps, values)`` of the logged metric ``name`` (``eval/episode_reward``), sorted by step;
         None when the run did not log it. A resumed run's repeated steps keep the last value."""
+        if self.scalars is not None:  # a record: what it holds is all there is
+            return self.scalars.get(name)
         if name not in self._cache:
             path = self.path / "logs" / "scalars" / f"{name}.csv"
             self._cache[name] = _read_scalar_csv(path) if path.is_file() else None
@@ -110,6 +121,7 @@ class EvaluationRow:
     seed: int
     episodes: int
     means: dict[str, float]
+    label: str | None = None  # a trained policy's label, kept by its record (the checkpoint may be gone)
 
     @property
     def is_heuristic(self) -> bool:
@@ -130,12 +142,18 @@ class Runs:
     skipped: list[Skipped] = field(default_factory=list)
 
 
-def _read_scalar_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    points: dict[int, float] = {}
+def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
+    """The ``step,value`` rows of a CSV-logger file in the order written (a resumed run repeats steps)."""
     with open(path, newline="") as f:
-        for row in csv.reader(f):
-            if len(row) == 2:
-                points[int(float(row[0]))] = float(row[1])
+        return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) == 2]
+
+
+def _read_scalar_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    return _sorted_points(read_scalar_rows(path))
+
+
+def _sorted_points(rows: list[tuple[int, float]] | list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
+    points = {int(step): float(value) for step, value in rows}  # a repeated step keeps the last value
     steps = np.array(sorted(points), dtype=np.int64)
     return steps, np.array([points[s] for s in steps], dtype=np.float64)
 
@@ -145,9 +163,11 @@ def _is_hidden(path: Path, root: Path) -> bool:
 
 
 def find_runs(paths: list[Path]) -> Runs:
-    """All training runs and evaluation results under ``paths`` (each a run or a folder of runs)."""
+    """All training runs, evaluation results and records under ``paths`` (each a run, a record or a
+    folder of them). A record of a run directory that is also given counts once (the directory)."""
     runs = Runs()
     seen: set[Path] = set()
+    records: list[tuple[Path, dict[str, Any]]] = []
     for root in paths:
         root = Path(root)
         if not root.exists():
@@ -156,6 +176,7 @@ def find_runs(paths: list[Path]) -> Runs:
         candidates = [root / "config.yaml", root / "metrics.csv"] if root.is_dir() else [root]
         if root.is_dir():
             candidates += sorted(root.rglob("config.yaml")) + sorted(root.rglob("metrics.csv"))
+            candidates += sorted(root.rglob("*.json"))
         for file in candidates:
             if not file.is_file() or file in seen or (root.is_dir() and _is_hidden(file, root)):
                 continue
@@ -164,7 +185,60 @@ def find_runs(paths: list[Path]) -> Runs:
                 _add_training_run(file.parent, runs)
             elif file.name == "metrics.csv":
                 _add_evaluation(file, runs)
+            elif file.suffix == ".json" and (record := read_record(file, runs.skipped)) is not None:
+                records.append((file, record))
+    directories = {r.path.resolve() for r in runs.training} | {e.path.resolve() for e in runs.evaluations}
+    for file, record in records:
+        if Path(record.get("run_dir", "")).resolve() in directories:
+            runs.skipped.append(Skipped(file, f"a record of {record['run_dir']}, which is read itself"))
+        else:
+            _add_record(file, record, runs)
     return runs
+
+
+def read_record(path: Path, skipped: list[Skipped] | None = None) -> dict[str, Any] | None:
+    """The record in ``path``; None for a JSON file that is not a record (an unreadable record, or one
+    of another version, is added to ``skipped`` with the reason)."""
+    with open(path, "rb") as f:
+        if RECORD_FORMAT.encode() not in f.read(200):
+            return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        if skipped is not None:
+            skipped.append(Skipped(path, f"record cannot be read ({type(error).__name__})"))
+        return None
+    if not isinstance(record, dict) or record.get("format") != RECORD_FORMAT:
+        return None
+    if record.get("version") != RECORD_VERSION:
+        if skipped is not None:
+            skipped.append(
+                Skipped(path, f"record version {record.get('version')}; this mcrs reads {RECORD_VERSION}")
+            )
+        return None
+    return record
+
+
+def _add_record(path: Path, record: dict[str, Any], runs: Runs) -> None:
+    if record.get("kind") == "training":
+        scalars = {name: _sorted_points(rows) for name, rows in record["scalars"].items()}
+        runs.training.append(TrainingRun(path, record["config"], scalars=scalars))
+    elif record.get("kind") == "evaluation":
+        for row in record["rows"]:
+            runs.evaluations.append(
+                EvaluationRow(
+                    path,
+                    row["policy"],
+                    row["env"],
+                    float(row["comm_range"]),
+                    int(row["seed"]),
+                    int(row["episodes"]),
+                    {k: float(v) for k, v in row["means"].items()},
+                    row.get("label"),
+                )
+            )
+    else:
+        runs.skipped.append(Skipped(path, f"record of unknown kind {record.get('kind')!r}"))
 
 
 def _add_training_run(run_dir: Path, runs: Runs) -> None:

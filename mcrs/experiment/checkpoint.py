@@ -98,3 +98,35 @@ def _unreadable_reason(error: Exception) -> str:
 
 def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:
     return Path(run_dir) / "checkpoints" / name
+
+
+#: Where a checkpoint keeps the bulk that only resuming needs: the replay buffer and the episodic memory's
+#: entries (the memory's embedding weights stay). Dotted paths into ``last.pt``; one place to change when
+#: the layout does (e.g. a replay kept in separate files).
+BULK = ("replay", "episodic.memory")
+
+
+def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
+    """Drop the replay and the episodic memory's entries from ``run_dir``'s ``last.pt``, atomically.
+
+    A finished run keeps its weights, optimiser, counters and logs; it can no longer be resumed. Returns
+    the file's size in bytes before and after (equal when there was nothing to drop).
+    """
+    path = checkpoint_path(run_dir)
+    before = path.stat().st_size if path.is_file() else 0
+    state = load(path, mmap=True)  # the bulk is mapped, never read into memory
+    dropped = []
+    for dotted in BULK:
+        *parents, last = dotted.split(".")
+        node = state
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict) and last in node:
+            del node[last]
+            dropped.append(dotted)
+    if not dropped:
+        return before, before
+    state["pruned"] = {"dropped": dropped, "bytes_before": before}
+    state = {k: v for k, v in state.items() if k not in ("format", "version")}
+    save_atomic(state, path)
+    return before, path.stat().st_size

@@ -1,0 +1,238 @@
+"""mcrs-campaign: the section-6 matrix, status from the disk, and real smoke runs resumed, recorded and
+stopped by a signal."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from mcrs.analysis.records import write_record
+from mcrs.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
+from mcrs.campaign.cli import main as campaign_main
+from mcrs.campaign.matrix import MatrixError, load_matrix, select
+from mcrs.experiment import checkpoint as ckpt
+from tests.test_report import read_csv
+from tests.train_helpers import compose_config
+
+TWO_POINTS = """
+budget: smoke
+seeds: [0]
+figures:
+  figa:
+    experiment: comm_range
+    env: [map10]
+    algo: [qmix]
+    sweep: {env.comm_range: [0, 2]}
+"""
+
+
+def test_section6_matrix_and_its_shared_points() -> None:
+    points, titles = load_matrix()
+    assert list(titles) == ["fig7", "table4", "fig5", "fig10", "fig6"]
+    assert len(points) == 21 + 9 + 30 + 15 + 9 and len({p.id for p in points}) == len(points)
+    assert all(p.budget == "campaign" for p in points)
+    fig7 = select(points, ["fig7"])
+    assert sorted({p.algo for p in fig7}) == sorted(
+        ["qmix", "vdn", "qplex", "emc", "emu", "semu", "cnn_semu"]
+    )
+    assert {p.env for p in fig7} == {"map20"} and {p.seed for p in fig7} == {0, 1, 2}
+    table4 = select(points, ["table4"])
+    deltas = {(p.algo, dict(p.settings).get("algo.memory.delta")) for p in table4}
+    assert deltas == {(a, d) for a in ("emc", "semu", "cnn_semu") for d in (None, 0.13)}
+    fig5 = select(points, ["fig5"])
+    assert [dict(p.settings).get("env.comm_range", "fig7") for p in fig5 if p.seed == 0] == [
+        "fig7",  # figure 7's QMIX at map20's default R_c
+        *range(5),
+        *range(6, 11),
+    ]
+    # the runs shared with figure 7 really are the missing values: the defaults on map20
+    for algo in ("emc", "semu", "cnn_semu"):
+        assert compose_config(f"algo={algo}", "env=map20", tiny=False).algo.memory.delta == pytest.approx(
+            1.3e-3
+        )
+    assert compose_config("env=map20", tiny=False).env.comm_range == 5.0
+    assert {dict(p.settings)["algo.memory_weight"] for p in select(points, ["fig10"])} == {
+        0.01,
+        0.05,
+        0.1,
+        0.5,
+        1.0,
+    }
+    assert [p.id for p in select(points, ["fig6", "seed0"])] == [
+        "baselines/map15_qmix_seed0",
+        "baselines/map15_qplex_seed0",
+        "baselines/map15_cnn_semu_seed0",
+    ]
+    (emu,) = select(points, ["emu", "seed0"])
+    assert emu.overrides == ("algo.incentive_threshold=305",)
+
+
+def test_bad_filters_and_files_are_one_line_errors(tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit, match=r"--only=fig9: unknown fig9; allowed: baselines, cnn_semu"):
+        campaign_main(["status", "--only", "fig9"])
+    with pytest.raises(SystemExit, match=r"--matrix=.*nope.yaml: no such file"):
+        campaign_main(["status", "--matrix", str(tmp_path / "nope.yaml")])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(TWO_POINTS.replace("env.comm_range", "algo.memory.delta"))
+    with pytest.raises(
+        SystemExit, match=r"sweep \['algo.memory.delta'\] is not swept by experiment=comm_range"
+    ):
+        campaign_main(["status", "--matrix", str(bad)])
+    with pytest.raises(SystemExit, match="--jobs=0: must be >= 1"):
+        campaign_main(["run", "--hours", "1", "--jobs", "0"])
+    with pytest.raises(MatrixError, match="budget='huge': allowed values are campaign, cpu, paper, smoke"):
+        bad.write_text(TWO_POINTS.replace("budget: smoke", "budget: huge"))
+        load_matrix(bad)
+
+
+def _fake_run(run_dir: Path, env_steps: int) -> None:
+    """A run directory whose last.pt says how far it got (all that status reads)."""
+    ckpt.save_atomic({"counters": {"env_steps": env_steps}, "config": {}}, ckpt.checkpoint_path(run_dir))
+
+
+def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("[0, 2]", "[0, 1, 2, 3]"))
+    points, _ = load_matrix(matrix)
+    outputs, records = tmp_path / "out", tmp_path / "rec"
+    done, unrecorded, partial, missing = points
+    _fake_run(done.run_dir(outputs), 200)
+    record = {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x"}
+    write_record(done.record_path(records), {**record, "status": "finished", "checkpoint_env_steps": 200})
+    _fake_run(unrecorded.run_dir(outputs), 200)
+    _fake_run(partial.run_dir(outputs), 100)
+    write_record(missing.record_path(records), {**record, "status": "stopped", "checkpoint_env_steps": 50})
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["status", *args]) == 0
+    out = capsys.readouterr().out
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in out.splitlines() if "map10_qmix" in line]
+    table = {row[0]: row[2:] for row in rows}  # point -> state, env steps, where
+    assert table[done.id] == ["done", "200", "record of x"]
+    assert table[unrecorded.id] == ["unrecorded", "200", str(unrecorded.run_dir(outputs))]
+    assert table[partial.id] == ["partial", "100", str(partial.run_dir(outputs))]
+    assert table[missing.id] == ["missing", "0", "a stopped record at 50 steps of x"]
+    assert "4 points (200 env steps each): 1 done, 1 unrecorded, 1 partial, 1 missing" in out
+    assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[0] == f"record {unrecorded.run_dir(outputs)}"
+    assert plan[1].startswith(f"resume {partial.id} (at 100 env steps, estimated unknown): ")
+    assert f"resume={partial.run_dir(outputs)} train.total_env_steps=200 threads=1" in plan[1]
+    assert plan[2].startswith(f"start {missing.id} ")
+    assert (
+        "experiment=comm_range budget=smoke env=map10 algo=qmix env.comm_range=3 seed=0 threads=1" in plan[2]
+    )
+    assert f"hydra.run.dir={missing.run_dir(outputs)}" in plan[2]
+    assert plan[3] == "2 runs, 2 at a time, no new start after 1 h"
+
+
+def test_run_resumes_a_partial_point_first_and_records_every_run(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS)
+    missing, partial = load_matrix(matrix)[0]  # the file's order puts the missing one first
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    # the partial point: its own command, stopped at 100 of the budget's 200 env steps
+    half = subprocess.run(
+        [*partial.train_command(outputs), "train.total_env_steps=100"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert half.returncode == 0, half.stderr[-2000:]
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.index(f"resumed {partial.id}") < out.index(f"started {missing.id}")
+    for point in (partial, missing):
+        record = read_record(point.record_path(records))
+        assert (record["status"], record["checkpoint_env_steps"]) == ("finished", 200)
+        (session,) = record["sessions"]
+        assert session["returncode"] == 0 and not session["stopped_by_campaign"]
+        assert session["machine"]["cpu_count"] >= 1 and len(session["git"]["commit"]) == 40
+        assert "replay" not in ckpt.load(ckpt.checkpoint_path(point.run_dir(outputs)))  # pruned
+    resumed = read_record(partial.record_path(records))
+    assert resumed["sessions"][0]["command"][3].startswith("resume=")
+    assert [s for s, _ in resumed["scalars"]["eval/episode_reward"]] == [0, 100, 200]  # one run, continued
+    assert (partial.run_dir(outputs) / "checkpoints" / "model_000000100.pt").is_file()
+    assert campaign_main(["status", *args]) == 0
+    assert "2 points (200 env steps each): 2 done" in capsys.readouterr().out
+    assert campaign_main(["run", *args, "--hours", "1"]) == 0  # nothing left: nothing starts
+    assert "campaign: 0 runs ended, 0 not started" in capsys.readouterr().out
+    assert campaign_main(["report", *args, "--out", str(tmp_path / "report")]) == 0
+    methods = [r["method"] for r in read_csv(tmp_path / "report" / "final.csv")]
+    assert methods == ["qmix R_c=0", "qmix R_c=2"]
+
+
+def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    fast = "[train.num_envs=2, train.batch_episodes=2, train.replay_episodes=8, train.eval_episodes=2, train.eval_interval=100, train.checkpoint_interval=100, env.max_steps=10]"
+    matrix.write_text(
+        TWO_POINTS.replace("budget: smoke", "budget: cpu").replace("[0, 2]", "[0]")
+        + f"overrides:\n  qmix: {fast}\n"
+    )
+    (point,), _ = load_matrix(matrix)
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    campaign = subprocess.Popen(
+        [sys.executable, "-m", "mcrs.campaign.cli", "run", *args, "--hours", "1"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    last = ckpt.checkpoint_path(point.run_dir(outputs))
+    deadline = time.time() + 240
+    while not last.is_file() and time.time() < deadline and campaign.poll() is None:
+        time.sleep(0.5)
+    assert last.is_file(), "the child never wrote a checkpoint"
+    campaign.send_signal(signal.SIGTERM)
+    out, _ = campaign.communicate(timeout=200)
+    assert campaign.returncode == 128 + signal.SIGTERM, out
+    assert "SIGTERM: stopping the running children" in out
+    record = read_record(point.record_path(records))
+    assert record["status"] == "stopped" and 100 <= record["checkpoint_env_steps"] < 200_000
+    (session,) = [
+        json.loads(line) for line in (point.run_dir(outputs) / "campaign.jsonl").read_text().splitlines()
+    ]
+    assert session["stopped_by_campaign"] and session["returncode"] != 0
+    assert "replay" in ckpt.load(last)  # a stopped run is not pruned: it resumes next time
+    with pytest.raises(ProcessLookupError):  # the child (its own process group) is gone
+        os.killpg(int(out.split("(pid ")[1].split(")")[0]), 0)
+    assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
+    listing = capsys.readouterr().out
+    assert listing.startswith(f"resume {point.id} (at {record['checkpoint_env_steps']} env steps, estimated ")
+
+
+def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS)
+    first, second = load_matrix(matrix)[0]
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    earlier = {
+        "format": RECORD_FORMAT,
+        "version": RECORD_VERSION,
+        "kind": "training",
+        "run_dir": "x",
+        "status": "finished",
+        "checkpoint_env_steps": 100,  # 100 env steps in an hour: a 200-step point needs two
+        "sessions": [{"wall_s": 3600.0}],
+        "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}},
+    }
+    write_record(records / "comm_range" / "smoke" / "earlier.json", earlier)
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
+    out = capsys.readouterr().out
+    for point in (first, second):
+        assert f"not started: {point.id} needs about 2.00 h, 1.50 h left" in out
+        assert not point.run_dir(outputs).exists()
+    assert "campaign: 0 runs ended, 2 not started (time budget)" in out
+    with open(outputs / ".campaign.lock", "a+") as lock:  # a campaign already running here
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(SystemExit, match="another mcrs-campaign run uses"):
+            campaign_main(["run", *args, "--hours", "3"])
