@@ -184,7 +184,20 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.device=tpu", "device='tpu': is not a torch device"),
     ("env.device=cuda:7", "device='cuda:7'"),
     ("+env.widht=3", "unknown environment field(s) ['widht']"),
-]
+    # Values that passed the per-field rules and crashed later (issue 14, list 4): refused up front, the
+    # sizes by an estimate of the memory the run needs (mcrs/experiment/resources.py).
+    ("algo=cnn_semu|algo.memory.capacity=3000000000", "algo.memory.capacity=3000000000: must be <= 2**31 - 1"),
+    ("algo=cnn_semu|algo.memory.embedding_batch=200000",
+     "algo.memory.embedding_batch=200000 > algo.memory.embedding_samples=102400"),
+    ("train.num_envs=100000000", "train.num_envs=100000000 x env.max_steps=10: the run would need about"),
+    ("train.eval_episodes=100000000", "train.eval_episodes=100000000 x env.max_steps=10: the run would need"),
+    ("algo.mixing_embed_dim=100000000", "algo.mixing_embed_dim=100000000, algo.hypernet_embed=16: the run would"),
+    ("env.max_steps=100000000", "train.replay_episodes=20 x env.max_steps=100000000: the run would need"),
+    ("train.replay_episodes=100000000", "train.replay_episodes=100000000 x env.max_steps=10: the run would"),
+    ("algo=cnn_semu|env.max_steps=40000", "env.max_steps=40000: the episodic memory stores steps as int16"),
+    ("threads=100000", "threads=100000: this machine has"),
+    ("device=mps", "device='mps': MPS (Apple GPU) is not available on this machine"),
+]  # fmt: skip
 
 #: Overrides Hydra refuses while composing: wrong types for the typed schema.
 WRONG_TYPES = [
@@ -215,6 +228,7 @@ WRONG_TYPES = [
     "seed=x",
     "seed=1.5",
     "threads=all",
+    "overwrite=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.
