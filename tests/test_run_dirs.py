@@ -216,6 +216,31 @@ def test_cli_refuses_a_foreign_checkpoint_in_one_line(qmix_run: Path, tmp_path: 
     assert _csv_logs(run_dir) == before  # nothing was trained on from the foreign state
 
 
+# ------------------------------------------------------------------------------ logs after a resume
+def test_a_resumed_run_logs_every_row_once_and_checkpoints_where_a_straight_run_does(tmp_path: Path) -> None:
+    """Killed after logging step 120 but before its checkpoint (last.pt at 80): the resumed run's logs and
+    checkpoints are the straight run's, row for row (wall-clock timings aside)."""
+    common = ["train.checkpoint_interval=80", "train.eval_interval=40"]
+    straight = tmp_path / "straight"
+    Trainer(compose_config("train.total_env_steps=200", *common), straight).train()
+
+    run_dir = tmp_path / "run"
+    Trainer(compose_config("train.total_env_steps=80", *common), run_dir).train()
+    at_80 = ckpt.checkpoint_path(run_dir).read_bytes()
+    _resume(run_dir, "train.total_env_steps=120").train()  # logs rows at 120 ...
+    ckpt.checkpoint_path(run_dir).write_bytes(at_80)  # ... then dies before checkpointing them
+    (run_dir / "checkpoints" / "model_000000120.pt").unlink()
+    assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120]
+
+    _resume(run_dir, "train.total_env_steps=200").train()
+    assert _csv_logs(run_dir) == _csv_logs(straight)
+    assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120, 160, 200]
+    assert [int(float(r[0])) for r in _rows(run_dir, "eval/episode_reward")] == [0, 40, 80, 120, 160, 200]
+    names = sorted(p.name for p in (straight / "checkpoints").iterdir())
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == names  # no extra checkpoint
+    assert names == ["last.pt", "model_000000080.pt", "model_000000160.pt", "model_000000200.pt"]
+
+
 # ------------------------------------------------------------------------------ fresh runs
 def test_a_fresh_run_refuses_a_non_empty_directory_unless_told_to_overwrite(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"

@@ -234,9 +234,13 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
     _positive(errors, "threads", cfg.threads, allow_zero=True)
-    if not errors:  # sizes are sane: estimate the memory the run needs, check the machine has it
-        from mcrs.experiment.resources import resource_errors
+    from mcrs.experiment.resources import cpu_count, resource_errors
 
+    if cfg.threads > cpu_count():
+        errors.append(
+            f"threads={cfg.threads}: this machine has {cpu_count()} CPU cores: use 0 (torch's default) to {cpu_count()}"
+        )
+    if not errors:  # sizes are sane: estimate the memory the run needs, check the machine has it
         env_config = from_mapping(cfg.env).replace(num_envs=t.num_envs)
         errors += resource_errors(cfg, env_config)
     return errors

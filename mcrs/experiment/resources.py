@@ -53,7 +53,7 @@ def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
     """Bytes of one entry of the episodic memory D_E (mcrs.memory.episodic): compact counts (2 bytes a
     cell), positions, the key, the return, the step, flags, EMU's counters and the index records."""
     positions = env.n_uavs + env.n_no_fly + env.n_targets
-    return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 9 + 64
+    return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 9 + 24
 
 
 def network_bytes(cfg: DictConfig, env: EnvConfig) -> tuple[int, str]:

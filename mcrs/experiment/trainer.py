@@ -336,6 +336,8 @@ class Trainer:
                 progress.update(batch.numel())
                 progress.set_postfix(self._postfix(), refresh=False)
             self._evaluate(timer)
+            if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
+                c.next_eval += t.eval_interval
             if train_stats:  # batches since the last row (none: that row is already at this step)
                 self._log_train(train_stats, timer)
             self.save()
