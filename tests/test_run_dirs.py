@@ -204,6 +204,25 @@ def test_the_networks_are_part_of_the_fingerprint(qmix_run: Path, tmp_path: Path
     _resume(qmix_run).close()  # its own checkpoint is accepted
 
 
+def test_first_difference_skips_schema_changes_but_not_network_changes() -> None:
+    from mcrs.experiment.rundir import first_difference
+
+    run = {"format.version": 1, "algo.name": "qmix", "algo.new_field": 3, "networks.agent.w": [4, 2]}
+    assert (
+        first_difference({"format.version": 1, "algo.name": "qmix", "networks.agent.w": [4, 2]}, run) is None
+    )
+    assert (
+        first_difference({"algo.name": "qmix", "algo.old_field": 1, "networks.agent.w": [4, 2]}, run) is None
+    )
+    assert (
+        first_difference({"algo.name": "qmix"}, run)
+        == "networks.agent.w: '<missing>' in the checkpoint, [4, 2] in this run"
+    )
+    assert first_difference({"algo.name": "vdn", "networks.agent.w": [4, 2]}, run).startswith(
+        "algo.name: 'vdn'"
+    )
+
+
 def test_cli_refuses_a_foreign_checkpoint_in_one_line(qmix_run: Path, tmp_path: Path) -> None:
     foreign = tmp_path / "foreign"
     Trainer(compose_config("algo=cnn_semu", *TINY_MEMORY, "train.total_env_steps=40"), foreign).train()

@@ -215,8 +215,14 @@ def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def first_difference(saved: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
     """``"algo.name: 'cnn_semu' in the checkpoint, 'qmix' in this run"`` for the first field that
-    differs (in ``current``'s order, then fields only the checkpoint has), or None when they match."""
+    differs (in ``current``'s order, then fields only the checkpoint has), or None when they match.
+
+    A config field on one side only is a field added to (or dropped from) the schema since the checkpoint
+    was written, not another run: it is skipped. A network tensor on one side only is a difference.
+    """
     for key in [*current, *(k for k in saved if k not in current)]:
+        if (key not in saved or key not in current) and not key.startswith("networks."):
+            continue
         theirs, ours = saved.get(key, "<missing>"), current.get(key, "<missing>")
         if theirs != ours:
             return f"{key}: {theirs!r} in the checkpoint, {ours!r} in this run"
