@@ -11,14 +11,19 @@ Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the res
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 import hydra
+import yaml
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import Config, ConfigError, register_configs
+from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, remove_if_unused
 
 CONFIG_DIR = str(Path(__file__).parent / "conf")
 #: Fields a resumed run may change (how long, how it reports); everything else must match the run.
@@ -26,6 +31,7 @@ RESUME_MUTABLE = (
     "train.total_env_steps",
     "logger",
     "resume",
+    "overwrite",
     "threads",
     "train.eval_interval",
     "train.checkpoint_interval",
@@ -61,7 +67,7 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
         raise ConfigError(
             f"resume={cfg.resume}: not an mcrs-train run directory (needs config.yaml and checkpoints/{ckpt.LAST})"
         )
-    saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
+    saved = _read_run_config(saved_path)
     current = OmegaConf.to_container(cfg, resolve=True)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     conflicts = []
@@ -74,12 +80,62 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
         raise ConfigError(
             f"resume={cfg.resume}: the command contradicts the run's config:\n  - " + "\n  - ".join(conflicts)
         )
-    merged = OmegaConf.merge(OmegaConf.structured(Config), saved)
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(Config), saved)
+    except OmegaConfBaseException as error:  # an unknown key or a wrong type in the run's config.yaml
+        raise ConfigError(
+            f"resume: {saved_path} does not fit this mcrs's config: {_first_line(error)}"
+        ) from None
     for key in explicit:  # exactly what the command line set, e.g. logger.progress_bar, not all of logger
         if _is_mutable(key) and key != "resume":
             OmegaConf.update(merged, key, OmegaConf.select(cfg, key), merge=False)
     merged.resume = str(run_dir)
     return merged, run_dir
+
+
+def _first_line(error: BaseException) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+def _read_run_config(path: Path) -> dict[str, Any]:
+    """A run's ``config.yaml`` through OmegaConf's safe YAML loader (a ``!!python`` tag is refused,
+    never run); anything unreadable is one :class:`ConfigError` line naming the file."""
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except OSError as error:
+        raise ConfigError(f"resume: cannot read {path}: {describe_os_error(error)}") from None
+    except yaml.constructor.ConstructorError as error:
+        tag = f" ({error.problem})" if error.problem else ""
+        raise ConfigError(f"resume: {path} is not plain YAML data{tag}: refused without running it") from None
+    except (yaml.YAMLError, OmegaConfBaseException, UnicodeDecodeError) as error:
+        raise ConfigError(f"resume: {path} is not a valid config: {_first_line(error)}") from None
+    if not isinstance(saved, dict):
+        raise ConfigError(f"resume: {path} is not a valid config: expected a mapping of fields")
+    return saved
+
+
+class RunDirCheck(Callback):
+    """A Hydra callback (``hydra.callbacks`` in conf/config.yaml): before Hydra creates the run (or sweep)
+    directory, check that it can be written, so that a read-only or impossible path is one line, not
+    Hydra's traceback."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _check_writable(Path(str(config.hydra.run.dir)))
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _check_writable(Path(str(config.hydra.sweep.dir)))
+
+
+def _check_writable(directory: Path) -> None:
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".mcrs-write-test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        raise SystemExit(
+            f"mcrs-train: error: cannot write the run directory {directory}: {describe_os_error(error)}"
+        ) from None
 
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
@@ -102,6 +158,7 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
 
 
 register_configs()
+register_resolvers()
 
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
@@ -113,11 +170,16 @@ def main(cfg: DictConfig) -> float:
     from mcrs.experiment.trainer import TrainingDiverged
 
     hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
     try:
-        result = run(cfg, Path(hydra_cfg.runtime.output_dir), list(hydra_cfg.overrides.task))
-    except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed) as error:
+        result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
+    except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed, RunDirError) as error:
+        if cfg.resume is not None or isinstance(error, ConfigError):
+            remove_if_unused(run_dir)  # the directory Hydra made for a run that never started
         # one clear message (with the cause), no traceback
         raise SystemExit(f"mcrs-train: error: {error}") from None
+    except OSError as error:  # an I/O failure outside the checkpoint writes (which say what is intact)
+        raise SystemExit(f"mcrs-train: error: {describe_os_error(error)}") from None
     return float(result.get("episode_reward", float("nan")))
 
 

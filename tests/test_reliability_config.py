@@ -188,7 +188,20 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.device=tpu", "device='tpu': is not a torch device"),
     ("env.device=cuda:7", "device='cuda:7'"),
     ("+env.widht=3", "unknown environment field(s) ['widht']"),
-]
+    # Values that passed the per-field rules and crashed later (issue 14, list 4): refused up front, the
+    # sizes by an estimate of the memory the run needs (mcrs/experiment/resources.py).
+    ("algo=cnn_semu|algo.memory.capacity=3000000000", "algo.memory.capacity=3000000000: must be <= 2**31 - 1"),
+    ("algo=cnn_semu|algo.memory.embedding_batch=200000",
+     "algo.memory.embedding_batch=200000 > algo.memory.embedding_samples=102400"),
+    ("train.num_envs=100000000", "train.num_envs=100000000 x env.max_steps=10: the run would need about"),
+    ("train.eval_episodes=100000000", "train.eval_episodes=100000000 x env.max_steps=10: the run would need"),
+    ("algo.mixing_embed_dim=100000000", "algo.mixing_embed_dim=100000000, algo.hypernet_embed=16: the run would"),
+    ("env.max_steps=100000000", "x env.max_steps=100000000: the run would need about"),
+    ("train.replay_episodes=100000000", "train.replay_episodes=100000000 x env.max_steps=10: the run would"),
+    ("algo=cnn_semu|env.max_steps=40000", "env.max_steps=40000: the episodic memory stores steps as int16"),
+    ("threads=100000", "threads=100000: this machine has"),
+    ("device=mps", "device='mps': MPS (Apple GPU) is not available on this machine"),
+]  # fmt: skip
 
 #: Overrides Hydra refuses while composing: wrong types for the typed schema.
 WRONG_TYPES = [
@@ -220,6 +233,7 @@ WRONG_TYPES = [
     "seed=x",
     "seed=1.5",
     "threads=all",
+    "overwrite=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.
@@ -334,3 +348,47 @@ def test_count_of_bad_inputs(capsys: pytest.CaptureFixture) -> None:
             f"({len(BAD_VALUES)} values, {len(WRONG_TYPES)} wrong types, {len(UNKNOWN_KEYS)} unknown keys)"
         )
     assert total >= 150
+
+
+def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:
+    """Issue 14's list 4 through ``mcrs-train``: refused before anything runs (no run directory is left),
+    each field named, no traceback. The commands run at once: they only wait for their imports."""
+    import os
+    import subprocess
+    import sys
+
+    commands = {
+        (
+            "device=mps",
+            "threads=100000",
+            "algo.memory.capacity=3000000000",
+            "algo.memory.embedding_batch=200000",
+        ): [
+            "device='mps': MPS (Apple GPU) is not available",
+            "threads=100000: this machine has",
+            "algo.memory.capacity=3000000000: must be <= 2**31 - 1",
+            "algo.memory.embedding_batch=200000 > algo.memory.embedding_samples=102400",
+        ],
+        ("train.num_envs=100000000",): [
+            "train.num_envs=100000000 x env.max_steps=50: the run would need about"
+        ],
+        ("algo=qmix", "env.max_steps=100000000"): ["train.replay_episodes=5000 x env.max_steps=100000000"],
+    }
+    procs = {
+        args: subprocess.Popen(
+            [sys.executable, "-m", "mcrs.train", *args],
+            cwd=tmp_path,
+            env={**os.environ, "HYDRA_FULL_ERROR": "0"},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for args in commands
+    }
+    for args, proc in procs.items():
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode != 0 and "Traceback" not in err, err
+        assert err.startswith("mcrs-train: error: invalid config:"), err
+        for expected in commands[args]:
+            assert expected in err, err
+    assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_dir() and p.name.endswith("_seed0")]

@@ -50,6 +50,17 @@ def _pickled_callable(path: Path, marker: Path) -> None:
     torch.save({"format": ckpt.FORMAT, "version": ckpt.VERSION, "payload": _TouchOnLoad(marker)}, path)
 
 
+def _blocked_module_global(path: Path, marker: Path) -> None:
+    """A callable from a module torch's safe loader blocks (os.system): torch's own text advises loading
+    with weights_only=False; our error must not."""
+    torch.save({"format": ckpt.FORMAT, "version": ckpt.VERSION, "payload": _System()}, path)
+
+
+class _System:
+    def __reduce__(self):
+        return (os.system, ("true",))
+
+
 def _truncated(good: Path) -> Callable[[Path, Path], None]:
     def write(path: Path, marker: Path) -> None:
         data = good.read_bytes()
@@ -81,6 +92,10 @@ def _bad_files(good: Path) -> dict[str, tuple[Callable[[Path, Path], None], str]
             _pickled_callable,
             r"needs code to load \(Unsupported global: .*\); refused without",
         ),
+        "blocked_module_global": (
+            _blocked_module_global,
+            r"needs code to load \(posix\.system, from the blocked module posix\); refused without running it$",
+        ),
         "truncated": (_truncated(good), "it is truncated or corrupt"),
         "random_bytes": (_random_bytes, "it is corrupt or not a torch file"),
         "foreign_state_dict": (_foreign_state_dict, "is not an mcrs checkpoint"),
@@ -89,7 +104,15 @@ def _bad_files(good: Path) -> dict[str, tuple[Callable[[Path, Path], None], str]
     }
 
 
-BAD = ["pickled_callable", "truncated", "random_bytes", "foreign_state_dict", "empty", "future_version"]
+BAD = [
+    "pickled_callable",
+    "blocked_module_global",
+    "truncated",
+    "random_bytes",
+    "foreign_state_dict",
+    "empty",
+    "future_version",
+]
 
 
 @pytest.mark.parametrize("kind", BAD)
@@ -101,6 +124,7 @@ def test_load_refuses_bad_file_without_running_code(kind: str, good_run: Path, t
     with pytest.raises(ckpt.CheckpointError, match=reason) as info:
         ckpt.load(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+    assert "weights_only" not in str(info.value)  # never advice to load unsafely
     assert not marker.exists(), "loading the checkpoint ran code"
 
 

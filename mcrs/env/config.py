@@ -169,6 +169,8 @@ def _device_problem(device: Any) -> str | None:
             return "CUDA is not available on this machine: use 'cpu'"
         if parsed.index is not None and parsed.index >= torch.cuda.device_count():
             return f"there are {torch.cuda.device_count()} CUDA device(s): use cuda:0..cuda:{torch.cuda.device_count() - 1}"
+    elif parsed.type == "mps" and not torch.backends.mps.is_available():
+        return "MPS (Apple GPU) is not available on this machine: use 'cpu'"
     elif parsed.type not in ("cpu", "mps"):
         return f"device type {parsed.type!r} is not supported: use {allowed}"
     return None

@@ -31,7 +31,13 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
-            torch.save({"format": FORMAT, "version": VERSION, **payload}, handle)
+            writer = _Writer(handle)
+            try:
+                torch.save({"format": FORMAT, "version": VERSION, **payload}, writer)
+            except RuntimeError:  # torch reports a failed write as "unexpected pos": give the OS's reason
+                if writer.error is not None:
+                    raise writer.error from None
+                raise
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
@@ -44,6 +50,24 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+class _Writer:
+    """A file for ``torch.save`` that keeps the ``OSError`` of a failed write (disk full, file too
+    large), which torch turns into a ``RuntimeError`` without the reason."""
+
+    def __init__(self, handle: Any) -> None:
+        self.handle, self.error = handle, None
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self.handle.write(data)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def flush(self) -> None:
+        self.handle.flush()
 
 
 def remove_stale_temporaries(directory: str | Path) -> list[Path]:
@@ -84,6 +108,9 @@ def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool 
 def _unreadable_reason(error: Exception) -> str:
     """One line on why ``torch.load(weights_only=True)`` refused a file (torch's own text is a page long)."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(error))
+    blocked = re.search(r"unsupported GLOBAL (\S+) whose module (\S+) is blocked", text)
+    if blocked:  # torch's text advises weights_only=False: we never load a checkpoint that way
+        return f"it needs code to load ({blocked.group(1)}, from the blocked module {blocked.group(2)}); refused without running it"
     if "WeightsUnpickler error:" in text:
         detail = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
         detail = detail.split(" was not an allowed global")[0].strip()
@@ -92,8 +119,9 @@ def _unreadable_reason(error: Exception) -> str:
         return f"it is corrupt or not a torch file ({detail})"
     if "PytorchStreamReader" in text:
         return f"it is truncated or corrupt ({text.split('.')[0]})"
-    first = text.strip().splitlines()[0] if text.strip() else "no detail"
-    return f"{type(error).__name__}: {first}"
+    # the first line that is not torch's advice to load unsafely
+    lines = [line for line in text.strip().splitlines() if line.strip() and "weights_only" not in line]
+    return f"{type(error).__name__}: {lines[0] if lines else 'it cannot be loaded with weights_only=True'}"
 
 
 def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:

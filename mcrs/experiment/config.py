@@ -26,6 +26,8 @@ WANDB_MODES = ("offline", "online")
 MODELS = ("gru",)
 COLLECTORS = ("single", "multiprocess")
 MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
+MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
+MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
 
 
 class ConfigError(ValueError):
@@ -149,6 +151,7 @@ class Config:
     device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ...
     threads: int = 0  # torch CPU threads; 0 keeps torch's default
     resume: str | None = None  # a run directory to continue
+    overwrite: bool = False  # a fresh run may replace the previous run in a non-empty hydra.run.dir
 
 
 def register_configs() -> None:
@@ -240,6 +243,15 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
     _positive(errors, "threads", cfg.threads, allow_zero=True)
+    from mcrs.experiment.resources import cpu_count, resource_errors
+
+    if cfg.threads > cpu_count():
+        errors.append(
+            f"threads={cfg.threads}: this machine has {cpu_count()} CPU cores: use 0 (torch's default) to {cpu_count()}"
+        )
+    if not errors:  # sizes are sane: estimate the memory the run needs, check the machine has it
+        env_config = from_mapping(cfg.env).replace(num_envs=t.num_envs)
+        errors += resource_errors(cfg, env_config)
     return errors
 
 
@@ -268,6 +280,8 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
         errors.append(f"algo.memory.delta={mem.delta}: must be > 0")
     if mem.capacity < 1:
         errors.append(f"algo.memory.capacity={mem.capacity}: must be >= 1 entry")
+    elif mem.capacity > MAX_MEMORY_CAPACITY:
+        errors.append(f"algo.memory.capacity={mem.capacity}: must be <= 2**31 - 1 entries (int32 slots)")
     for name in ("key_dim", "hidden_dim", "embedding_interval", "embedding_samples", "embedding_batch"):
         _positive(errors, f"algo.memory.{name}", getattr(mem, name))
     _positive(errors, "algo.memory.embedding_lr", mem.embedding_lr)
@@ -278,6 +292,16 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
         )
     if len(mem.cnn_channels) != 3 or any(c < 1 for c in mem.cnn_channels):
         errors.append(f"algo.memory.cnn_channels={list(mem.cnn_channels)}: must be 3 positive channel counts")
+    if mem.embedding_batch > mem.embedding_samples > 0:
+        errors.append(
+            f"algo.memory.embedding_batch={mem.embedding_batch} > algo.memory.embedding_samples="
+            f"{mem.embedding_samples}: each training of the embedding draws its batches from the samples"
+        )
+    max_steps = cfg.env.get("max_steps", 0)
+    if mem.enabled and isinstance(max_steps, int) and max_steps >= MAX_STEPS_LIMIT:
+        errors.append(
+            f"env.max_steps={max_steps}: the episodic memory stores steps as int16: at most {MAX_STEPS_LIMIT - 1}"
+        )
     if mem.enabled and mem.key_dim > 8:
         errors.append(
             f"algo.memory.key_dim={mem.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"

@@ -41,6 +41,16 @@ from mcrs.experiment.replay import (
     make_episode_buffer,
     replay_state_dict,
 )
+from mcrs.experiment.rundir import (
+    RunDirError,
+    RunLock,
+    describe_os_error,
+    fingerprint,
+    first_difference,
+    io_errors,
+    prepare_fresh,
+    truncate_csv_logs,
+)
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
@@ -183,6 +193,25 @@ class Trainer:
     def __init__(self, cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> None:
         validate(cfg)
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        # One writer per run directory: a second run there, or a resume of a live run, stops here.
+        self._lock: RunLock | None = RunLock(self.run_dir)
+        try:
+            self._build(cfg, resume)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Release the run directory (done by :meth:`train`; the process's exit does it too)."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def _build(self, cfg: DictConfig, resume: bool) -> None:
+        if not resume:  # a fresh run never mixes its files with another run's
+            prepare_fresh(self.run_dir, bool(cfg.get("overwrite", False)))
+        self._log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
+        self._saved_steps: int | None = None  # env steps of the last checkpoint this session wrote
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
         self.device = torch.device(cfg.device)
@@ -216,8 +245,9 @@ class Trainer:
         if resume:
             self._load(ckpt.checkpoint_path(self.run_dir))
         else:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            with io_errors(f"write {self.run_dir / 'config.yaml'}"):
+                self.run_dir.mkdir(parents=True, exist_ok=True)
+                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
         self.logger = make_logger(
             cfg.logger.backend, self.run_dir, to_container(cfg), cfg.logger.project, cfg.logger.wandb_mode
         )
@@ -304,16 +334,24 @@ class Trainer:
                     train_stats = {}
                     c.next_log = c.env_steps + self.cfg.logger.log_interval
                 if c.env_steps >= c.next_checkpoint and c.env_steps > 0:
+                    c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
                     self.save()
-                    c.next_checkpoint += t.checkpoint_interval
                 progress.update(batch.numel())
                 progress.set_postfix(self._postfix(), refresh=False)
             self._evaluate(timer)
-            self._log_train(train_stats, timer)
+            if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
+                c.next_eval += t.eval_interval
+            if train_stats:  # batches since the last row (none: that row is already at this step)
+                self._log_train(train_stats, timer)
             self.save()
+        except OSError as error:  # a full disk or a vanished directory while logging: one line, not a trace
+            raise RunDirError(
+                f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
+            ) from None
         finally:
             progress.close()
             self.collector.shutdown()
+            self.close()
         return dict(self.last_eval)
 
     #: What a collected batch must hold finite, and how an error names it.
@@ -347,7 +385,7 @@ class Trainer:
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.cfg.train.eval_seed))
         timer["eval"] += time.perf_counter() - start
-        log_scalars(self.logger, {f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
+        self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
 
     def _log_train(self, stats: dict[str, list[torch.Tensor]], timer: dict[str, float]) -> None:
         c = self.counters
@@ -362,7 +400,13 @@ class Trainer:
         values.update({f"time/{k}_s": v for k, v in timer.items()})
         if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
             values["time/env_steps_per_s"] = (c.env_steps - self._session_start_steps) / elapsed
-        log_scalars(self.logger, values, c.env_steps)
+        self._log(values, c.env_steps)
+
+    def _log(self, values: dict[str, float], step: int) -> None:
+        """Log and count the rows of each metric, so that a resume can drop rows logged after its checkpoint."""
+        log_scalars(self.logger, values, step)
+        for name in values:
+            self._log_rows[name] = self._log_rows.get(name, 0) + 1
 
     def _progress_bar(self):
         from tqdm.auto import tqdm
@@ -388,6 +432,8 @@ class Trainer:
     def state_dict(self) -> dict[str, Any]:
         state = {
             "config": to_container(self.cfg),
+            "fingerprint": self.fingerprint(),
+            "logs": {"rows": dict(self._log_rows)},
             "counters": asdict(self.counters),
             "learner": self.learner.state_dict(),
             "last_eval": dict(self.last_eval),
@@ -401,12 +447,45 @@ class Trainer:
             state["episodic"] = self.episodic.state_dict()
         return state
 
+    def fingerprint(
+        self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
+    ) -> dict:
+        """What a checkpoint must share with this run (:func:`mcrs.experiment.rundir.fingerprint`): of this
+        run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
+        from mcrs.train import RESUME_MUTABLE
+
+        if learner is None:
+            learner = {"agent": self.learner.agent.state_dict(), "mixer": self.learner.mixer.state_dict()}
+        config = to_container(self.cfg) if config is None else config
+        networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
+        return fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)
+
     def save(self, name: str = ckpt.LAST) -> Path:
-        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step."""
+        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
+
+        An I/O error (a full disk, a read-only directory) stops the run in one line; the atomic write
+        leaves the previous checkpoint as it was and no temporary behind.
+        """
+        target = ckpt.checkpoint_path(self.run_dir, name)
+        with io_errors(f"write checkpoint {target}", self._intact()):
+            path = self._save(name)
+        if name == ckpt.LAST:
+            self._saved_steps = self.counters.env_steps
+        return path
+
+    def _intact(self) -> str:
+        """What survives an I/O error: the checkpoint a resume would start from."""
+        last = ckpt.checkpoint_path(self.run_dir)
+        if not last.is_file():
+            return "; no checkpoint had been written yet"
+        return f"; the last checkpoint {last} is intact: free space or fix the directory, then resume={self.run_dir}"
+
+    def _save(self, name: str) -> Path:
         path = ckpt.save_atomic(self.state_dict(), ckpt.checkpoint_path(self.run_dir, name))
         if name == ckpt.LAST:
             weights = {
                 "config": to_container(self.cfg),
+                "fingerprint": self.fingerprint(),
                 "counters": asdict(self.counters),
                 "learner": {
                     "agent": self.learner.agent.state_dict(),
@@ -420,18 +499,38 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         state = ckpt.load(path, map_location=self.device)
+        saved = state.get("fingerprint")
+        if saved is None:  # written before fingerprints: derived from the config and weights it holds
+            saved = self.fingerprint(state.get("config", {}), state.get("learner", {}))
+        difference = first_difference(saved, self.fingerprint())
+        if difference is not None:
+            raise ckpt.CheckpointError(f"{path} does not belong to this run: {difference}")
         if "replay" not in state:
             raise ckpt.CheckpointError(
                 f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
             )
         self._resume_rng = state["rng"]  # restored last, once everything is built (not the whole state:
         # it holds a copy of the replay buffer)
-        self.learner.load_state_dict(state["learner"])
-        load_replay_state_dict(self.replay, state["replay"])
-        if self.episodic is not None:
-            if "episodic" not in state:
-                raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")
-            self.episodic.load_state_dict(state["episodic"])
-        self.counters = Counters(**state["counters"])
+        try:
+            self.learner.load_state_dict(state["learner"])
+            load_replay_state_dict(self.replay, state["replay"])
+            if self.episodic is not None:
+                if "episodic" not in state:
+                    raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")
+                self.episodic.load_state_dict(state["episodic"])
+            self.counters = Counters(**state["counters"])
+        except (
+            KeyError,
+            TypeError,
+            ValueError,
+            RuntimeError,
+        ) as error:  # a fingerprint cannot see everything
+            if isinstance(error, ckpt.CheckpointError):
+                raise
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
         self.last_eval = dict(state.get("last_eval", {}))
         self.epsilon.set_env_steps(self.counters.env_steps)
+        rows = state.get("logs", {}).get("rows")
+        with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
+            self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)

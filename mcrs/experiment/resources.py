@@ -1,0 +1,153 @@
+"""What a training run will hold in memory, estimated from the config before anything is allocated.
+
+A value that passes the per-field rules can still be more than the machine can hold (``train.num_envs``
+of ten million, ``env.max_steps`` of a billion): :func:`resource_errors` adds up the big stores (replay,
+collector batch, evaluation batch, episodic memory, networks with their targets and optimiser state, one
+learner batch) and refuses a config whose estimate exceeds the memory of the device it runs on, naming
+the fields of the largest store. It also checks the device and the thread count against the machine.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from mcrs.env.config import EnvConfig
+
+GiB = 1024**3
+#: What a process holds before any store: Python, torch, TorchRL and the env code (measured RSS about 370
+#: MiB at the start of a run, docs/RELIABILITY.md).
+BASELINE_BYTES = 400 * 1024**2
+N_ACTIONS_BYTES = 8  # the action mask: one bool per action
+
+
+@dataclass
+class Store:
+    """One store of the estimate: its size and the fields (with their values) that set it."""
+
+    name: str
+    nbytes: int
+    fields: str
+
+
+def replay_step_bytes(env: EnvConfig) -> int:
+    """Bytes of one step of a stored episode (``mcrs.experiment.replay`` layout): observations (float32),
+    action masks, the state, the action (int64), reward, done, terminated and filled flags."""
+    agents = env.n_uavs * (4 * env.obs_dim + N_ACTIONS_BYTES + 8)
+    return agents + 4 * env.state_dim + 4 + 3
+
+
+def rollout_step_bytes(env: EnvConfig, hidden_dim: int) -> int:
+    """Bytes of one step of a collector or evaluation rollout: TorchRL keeps the root and ``next`` copies of
+    the observations, the state, its map and counts, positions and readings, plus the recurrent state."""
+    agents = env.n_uavs * (4 * env.obs_dim + N_ACTIONS_BYTES + 1 + 16)
+    per_copy = agents + 4 * env.state_dim + 8 * env.n_cells + 4 * env.n_cells + 128
+    return 2 * per_copy + env.n_uavs * (8 + 2 * 4 * hidden_dim)
+
+
+def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
+    """Bytes of one entry of the episodic memory D_E (mcrs.memory.episodic): compact counts (2 bytes a
+    cell), positions, the key, the return, the step, flags, EMU's counters and the index records."""
+    positions = env.n_uavs + env.n_no_fly + env.n_targets
+    return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 9 + 24
+
+
+def network_bytes(cfg: DictConfig, env: EnvConfig) -> tuple[int, str]:
+    """Parameters (built on the ``meta`` device: nothing is allocated) times five: the weights, the target
+    copy, the gradient and two optimiser moments. Returns the bytes and a problem, if they cannot be built."""
+    from mcrs.experiment.trainer import build_agent, build_mixer
+
+    try:
+        with torch.device("meta"):
+            params = sum(p.numel() for p in build_agent(cfg, env).parameters())
+            params += sum(p.numel() for p in build_mixer(cfg, env).parameters())
+    except (RuntimeError, ValueError, OverflowError, TypeError) as error:
+        return 0, (str(error).strip().splitlines() or [type(error).__name__])[0]
+    return 5 * 4 * params, ""
+
+
+def estimate(cfg: DictConfig, env: EnvConfig) -> list[Store]:
+    """The stores of a run of ``cfg`` on ``env`` (``env`` already validated), largest first."""
+    t, m, mem = cfg.train, cfg.model, cfg.algo.memory
+    T = env.max_steps
+    step, rollout = replay_step_bytes(env), rollout_step_bytes(env, m.hidden_dim)
+    net, _ = network_bytes(cfg, env)
+    stores = [
+        Store("replay buffer", t.replay_episodes * (T + 1) * step,
+              f"train.replay_episodes={t.replay_episodes} x env.max_steps={T}"),
+        # the rollout, its episode layout and the replay's copy of it are alive together
+        Store("collector batch", t.num_envs * T * (rollout + 2 * step),
+              f"train.num_envs={t.num_envs} x env.max_steps={T}"),
+        Store("evaluation batch", t.eval_episodes * T * rollout,
+              f"train.eval_episodes={t.eval_episodes} x env.max_steps={T}"),
+        Store("networks", net,
+              f"model.hidden_dim={m.hidden_dim}, algo.mixing_embed_dim={cfg.algo.mixing_embed_dim}, "
+              f"algo.hypernet_embed={cfg.algo.hypernet_embed}"),
+        # one learner batch unrolled: inputs, GRU states and per-agent Q-values, kept for the backward pass
+        Store("learner batch", t.batch_episodes * (T + 1) * (2 * step + env.n_uavs * 4 * 12 * m.hidden_dim),
+              f"train.batch_episodes={t.batch_episodes} x env.max_steps={T}"),
+    ]  # fmt: skip
+    if mem.enabled:
+        stores.append(
+            Store("episodic memory", mem.capacity * memory_entry_bytes(env, mem.key_dim),
+                  f"algo.memory.capacity={mem.capacity}")
+        )  # fmt: skip
+    return sorted(stores, key=lambda s: -s.nbytes)
+
+
+def machine_memory(device: str) -> tuple[int, str]:
+    """Bytes the run may use on ``device`` and what they are: the GPU's memory, or the host's physical
+    memory (lowered by a cgroup limit, as in a container or a Slurm job)."""
+    parsed = torch.device(device)
+    if parsed.type == "cuda" and torch.cuda.is_available():
+        index = parsed.index if parsed.index is not None else torch.cuda.current_device()
+        return torch.cuda.get_device_properties(index).total_memory, f"the memory of {device}"
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and 0 < int(text) < total:
+            return int(text), "this process's memory limit (cgroup)"
+    return total, "this machine's memory"
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (its affinity, e.g. under Slurm or taskset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def resource_errors(cfg: DictConfig, env: EnvConfig) -> list[str]:
+    """Problems of ``cfg`` against this machine: threads, and a memory estimate above what it has."""
+    errors: list[str] = []
+    cores = cpu_count()
+    if cfg.threads > cores:
+        errors.append(
+            f"threads={cfg.threads}: this machine has {cores} CPU cores: use 0 (torch's default) to {cores}"
+        )
+    _, problem = network_bytes(cfg, env)
+    if problem:
+        errors.append(
+            f"model.hidden_dim={cfg.model.hidden_dim}, algo.mixing_embed_dim={cfg.algo.mixing_embed_dim}, "
+            f"algo.hypernet_embed={cfg.algo.hypernet_embed}: the networks cannot be built ({problem})"
+        )
+        return errors
+    stores = estimate(cfg, env)
+    total = BASELINE_BYTES + sum(s.nbytes for s in stores)
+    limit, what = machine_memory(str(cfg.device))
+    if total > limit:
+        top = stores[0]
+        parts = ", ".join(f"{s.name} {s.nbytes / GiB:,.1f}" for s in stores[:3])
+        errors.append(
+            f"{top.fields}: the run would need about {total / GiB:,.1f} GiB ({parts} GiB), more than "
+            f"{what} ({limit / GiB:,.1f} GiB): lower it"
+        )
+    return errors

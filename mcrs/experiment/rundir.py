@@ -1,0 +1,246 @@
+"""A run directory belongs to one run: unique names, one writer at a time, no mixing with an old run.
+
+- :func:`register_resolvers` adds ``${mcrs.pid:}`` to the run-directory names (``conf/config.yaml``): two
+  runs started in the same second on one machine get different directories.
+- :class:`RunLock` is an exclusive ``flock`` on ``<run>/.mcrs.lock``, held by the process that writes the
+  run; the kernel drops it when that process dies (even by SIGKILL), so a crashed run can be resumed at
+  once, while a second writer or a resume of a live run is refused, naming the holder's PID.
+- :func:`prepare_fresh` refuses a non-empty directory unless ``overwrite=true``, and then clears only what
+  a run writes.
+- :func:`truncate_csv_logs` drops the CSV rows written after the checkpoint a run resumes from.
+- :func:`fingerprint` and :func:`first_difference`: what a checkpoint must share with the run it resumes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import os
+import shutil
+import socket
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+LOCK = ".mcrs.lock"
+#: What ``mcrs-train`` writes into a run directory (``overwrite=true`` removes exactly these).
+RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb")
+#: What may be in a fresh run directory before the run writes: Hydra's own files and our lock.
+FRESH_ALLOWED = (".hydra", LOCK)
+
+
+class RunDirError(RuntimeError):
+    """A run directory that this process may not write (in use, holding another run, unwritable)."""
+
+
+def register_resolvers() -> None:
+    """``${mcrs.pid:}``: this process's id, cached like Hydra's ``${now:}`` so that every job of a sweep
+    (which copies the launcher's resolver cache) sees the launcher's value."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("mcrs.pid"):
+        OmegaConf.register_new_resolver("mcrs.pid", lambda: str(os.getpid()), use_cache=True)
+
+
+class RunLock:
+    """An exclusive advisory lock on a run directory, held until :meth:`release` or process exit."""
+
+    def __init__(self, run_dir: str | Path) -> None:
+        import fcntl
+
+        self.fd: int | None = None
+        self.path = Path(run_dir) / LOCK
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as error:
+            raise RunDirError(
+                f"cannot write the run directory {Path(run_dir)}: {describe_os_error(error)}"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").split()
+            os.close(fd)
+            pid = holder[0] if holder else "unknown"
+            host = f" on {holder[1]}" if len(holder) > 1 and holder[1] != socket.gethostname() else ""
+            raise RunDirError(
+                f"run directory {Path(run_dir)} is in use by process {pid}{host}: one process writes a run; "
+                "wait for it to end (then resume=), or choose another directory"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        self.fd = fd
+
+    def release(self) -> None:
+        """Drop the lock (closing the descriptor releases the flock); the file stays, it holds no state."""
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+    def __del__(self) -> None:
+        self.release()
+
+
+def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
+    """Refuse a run directory that holds anything but Hydra's files, or clear a previous run from it.
+
+    With ``overwrite`` only a previous run's own files are removed (:data:`RUN_ARTEFACTS`); a directory
+    holding anything else is refused either way, so ``overwrite=true`` never deletes unrelated files.
+    """
+    entries = sorted(p.name for p in run_dir.iterdir() if p.name not in FRESH_ALLOWED and not _hydra_log(p))
+    if not entries:
+        return
+    shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
+    if not overwrite:
+        raise RunDirError(
+            f"run directory {run_dir} is not empty ({shown}): resume it with resume={run_dir}, "
+            "choose another hydra.run.dir, or pass overwrite=true to replace the run in it"
+        )
+    foreign = [name for name in entries if name not in RUN_ARTEFACTS]
+    if foreign:
+        raise RunDirError(
+            f"run directory {run_dir} holds files that no run wrote ({', '.join(foreign[:5])}): "
+            "overwrite=true only replaces a previous run; choose another hydra.run.dir"
+        )
+    for name in entries:
+        path = run_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
+def remove_if_unused(run_dir: Path) -> None:
+    """Remove a run directory that a refused run left holding only what Hydra wrote before the run started
+    (never one that a run has locked: it may be starting in it)."""
+    try:
+        entries = list(run_dir.iterdir())
+    except OSError:
+        return
+    if any(p.name == LOCK or (p.name != ".hydra" and not _hydra_log(p)) for p in entries):
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def _hydra_log(path: Path) -> bool:
+    """Hydra's job log (``<job name>.log``), written before the task starts."""
+    return path.suffix == ".log" and path.is_file()
+
+
+def csv_log_files(run_dir: Path) -> list[Path]:
+    return sorted((run_dir / "logs" / "scalars").rglob("*.csv"))
+
+
+def csv_log_name(run_dir: Path, path: Path) -> str:
+    """``train/episodes`` for ``<run>/logs/scalars/train/episodes.csv`` (the name it was logged under)."""
+    return path.relative_to(run_dir / "logs" / "scalars").with_suffix("").as_posix()
+
+
+def truncate_csv_logs(run_dir: Path, rows: Mapping[str, int] | None, env_steps: int) -> dict[str, int]:
+    """Keep the rows each CSV log had when the checkpoint was written; drop those written after it.
+
+    ``rows`` (name -> row count) comes from the checkpoint; a checkpoint without it (older runs) keeps the
+    rows logged at or before its ``env_steps``. Each file is rewritten atomically. Returns the rows kept.
+    """
+    kept: dict[str, int] = dict(rows or {})
+    for path in csv_log_files(run_dir):
+        with open(path, newline="") as f:
+            lines = [row for row in csv.reader(f) if row]
+        if rows is not None:
+            keep = lines[: rows.get(csv_log_name(run_dir, path), 0)]
+        else:
+            keep = [row for row in lines if float(row[0]) <= env_steps]
+        kept[csv_log_name(run_dir, path)] = len(keep)
+        if len(keep) == len(lines):
+            continue
+        tmp = path.with_name(f".{path.name}.tmp")
+        with open(tmp, "w", newline="") as f:
+            csv.writer(f, lineterminator="\n").writerows(keep)
+        os.replace(tmp, path)
+    return kept
+
+
+# ---------------------------------------------------------------------------------------- fingerprint
+#: The order in which a difference is reported: what identifies a run first, then section by section.
+FINGERPRINT_FIRST = (
+    "algo.name", "algo.mixer", "algo.memory.enabled", "algo.memory.embedding", "env.name", "env.width",
+    "env.height", "env.n_uavs", "env.n_targets", "env.n_no_fly", "env.max_steps", "model.name",
+    "model.hidden_dim",
+)  # fmt: skip
+FINGERPRINT_ORDER = ("algo", "env", "model", "seed", "train", "device", "preset")
+
+
+def fingerprint(
+    config: Mapping[str, Any], networks: Mapping[str, Any], version: int, mutable: Iterable[str]
+) -> dict[str, Any]:
+    """What a checkpoint must share with the run that resumes from it, flat and ordered.
+
+    ``format.version``, then every config field a resume may not change (algo, env shape and dynamics,
+    model, seed, the training settings; not the ``mutable`` ones), then ``networks.<module>.<tensor>``:
+    the shape of every learned tensor. Plain strings, numbers and lists: it is stored in the checkpoint.
+    """
+    mutable = tuple(mutable)
+
+    def is_mutable(name: str) -> bool:
+        return any(name == m or name.startswith(m + ".") for m in mutable)
+
+    out: dict[str, Any] = {"format.version": version}
+    flat = _flatten(config)
+    ordered = sorted(flat, key=lambda k: (_rank(k), k))
+    out.update({k: flat[k] for k in ordered if not is_mutable(k)})
+    for module, state in networks.items():
+        for name, value in state.items():
+            if hasattr(value, "shape"):
+                out[f"networks.{module}.{name}"] = list(value.shape)
+    return out
+
+
+def _rank(name: str) -> int:
+    if name in FINGERPRINT_FIRST:
+        return FINGERPRINT_FIRST.index(name) - len(FINGERPRINT_FIRST)
+    top = name.split(".", 1)[0]
+    return FINGERPRINT_ORDER.index(top) if top in FINGERPRINT_ORDER else len(FINGERPRINT_ORDER)
+
+
+def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = list(value) if isinstance(value, (list, tuple)) else value
+    return out
+
+
+def first_difference(saved: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
+    """``"algo.name: 'cnn_semu' in the checkpoint, 'qmix' in this run"`` for the first field that
+    differs (in ``current``'s order, then fields only the checkpoint has), or None when they match.
+
+    A config field on one side only is a field added to (or dropped from) the schema since the checkpoint
+    was written, not another run: it is skipped. A network tensor on one side only is a difference.
+    """
+    for key in [*current, *(k for k in saved if k not in current)]:
+        if (key not in saved or key not in current) and not key.startswith("networks."):
+            continue
+        theirs, ours = saved.get(key, "<missing>"), current.get(key, "<missing>")
+        if theirs != ours:
+            return f"{key}: {theirs!r} in the checkpoint, {ours!r} in this run"
+    return None
+
+
+# ---------------------------------------------------------------------------------------- I/O errors
+def describe_os_error(error: OSError) -> str:
+    """``"No space left on device (writing /run/checkpoints/x.pt)"``: the reason and the file, one line."""
+    reason = error.strerror or str(error) or type(error).__name__
+    return f"{reason} ({error.filename})" if error.filename else reason
+
+
+@contextlib.contextmanager
+def io_errors(action: str, after: str = ""):
+    """Turn an ``OSError`` inside the block into a one-line :class:`RunDirError` (``action``: what was
+    being done, ``after``: what is still intact)."""
+    try:
+        yield
+    except OSError as error:
+        raise RunDirError(f"cannot {action}: {describe_os_error(error)}{after}") from None
