@@ -6,7 +6,9 @@
         retrained every t_emb env steps, and the replay's EpisodicLookup transform attaches H(phi(s'))
         to every sampled batch (mcrs.experiment.episodic); EMC's curiosity runs inside Learner.update
     every eval_interval env steps: greedy evaluation on fixed-seed environments
-    every checkpoint_interval env steps and at the end: an atomic checkpoint of everything
+    every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
+        checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
+        only the blocks with episodes added since the previous one (mcrs.experiment.replay_store)
 
 Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments
 from ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in
@@ -41,6 +43,7 @@ from mcrs.experiment.replay import (
     make_episode_buffer,
     replay_state_dict,
 )
+from mcrs.experiment.replay_store import ReplayStore
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
@@ -204,6 +207,7 @@ class Trainer:
         )
         self.eval_env = make_eval_env(self.env_config, t.eval_episodes, cfg.model.hidden_dim, self.device)
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
+        self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
         self.episodic = EpisodicSide(cfg, self.env_config, self.device) if cfg.algo.memory.enabled else None
         if self.episodic is not None:  # every sampled batch carries the memory's H(phi(s_{t+1}))
             self.replay.append_transform(self.episodic.lookup_transform())
@@ -246,6 +250,7 @@ class Trainer:
         train_stats: dict[str, list[torch.Tensor]] = {}
         timer = {"collect": 0.0, "memory": 0.0, "update": 0.0, "eval": 0.0}
         collector_iter = iter(self.collector)
+        self._last_save = time.monotonic()
         try:
             while c.env_steps < t.total_env_steps:
                 if c.env_steps >= c.next_eval:
@@ -259,7 +264,7 @@ class Trainer:
                 self.collector.start_batch(batch_seed(int(self.cfg.seed), c.iteration))
                 batch = self.collector.next_batch(collector_iter)
                 self._check_finite(batch)
-                self.replay.extend(episodes_from_rollout(batch))
+                self.replay_store.mark_written(self.replay.extend(episodes_from_rollout(batch)))
                 for name in METRICS:
                     train_stats.setdefault(f"train/{name}", []).append(
                         batch.get(("next", "metrics", name))[:, -1].mean()
@@ -300,8 +305,14 @@ class Trainer:
                     self._log_train(train_stats, timer)
                     train_stats = {}
                     c.next_log = c.env_steps + self.cfg.logger.log_interval
-                if c.env_steps >= c.next_checkpoint and c.env_steps > 0:
+                due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
+                due_by_time = (
+                    t.checkpoint_minutes > 0
+                    and time.monotonic() - self._last_save >= 60 * t.checkpoint_minutes
+                )
+                if due_by_steps or due_by_time:
                     self.save()
+                if due_by_steps:
                     c.next_checkpoint += t.checkpoint_interval
                 progress.update(batch.numel())
                 progress.set_postfix(self._postfix(), refresh=False)
@@ -382,7 +393,9 @@ class Trainer:
         return post
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Any]:
+    def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
+        """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
+        block files that :meth:`save` writes for ``last.pt``."""
         state = {
             "config": to_container(self.cfg),
             "counters": asdict(self.counters),
@@ -393,15 +406,26 @@ class Trainer:
         if torch.cuda.is_available():
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
         if self.cfg.train.save_replay:
-            state["replay"] = replay_state_dict(self.replay)
+            if replay_inline:
+                state["replay"] = replay_state_dict(self.replay)
+            else:
+                state["replay_blocks"] = self.replay_store.save(self.replay)
         if self.episodic is not None:
             state["episodic"] = self.episodic.state_dict()
         return state
 
     def save(self, name: str = ckpt.LAST) -> Path:
-        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step."""
-        path = ckpt.save_atomic(self.state_dict(), ckpt.checkpoint_path(self.run_dir, name))
-        if name == ckpt.LAST:
+        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
+
+        ``last.pt`` names the replay's block files (only the changed blocks are written); any other name
+        (``last_good.pt``) carries the episodes inline, so it stays whole whatever later saves delete."""
+        last = name == ckpt.LAST
+        path = ckpt.save_atomic(
+            self.state_dict(replay_inline=not last), ckpt.checkpoint_path(self.run_dir, name)
+        )
+        if last:
+            self.replay_store.commit()
+            self._last_save = time.monotonic()
             weights = {
                 "config": to_container(self.cfg),
                 "counters": asdict(self.counters),
@@ -417,14 +441,17 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         state = ckpt.load(path, map_location=self.device)
-        if "replay" not in state:
+        if "replay" not in state and "replay_blocks" not in state:
             raise ckpt.CheckpointError(
                 f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
             )
         self._resume_rng = state["rng"]  # restored last, once everything is built (not the whole state:
         # it holds a copy of the replay buffer)
         self.learner.load_state_dict(state["learner"])
-        load_replay_state_dict(self.replay, state["replay"])
+        if "replay_blocks" in state:
+            self.replay_store.load(self.replay, state["replay_blocks"])
+        else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
+            load_replay_state_dict(self.replay, state["replay"])
         if self.episodic is not None:
             if "episodic" not in state:
                 raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")
