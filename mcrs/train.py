@@ -35,6 +35,7 @@ RESUME_MUTABLE = (
     "threads",
     "train.eval_interval",
     "train.checkpoint_interval",
+    "train.checkpoint_minutes",
     "train.collector",  # how episodes are collected (a crashed multiprocess run may go on in one process;
     "train.collector_workers",  # the episodes then differ from an uninterrupted run's)
 )

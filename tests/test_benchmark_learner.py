@@ -72,6 +72,25 @@ def test_synthetic_episodes_are_valid() -> None:
 
 
 def test_bad_arguments_are_rejected() -> None:
-    for argv in (["--updates", "0"], ["--loop-steps", "-1"], ["--threads", "-1"], ["--maps", "map99"]):
+    for argv in (["--updates", "0"], ["--loop-steps", "-1"], ["--threads", "-1"], ["--maps", "map99"],
+                 ["--launcher-steps", "-1"]):  # fmt: skip
         with pytest.raises(SystemExit):
             main(argv)
+
+
+def test_launcher_comparison_runs_both_layouts_and_prints_the_ratio(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    args = ["--quick", "--maps", "map10", "--updates", "1", "--loop-steps", "0", "--launcher-steps", "1"]
+    assert main([*args, "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    rates = re.search(
+        rf"^one 2-thread run: {NUMBER} env-steps/s; two 1-thread runs: {NUMBER} \+ {NUMBER} = {NUMBER}",
+        out,
+        re.M,
+    )
+    assert rates is not None and all(float(g.replace(",", "")) > 0 for g in rates.groups()), out
+    ratio = re.search(
+        rf"^two 1-thread runs vs one 2-thread run: {NUMBER}x \(aggregate env-steps/s", out, re.M
+    )
+    assert ratio is not None and float(ratio.group(1)) > 0, out

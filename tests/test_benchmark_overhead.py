@@ -30,3 +30,12 @@ def test_projection_adds_the_growth_of_re_embedding_with_the_buffer() -> None:
     assert extra == pytest.approx(expected) and hours == pytest.approx(base + expected)
     _, with_inserts = project(loop, 0.0, 0.032, 10_000, 1_000_000, 3_200)
     assert with_inserts == pytest.approx(0.032 * (2_000_000 - 20_000) / 3_200 / 3600)
+
+
+def test_emc_run_prints_its_ratio_to_qmix_against_its_own_goal(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--map", "map10", "--algo", "emc", "--quick", "--loop-steps", "1", "--entries", "500"]
+    assert main([*args, "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"^emc\s+[\d,]+\s+[\d.]+", out, re.M)
+    assert re.search(r"ratio emc / qmix: .* \(goal <= 2x: not judged", out)
+    assert re.search(r"^EMC vs QMIX: \d+\.\d\dx \(whole run, map10, load average", out, re.M)

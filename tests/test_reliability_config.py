@@ -134,6 +134,8 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("train.eval_seed=9223372036854775808", "train.eval_seed=9223372036854775808: must be in [0, 2**63 - 1]"),
     ("train.checkpoint_interval=0", f"train.checkpoint_interval=0: {POSITIVE}"),
     ("train.checkpoint_interval=-100", f"train.checkpoint_interval=-100: {POSITIVE}"),
+    ("train.checkpoint_minutes=-5", "train.checkpoint_minutes=-5.0: must be >= 0"),
+    ("train.checkpoint_minutes=inf", "train.checkpoint_minutes=inf: must be >= 0"),
     ("train.collector=threads", "train.collector='threads': allowed values are single, multiprocess"),
     ("train.collector_workers=0", "train.collector_workers=0: must be >= 1"),
     ("train.collector_workers=-2", "train.collector_workers=-2: must be >= 1"),

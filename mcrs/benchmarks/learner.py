@@ -467,6 +467,48 @@ def measure_loop(
     )
 
 
+# ---------------------------------------------------------------------------------------- the launcher
+_LAUNCHER_WORKER = (
+    "import json, sys, torch\n"
+    "from mcrs.benchmarks.learner import measure_loop\n"
+    "map_name, steps, threads, quick = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == '1'\n"
+    "torch.set_num_threads(threads)\n"
+    "r = measure_loop(map_name, quick, steps, threads)\n"
+    "print('RESULT ' + json.dumps({'steps': r.env_steps, 'seconds': r.seconds}))\n"
+)
+
+
+def launcher_rates(map_name: str, quick: bool, loop_steps: int) -> tuple[float, list[float]]:
+    """Env-steps/s of one run with 2 torch threads alone, then of two 1-thread runs side by side (each in
+    its own process, as the ``local2`` launcher starts them): how a sweep should share the 2 cores."""
+    import json
+    import subprocess
+
+    def start(threads: int) -> subprocess.Popen:
+        args = [
+            sys.executable,
+            "-c",
+            _LAUNCHER_WORKER,
+            map_name,
+            str(loop_steps),
+            str(threads),
+            str(int(quick)),
+        ]
+        return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+
+    def rate(proc: subprocess.Popen) -> float:
+        out, _ = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"a launcher benchmark run failed (exit {proc.returncode})")
+        line = next(x for x in out.splitlines() if x.startswith("RESULT "))
+        result = json.loads(line[len("RESULT ") :])
+        return result["steps"] / result["seconds"]
+
+    one = rate(start(2))
+    pair = [start(1), start(1)]
+    return one, [rate(p) for p in pair]
+
+
 # ---------------------------------------------------------------------------------------- the command
 
 
@@ -516,8 +558,17 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help=f"env steps of the training-loop run per map (default {DEFAULT_LOOP_STEPS:,}; 0 skips it)",
     )
     parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    parser.add_argument(
+        "--launcher-steps",
+        type=int,
+        default=0,
+        help="env steps of each run of the launcher comparison (one 2-thread run, then two 1-thread runs "
+        "side by side) on the first map; 0 skips it",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny episodes and batches: a smoke test")
     args = parser.parse_args(argv)
+    if args.launcher_steps < 0:
+        parser.error(f"--launcher-steps must be >= 0, got {args.launcher_steps}")
     if args.updates is None:
         args.updates = QUICK_UPDATES if args.quick else DEFAULT_UPDATES
     if args.loop_steps is None:
@@ -631,6 +682,21 @@ def _run(args: argparse.Namespace, command: str) -> None:
                     f"{pass_fail(hours_eval <= GOAL_HOURS)} (loop {hours:.2f} h + evaluation every "
                     f"{r.eval_interval:,} steps; checkpoints not included)"
                 )
+    if args.launcher_steps:
+        name = args.maps[0]
+        print(
+            f"\nlauncher ({name}, the real Trainer as above, each run in its own process): one run with 2 torch "
+            "threads alone, then two runs with 1 thread each side by side",
+            flush=True,
+        )
+        one, pair = launcher_rates(name, args.quick, args.launcher_steps)
+        print(
+            f"one 2-thread run: {one:,.0f} env-steps/s; two 1-thread runs: {pair[0]:,.0f} + {pair[1]:,.0f} = "
+            f"{sum(pair):,.0f} env-steps/s (load average {load_average()})\n"
+            f"two 1-thread runs vs one 2-thread run: {sum(pair) / one:.2f}x (aggregate env-steps/s; above 1: "
+            "the local2 launcher's two 1-thread runs use the cores better)",
+            flush=True,
+        )
     if judged:
         if GOAL_MAP not in args.maps or not args.loop_steps:
             goals.append(

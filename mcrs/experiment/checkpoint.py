@@ -131,11 +131,12 @@ def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:
 #: Where a checkpoint keeps the bulk that only resuming needs: the replay buffer and the episodic memory's
 #: entries (the memory's embedding weights stay). Dotted paths into ``last.pt``; one place to change when
 #: the layout does (e.g. a replay kept in separate files).
-BULK = ("replay", "episodic.memory")
+BULK = ("replay", "replay_blocks", "episodic.memory")
 
 
 def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
-    """Drop the replay and the episodic memory's entries from ``run_dir``'s ``last.pt``, atomically.
+    """Drop the replay (inline, or its block files) and the episodic memory's entries from ``run_dir``'s
+    ``last.pt``, atomically.
 
     A finished run keeps its weights, optimiser, counters and logs; it can no longer be resumed. Returns
     the file's size in bytes before and after (equal when there was nothing to drop).
@@ -157,4 +158,7 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
     state["pruned"] = {"dropped": dropped, "bytes_before": before}
     state = {k: v for k, v in state.items() if k not in ("format", "version")}
     save_atomic(state, path)
+    if "replay_blocks" in dropped:  # the replay's block files beside last.pt (mcrs.experiment.replay_store)
+        for block in path.parent.glob("replay_*_*.pt"):
+            block.unlink(missing_ok=True)
     return before, path.stat().st_size

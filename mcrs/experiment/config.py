@@ -130,6 +130,7 @@ class TrainConfig:
     eval_episodes: int = 32
     eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
     checkpoint_interval: int = 100_000
+    checkpoint_minutes: float = 0.0  # also checkpoint every this many minutes of wall clock (0: off)
     save_replay: bool = True  # checkpoints carry the replay buffer, so a resumed run is identical
     collector: str = "single"  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
     collector_workers: int = 2  # multiprocess: worker processes, each collecting num_envs / workers episodes
@@ -202,6 +203,7 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     ):  # fmt: skip
         _positive(errors, f"train.{name}", getattr(t, name))
     _positive(errors, "train.updates_per_episode", t.updates_per_episode, allow_zero=True)
+    _positive(errors, "train.checkpoint_minutes", t.checkpoint_minutes, allow_zero=True)
     for name in ("eps_start", "eps_end", "rmsprop_alpha"):
         if not 0.0 <= getattr(t, name) <= 1.0:
             errors.append(f"train.{name}={getattr(t, name)}: must be in [0, 1]")

@@ -6,7 +6,9 @@
         retrained every t_emb env steps, and the replay's EpisodicLookup transform attaches H(phi(s'))
         to every sampled batch (mcrs.experiment.episodic); EMC's curiosity runs inside Learner.update
     every eval_interval env steps: greedy evaluation on fixed-seed environments
-    every checkpoint_interval env steps and at the end: an atomic checkpoint of everything
+    every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
+        checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
+        only the blocks with episodes added since the previous one (mcrs.experiment.replay_store)
 
 Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments
 from ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in
@@ -41,6 +43,7 @@ from mcrs.experiment.replay import (
     make_episode_buffer,
     replay_state_dict,
 )
+from mcrs.experiment.replay_store import ReplayStore
 from mcrs.experiment.rundir import (
     RunDirError,
     RunLock,
@@ -233,6 +236,7 @@ class Trainer:
         )
         self.eval_env = make_eval_env(self.env_config, t.eval_episodes, cfg.model.hidden_dim, self.device)
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
+        self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
         self.episodic = EpisodicSide(cfg, self.env_config, self.device) if cfg.algo.memory.enabled else None
         if self.episodic is not None:  # every sampled batch carries the memory's H(phi(s_{t+1}))
             self.replay.append_transform(self.episodic.lookup_transform())
@@ -276,6 +280,7 @@ class Trainer:
         train_stats: dict[str, list[torch.Tensor]] = {}
         timer = {"collect": 0.0, "memory": 0.0, "update": 0.0, "eval": 0.0}
         collector_iter = iter(self.collector)
+        self._last_save = time.monotonic()
         try:
             while c.env_steps < t.total_env_steps:
                 if c.env_steps >= c.next_eval:
@@ -292,7 +297,7 @@ class Trainer:
                 episodes = episodes_from_rollout(batch)
                 episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
                 episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
-                self.replay.extend(episodes)
+                self.replay_store.mark_written(self.replay.extend(episodes))
                 for name in METRICS:
                     train_stats.setdefault(f"train/{name}", []).append(
                         batch.get(("next", "metrics", name))[:, -1].mean()
@@ -333,8 +338,14 @@ class Trainer:
                     self._log_train(train_stats, timer)
                     train_stats = {}
                     c.next_log = c.env_steps + self.cfg.logger.log_interval
-                if c.env_steps >= c.next_checkpoint and c.env_steps > 0:
+                due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
+                due_by_time = (
+                    t.checkpoint_minutes > 0
+                    and time.monotonic() - self._last_save >= 60 * t.checkpoint_minutes
+                )
+                if due_by_steps:
                     c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
+                if due_by_steps or due_by_time:
                     self.save()
                 progress.update(batch.numel())
                 progress.set_postfix(self._postfix(), refresh=False)
@@ -429,7 +440,9 @@ class Trainer:
         return post
 
     # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Any]:
+    def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
+        """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
+        block files that :meth:`save` writes for ``last.pt``."""
         state = {
             "config": to_container(self.cfg),
             "fingerprint": self.fingerprint(),
@@ -442,7 +455,10 @@ class Trainer:
         if torch.cuda.is_available():
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
         if self.cfg.train.save_replay:
-            state["replay"] = replay_state_dict(self.replay)
+            if replay_inline:
+                state["replay"] = replay_state_dict(self.replay)
+            else:
+                state["replay_blocks"] = self.replay_store.save(self.replay)
         if self.episodic is not None:
             state["episodic"] = self.episodic.state_dict()
         return state
@@ -464,7 +480,9 @@ class Trainer:
         """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
 
         An I/O error (a full disk, a read-only directory) stops the run in one line; the atomic write
-        leaves the previous checkpoint as it was and no temporary behind.
+        leaves the previous checkpoint as it was and no temporary behind. ``last.pt`` names the replay's
+        block files (only the changed blocks are written); any other name (``last_good.pt``) carries the
+        episodes inline, so it stays whole whatever later saves delete.
         """
         target = ckpt.checkpoint_path(self.run_dir, name)
         with io_errors(f"write checkpoint {target}", self._intact()):
@@ -481,8 +499,13 @@ class Trainer:
         return f"; the last checkpoint {last} is intact: free space or fix the directory, then resume={self.run_dir}"
 
     def _save(self, name: str) -> Path:
-        path = ckpt.save_atomic(self.state_dict(), ckpt.checkpoint_path(self.run_dir, name))
-        if name == ckpt.LAST:
+        last = name == ckpt.LAST
+        path = ckpt.save_atomic(
+            self.state_dict(replay_inline=not last), ckpt.checkpoint_path(self.run_dir, name)
+        )
+        if last:
+            self.replay_store.commit()
+            self._last_save = time.monotonic()
             weights = {
                 "config": to_container(self.cfg),
                 "fingerprint": self.fingerprint(),
@@ -505,7 +528,7 @@ class Trainer:
         difference = first_difference(saved, self.fingerprint())
         if difference is not None:
             raise ckpt.CheckpointError(f"{path} does not belong to this run: {difference}")
-        if "replay" not in state:
+        if "replay" not in state and "replay_blocks" not in state:
             raise ckpt.CheckpointError(
                 f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
             )
@@ -513,7 +536,10 @@ class Trainer:
         # it holds a copy of the replay buffer)
         try:
             self.learner.load_state_dict(state["learner"])
-            load_replay_state_dict(self.replay, state["replay"])
+            if "replay_blocks" in state:
+                self.replay_store.load(self.replay, state["replay_blocks"])
+            else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
+                load_replay_state_dict(self.replay, state["replay"])
             if self.episodic is not None:
                 if "episodic" not in state:
                     raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")

@@ -1,0 +1,125 @@
+"""The replay buffer saved incrementally, in blocks of slots beside ``last.pt``.
+
+Why: a full map20 replay is about 3.3 GB; writing it into every checkpoint makes frequent checkpoints
+cost minutes and gigabytes. Here the storage's slots are cut into fixed blocks of ``block_episodes``;
+each block is one checkpoint file (``checkpoints/replay_<block>_<generation>.pt``), and a save rewrites
+only the blocks holding episodes written since the previous save. ``last.pt`` carries a manifest (the
+files of every block, the buffer's length and writer state) instead of the episodes.
+
+Crash safety: a save writes its new block files under new names (the generation), then the caller
+writes ``last.pt`` atomically, then :meth:`ReplayStore.commit` deletes the files no longer referenced.
+A crash at any point leaves the previous ``last.pt`` with all the files it names.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import ReplayBuffer
+
+from mcrs.experiment import checkpoint as ckpt
+
+BLOCK_EPISODES = 100  # slots per block file (map20: about 66 MB)
+_BLOCK_FILE = re.compile(r"^replay_\d+_\d+\.pt$")
+
+
+class ReplayStore:
+    """Tracks the slots written since the last save and writes only their blocks.
+
+    Args:
+        directory: the run's ``checkpoints/`` directory.
+        block_episodes: slots per block file.
+    """
+
+    def __init__(self, directory: str | Path, block_episodes: int = BLOCK_EPISODES) -> None:
+        if block_episodes < 1:
+            raise ValueError(f"block_episodes must be >= 1, got {block_episodes}")
+        self.directory = Path(directory)
+        self.block_episodes = int(block_episodes)
+        self.files: list[str] = []  # file of each block, as the last committed manifest names them
+        self.generation = 0
+        self._dirty: set[int] = set()
+        self._pending: list[str] | None = None
+
+    def mark_written(self, index: torch.Tensor) -> None:
+        """Record the storage slots that ``ReplayBuffer.extend`` returned."""
+        blocks = torch.unique(index.reshape(-1).to("cpu", torch.long) // self.block_episodes)
+        self._dirty.update(int(b) for b in blocks)
+
+    def save(self, buffer: ReplayBuffer) -> dict[str, Any]:
+        """Write the blocks changed since the last commit; return the manifest for ``last.pt``."""
+        n = len(buffer)
+        n_blocks = math.ceil(n / self.block_episodes)
+        self.generation += 1
+        files = self.files[:n_blocks] + [""] * max(0, n_blocks - len(self.files))
+        for block in range(n_blocks):
+            if files[block] and block not in self._dirty:
+                continue
+            lo, hi = block * self.block_episodes, min(n, (block + 1) * self.block_episodes)
+            episodes = buffer.storage.get(torch.arange(lo, hi))
+            name = f"replay_{block:05d}_{self.generation:06d}.pt"
+            ckpt.save_atomic(
+                {
+                    "replay_block": block,
+                    "batch_size": list(episodes.batch_size),
+                    "episodes": {
+                        "/".join(k) if isinstance(k, tuple) else k: v.cpu()
+                        for k, v in episodes.items(True, True)
+                    },
+                },
+                self.directory / name,
+            )
+            files[block] = name
+        self._pending = files
+        return {
+            "length": n,
+            "writer": buffer.writer.state_dict(),
+            "block_episodes": self.block_episodes,
+            "generation": self.generation,
+            "files": list(files),
+        }
+
+    def commit(self) -> None:
+        """Call once ``last.pt`` naming the new manifest is on disk: delete the files it no longer names."""
+        if self._pending is None:
+            return
+        self.files, self._pending = self._pending, None
+        self._dirty.clear()
+        keep = set(self.files)
+        for path in self.directory.glob("replay_*.pt"):
+            if _BLOCK_FILE.match(path.name) and path.name not in keep:
+                path.unlink(missing_ok=True)
+
+    def load(self, buffer: ReplayBuffer, manifest: dict[str, Any]) -> None:
+        """Refill an empty ``buffer`` from a manifest: same slots, same next write position."""
+        if len(buffer):
+            raise ValueError("ReplayStore.load needs an empty buffer")
+        if int(manifest["block_episodes"]) != self.block_episodes:
+            raise ckpt.CheckpointError(
+                f"the saved replay has blocks of {manifest['block_episodes']} episodes, this run "
+                f"{self.block_episodes}"
+            )
+        n = int(manifest["length"])
+        if n > buffer.storage.max_size:
+            raise ValueError(f"the saved replay holds {n} episodes, more than this buffer's capacity")
+        for name in manifest["files"]:
+            payload = ckpt.load(self.directory / name, mmap=True)
+            episodes = TensorDict(
+                {tuple(k.split("/")): v for k, v in payload["episodes"].items()},
+                batch_size=payload["batch_size"],
+            )
+            device = buffer.storage.device
+            buffer.extend(episodes.to(device) if device is not None else episodes)
+        if len(buffer) != n:
+            raise ckpt.CheckpointError(
+                f"the replay files in {self.directory} hold {len(buffer)} episodes, the manifest {n}"
+            )
+        buffer.writer.load_state_dict(manifest["writer"])
+        self.files = list(manifest["files"])
+        self.generation = int(manifest["generation"])
+        self._dirty.clear()
