@@ -211,7 +211,7 @@ def test_a_stopped_run_is_recorded_as_stopped_and_not_pruned(runs: Path, tmp_pat
     assert campaign_main(["record", str(run_dir), "--records", str(tmp_path / "r"), "--prune"]) == 0
     out = capsys.readouterr().out
     assert "(stopped at 200 env steps)" in out and "not pruned" in out
-    assert "replay" in ckpt.load(ckpt.checkpoint_path(run_dir))
+    assert "replay_blocks" in ckpt.load(ckpt.checkpoint_path(run_dir))  # still resumable
 
 
 def test_record_refuses_what_is_not_a_run(tmp_path: Path, capsys) -> None:

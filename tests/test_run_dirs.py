@@ -245,18 +245,23 @@ def test_a_resumed_run_logs_every_row_once_and_checkpoints_where_a_straight_run_
 
     run_dir = tmp_path / "run"
     Trainer(compose_config("train.total_env_steps=80", *common), run_dir).train()
-    at_80 = ckpt.checkpoint_path(run_dir).read_bytes()
+    at_80 = tmp_path / "checkpoints_at_80"  # last.pt and the replay's block files it names
+    shutil.copytree(run_dir / "checkpoints", at_80)
     _resume(run_dir, "train.total_env_steps=120").train()  # logs rows at 120 ...
-    ckpt.checkpoint_path(run_dir).write_bytes(at_80)  # ... then dies before checkpointing them
-    (run_dir / "checkpoints" / "model_000000120.pt").unlink()
+    shutil.rmtree(run_dir / "checkpoints")  # ... then dies before checkpointing them
+    shutil.copytree(at_80, run_dir / "checkpoints")
     assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120]
 
     _resume(run_dir, "train.total_env_steps=200").train()
     assert _csv_logs(run_dir) == _csv_logs(straight)
     assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120, 160, 200]
     assert [int(float(r[0])) for r in _rows(run_dir, "eval/episode_reward")] == [0, 40, 80, 120, 160, 200]
-    names = sorted(p.name for p in (straight / "checkpoints").iterdir())
-    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == names  # no extra checkpoint
+
+    def checkpoints(run: Path) -> list[str]:  # the replay's block files are named by save generation
+        return sorted(p.name for p in (run / "checkpoints").iterdir() if not p.name.startswith("replay_"))
+
+    names = checkpoints(straight)
+    assert checkpoints(run_dir) == names  # no extra checkpoint
     assert names == ["last.pt", "model_000000080.pt", "model_000000160.pt", "model_000000200.pt"]
 
 
@@ -270,7 +275,8 @@ def test_a_fresh_run_refuses_a_non_empty_directory_unless_told_to_overwrite(tmp_
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80  # untouched
 
     Trainer(compose_config("train.total_env_steps=40", "overwrite=true", "seed=3"), run_dir).train()
-    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["last.pt", "model_000000040.pt"]
+    kept = sorted(p.name for p in (run_dir / "checkpoints").iterdir())
+    assert kept == ["last.pt", "model_000000040.pt", "replay_00000_000001.pt"]  # only the new run's files
     assert [int(r[0]) for r in _rows(run_dir)] == [40]  # the old run's rows are gone, not mixed
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["config"]["seed"] == 3
 
@@ -286,17 +292,19 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(
 ) -> None:
     run_dir = tmp_path / "run"
     trainer = Trainer(compose_config("train.total_env_steps=200", "train.checkpoint_interval=40"), run_dir)
-    saves = {"n": 0}
+    saves = {"last": 0, "full": False}
     real_save = ckpt.save_atomic
 
     def counting_save(payload, path):
-        saves["n"] += 1
+        is_last = Path(path).name == ckpt.LAST
+        saves["last"] += is_last
+        saves["full"] = saves["full"] or (is_last and saves["last"] >= 3)
         return real_save(payload, path)
 
     real_write = ckpt._Writer.write
 
     def write(self, data: bytes) -> int:
-        if saves["n"] >= 5:  # the third last.pt (after last.pt and model_*.pt twice): the disk is full
+        if saves["full"]:  # from the third last.pt on (its replay blocks are written): the disk is full
             real_write(self, data[: len(data) // 2])
             self.error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             raise self.error
