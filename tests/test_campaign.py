@@ -213,7 +213,7 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path,
         json.loads(line) for line in (point.run_dir(outputs) / "campaign.jsonl").read_text().splitlines()
     ]
     assert session["stopped_by_campaign"] and session["returncode"] != 0
-    assert "replay" in ckpt.load(last)  # a stopped run is not pruned: it resumes next time
+    assert "replay_blocks" in ckpt.load(last)  # a stopped run is not pruned: it resumes next time
     # The child (its own process group) is gone: no member left but zombies (a container's PID 1 may
     # not reap the orphaned helpers the child had, such as multiprocessing's resource tracker).
     assert not _running_members(int(out.split("(pid ")[1].split(")")[0]))

@@ -36,9 +36,10 @@ class Store:
 
 def replay_step_bytes(env: EnvConfig) -> int:
     """Bytes of one step of a stored episode (``mcrs.experiment.replay`` layout): observations (float32),
-    action masks, the state, the action (int64), reward, done, terminated and filled flags."""
+    action masks, the state, the action (int64), reward, done, terminated and filled flags, and the
+    episode's id (int64, which the trainer adds for the episodic memory's foreign-hit rate)."""
     agents = env.n_uavs * (4 * env.obs_dim + N_ACTIONS_BYTES + 8)
-    return agents + 4 * env.state_dim + 4 + 3
+    return agents + 4 * env.state_dim + 4 + 3 + 8
 
 
 def rollout_step_bytes(env: EnvConfig, hidden_dim: int) -> int:
@@ -51,9 +52,10 @@ def rollout_step_bytes(env: EnvConfig, hidden_dim: int) -> int:
 
 def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
     """Bytes of one entry of the episodic memory D_E (mcrs.memory.episodic): compact counts (2 bytes a
-    cell), positions, the key, the return, the step, flags, EMU's counters and the index records."""
+    cell), positions, the key, the return, the step, flags, the writing episode, EMU's counters and the
+    index records."""
     positions = env.n_uavs + env.n_no_fly + env.n_targets
-    return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 9 + 24
+    return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 8 + 9 + 24
 
 
 def network_bytes(cfg: DictConfig, env: EnvConfig) -> tuple[int, str]:
