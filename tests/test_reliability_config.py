@@ -26,7 +26,7 @@ from mcrs.experiment.config import (
     TrainConfig,
     validate,
 )
-from tests.train_helpers import compose_config
+from tests.train_helpers import compose_config, start_train
 
 POSITIVE = "must be > 0"
 UNIT = "must be in [0, 1]"
@@ -355,9 +355,6 @@ def test_count_of_bad_inputs(capsys: pytest.CaptureFixture) -> None:
 def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:
     """Issue 14's list 4 through ``mcrs-train``: refused before anything runs (no run directory is left),
     each field named, no traceback. The commands run at once: they only wait for their imports."""
-    import os
-    import subprocess
-    import sys
 
     commands = {
         (
@@ -376,17 +373,7 @@ def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:
         ],
         ("algo=qmix", "env.max_steps=100000000"): ["train.replay_episodes=5000 x env.max_steps=100000000"],
     }
-    procs = {
-        args: subprocess.Popen(
-            [sys.executable, "-m", "mcrs.train", *args],
-            cwd=tmp_path,
-            env={**os.environ, "HYDRA_FULL_ERROR": "0"},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for args in commands
-    }
+    procs = {args: start_train(*args, cwd=tmp_path) for args in commands}
     for args, proc in procs.items():
         _, err = proc.communicate(timeout=300)
         assert proc.returncode != 0 and "Traceback" not in err, err

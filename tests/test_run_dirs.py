@@ -28,21 +28,9 @@ from mcrs.experiment.config import ConfigError
 from mcrs.experiment.rundir import LOCK, RunDirError, RunLock
 from mcrs.experiment.trainer import Trainer
 from mcrs.train import resume_config
-from tests.train_helpers import TINY, TINY_MEMORY, compose_config
+from tests.train_helpers import TINY, TINY_MEMORY, compose_config, start_train
 
 BATCH = 40  # TINY: 4 envs x 10 steps per collector batch
-
-
-def _cli(*args: str, cwd: Path, **popen) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "mcrs.train", *args],
-        cwd=cwd,
-        env={**os.environ, "HYDRA_FULL_ERROR": "0"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        **popen,
-    )
 
 
 def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str, str]:
@@ -86,8 +74,8 @@ def test_runs_started_together_get_their_own_directories_and_complete_logs(tmp_p
         "train.checkpoint_interval=40",
         "train.eval_interval=80",
     ]
-    procs = [_cli(*args, cwd=tmp_path) for _ in range(2)] + [
-        _cli("-m", *args, cwd=tmp_path) for _ in range(2)
+    procs = [start_train(*args, cwd=tmp_path) for _ in range(2)] + [
+        start_train("-m", *args, cwd=tmp_path) for _ in range(2)
     ]
     for proc in procs:
         rc, _, err = _finish(proc)
@@ -123,8 +111,8 @@ def test_a_second_writer_and_a_resume_of_a_live_run_are_refused_naming_the_pid(t
         while not ckpt.checkpoint_path(run_dir).is_file():
             assert live.poll() is None and time.monotonic() < deadline, "the live run did not checkpoint"
             time.sleep(0.05)
-        resume = _cli(f"resume={run_dir}", cwd=tmp_path)  # both at once: they only wait for imports
-        second = _cli("algo=qmix", *TINY, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        resume = start_train(f"resume={run_dir}", cwd=tmp_path)  # both at once: they only wait for imports
+        second = start_train("algo=qmix", *TINY, f"hydra.run.dir={run_dir}", cwd=tmp_path)
         rc, _, err = _finish(resume)
         _assert_one_line_error(rc, err, f"run directory {run_dir} is in use by process {live.pid}")
         rc, _, err = _finish(second)
@@ -230,7 +218,7 @@ def test_cli_refuses_a_foreign_checkpoint_in_one_line(qmix_run: Path, tmp_path: 
     shutil.copytree(qmix_run, run_dir)
     shutil.copy(ckpt.checkpoint_path(foreign), ckpt.checkpoint_path(run_dir))
     before = _csv_logs(run_dir)
-    rc, _, err = _finish(_cli(f"resume={run_dir}", cwd=tmp_path))
+    rc, _, err = _finish(start_train(f"resume={run_dir}", cwd=tmp_path))
     _assert_one_line_error(rc, err, "does not belong to this run: algo.name: 'cnn_semu' in the checkpoint")
     assert _csv_logs(run_dir) == before  # nothing was trained on from the foreign state
 
@@ -341,7 +329,7 @@ def test_cli_file_too_large_is_one_line_and_the_last_checkpoint_is_intact(tmp_pa
         "train.checkpoint_interval=40",
         "train.replay_episodes=200",
     ]
-    rc, _, err = _finish(_cli(*args, f"hydra.run.dir={run_dir}", cwd=tmp_path, preexec_fn=limit))
+    rc, _, err = _finish(start_train(*args, f"hydra.run.dir={run_dir}", cwd=tmp_path, preexec_fn=limit))
     _assert_one_line_error(rc, err, "cannot write checkpoint", "File too large", "is intact")
     steps = ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"]
     assert 40 <= steps < 400
@@ -350,7 +338,7 @@ def test_cli_file_too_large_is_one_line_and_the_last_checkpoint_is_intact(tmp_pa
 
 def test_an_unwritable_run_directory_is_one_line(tmp_path: Path) -> None:
     (tmp_path / "a_file").write_text("")
-    rc, _, err = _finish(_cli(*TINY, f"hydra.run.dir={tmp_path / 'a_file' / 'run'}", cwd=tmp_path))
+    rc, _, err = _finish(start_train(*TINY, f"hydra.run.dir={tmp_path / 'a_file' / 'run'}", cwd=tmp_path))
     _assert_one_line_error(
         rc, err, f"cannot write the run directory {tmp_path / 'a_file' / 'run'}: Not a directory"
     )
@@ -386,5 +374,5 @@ def test_cli_bad_run_config_is_one_line(qmix_run: Path, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     shutil.copytree(qmix_run, run_dir)
     (run_dir / "config.yaml").write_text("seed: 0\nalgo:\n  lrr: 1\n")
-    rc, _, err = _finish(_cli(f"resume={run_dir}", cwd=tmp_path))
+    rc, _, err = _finish(start_train(f"resume={run_dir}", cwd=tmp_path))
     _assert_one_line_error(rc, err, "does not fit this mcrs's config")

@@ -1,6 +1,12 @@
-"""Shared by the training tests: compose the real Hydra config in-process, at a tiny size."""
+"""Shared by the training tests: compose the real Hydra config in-process, at a tiny size, or start
+``mcrs-train`` as a user would."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
@@ -44,3 +50,16 @@ def compose_config(*overrides: str, tiny: bool = True, algo: str = "qmix") -> Di
     chosen = [] if any(o.startswith("algo=") for o in overrides) else [f"algo={algo}"]
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         return compose(config_name="config", overrides=[*chosen, *(TINY if tiny else []), *overrides])
+
+
+def start_train(*args: str, cwd: Path, **popen) -> subprocess.Popen:
+    """``python -m mcrs.train *args`` in ``cwd`` with piped text output (Hydra's short errors)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "mcrs.train", *args],
+        cwd=cwd,
+        env={**os.environ, "HYDRA_FULL_ERROR": "0"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **popen,
+    )
