@@ -11,9 +11,9 @@ import torch
 from tensordict import TensorDict
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.experiment import Experiment
 from mcrs.experiment.replay import make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.trainer import Trainer
 from tests.train_helpers import compose_config
 
 
@@ -86,7 +86,7 @@ def test_time_based_checkpoints_and_the_replay_beside_last_pt(tmp_path: Path) ->
     # No step-based checkpoint before the end; a time interval that every batch exceeds.
     cfg = compose_config("train.total_env_steps=120", "train.checkpoint_interval=1000000",
                          "train.checkpoint_minutes=1e-9")  # fmt: skip
-    Trainer(cfg, tmp_path).train()
+    Experiment(cfg, tmp_path).run()
     saved = sorted(p.name for p in (tmp_path / "checkpoints").glob("model_*.pt"))
     assert saved == [f"model_{s:09d}.pt" for s in (40, 80, 120)]
     state = ckpt.load(ckpt.checkpoint_path(tmp_path))
@@ -98,7 +98,7 @@ def test_bad_checkpoint_minutes_is_refused(tmp_path: Path) -> None:
     from mcrs.experiment.config import ConfigError
 
     with pytest.raises(ConfigError, match=r"train\.checkpoint_minutes=-1\.0: must be >= 0"):
-        Trainer(compose_config("train.checkpoint_minutes=-1"), tmp_path)
+        Experiment(compose_config("train.checkpoint_minutes=-1"), tmp_path)
 
 
 def test_checkpoint_benchmark_quick_run_prints_its_figures(capsys: pytest.CaptureFixture[str]) -> None:

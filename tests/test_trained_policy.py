@@ -9,7 +9,7 @@ import torch
 
 from mcrs.env import MCRSEnv, scenario
 from mcrs.evaluate import evaluate_policy
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.experiment import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import make_policy
 from mcrs.policies.trained import TrainedPolicy
@@ -20,12 +20,12 @@ from tests.train_helpers import compose_config
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("run")
-    Trainer(compose_config("train.total_env_steps=80"), path).train()
+    Experiment(compose_config("train.total_env_steps=80"), path).run()
     return path
 
 
 def test_checkpoint_policy_matches_the_training_greedy_policy(run_dir: Path) -> None:
-    trainer = Trainer(compose_config("train.total_env_steps=80"), run_dir, resume=True)
+    trainer = Experiment(compose_config("train.total_env_steps=80"), run_dir, resume=True)
     env_config = scenario("map10", max_steps=10, num_envs=3)
     policy = make_policy(str(run_dir), env_config)
     assert isinstance(policy, TrainedPolicy)

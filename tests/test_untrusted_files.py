@@ -24,7 +24,7 @@ from omegaconf.errors import InterpolationResolutionError
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import validate
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.experiment import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import compose_config
 
@@ -42,7 +42,7 @@ class _TouchOnLoad:
 @pytest.fixture(scope="module")
 def good_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     run_dir = tmp_path_factory.mktemp("good") / "run"
-    Trainer(compose_config("train.total_env_steps=40"), run_dir).train()
+    Experiment(compose_config("train.total_env_steps=40"), run_dir).run()
     return run_dir
 
 
@@ -170,7 +170,7 @@ def test_config_values_are_data_not_code(tmp_path: Path, monkeypatch: pytest.Mon
     code = "__import__('os').system('touch pwned')"
     cfg = compose_config(f'logger.project="{code}"', "train.total_env_steps=20")
     validate(cfg)
-    Trainer(cfg, tmp_path / "run").train()
+    Experiment(cfg, tmp_path / "run").run()
     assert cfg.logger.project == code  # kept as a plain string
     assert not (tmp_path / "pwned").exists()
     saved = OmegaConf.load(tmp_path / "run" / "config.yaml")

@@ -79,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, command: str) -> None:
-    from mcrs.experiment.trainer import Trainer
+    from mcrs.experiment.experiment import Experiment
 
     extra = ["logger=csv", "logger.progress_bar=false", f"threads={args.threads}"]
     cfg = compose_config(args.map, args.quick, extra)
@@ -92,7 +92,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
         flush=True,
     )
     with tempfile.TemporaryDirectory(prefix="mcrs-bench-checkpoint-") as run_dir:
-        trainer = Trainer(cfg, run_dir)
+        trainer = Experiment(cfg, run_dir)
         generator = torch.Generator().manual_seed(0)
         start = time.perf_counter()
         _fill(trainer, capacity, generator)

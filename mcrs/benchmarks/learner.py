@@ -330,17 +330,23 @@ def _timed(step: Callable[[], Any], update: Callable[[Any], Any]) -> tuple[float
 
 def measure_updates(map_name: str, quick: bool, updates: int) -> tuple[EnvConfig, Agreement, UpdateTimes]:
     """Build both learners from the same weights, check their losses agree, then time them alternately."""
+    from mcrs.experiment.learner import Learner
     from mcrs.experiment.replay import make_episode_buffer
-    from mcrs.experiment.trainer import Learner
 
     cfg = compose_config(map_name, quick)
     env_config = from_mapping(cfg.env)
     n_episodes = QUICK_REPLAY_EPISODES if quick else REPLAY_EPISODES
     batch_size = int(cfg.train.batch_episodes)
     torch.manual_seed(0)
-    learner = Learner(cfg, env_config, torch.device("cpu"))
+    learner = Learner(cfg.algo, cfg.model, cfg.train, env_config, torch.device("cpu"))
     reference = ReferenceLearner(cfg, env_config)
-    reference.load_weights(learner.state_dict())
+    reference.load_weights(
+        {
+            **learner.weights(),
+            "target_agent": learner.loss.target_agent_network_params.state_dict(),
+            "target_mixer": learner.loss.target_mixer_params.state_dict(),
+        }
+    )
     episodes = synthetic_episodes(n_episodes, env_config, torch.Generator().manual_seed(0))
     replay = make_episode_buffer(n_episodes, batch_size)
     replay.extend(episodes)
@@ -411,7 +417,7 @@ def measure_loop(
     first batch, the first update, allocation of the replay) and it contains whole iterations: the updates
     after a batch, logging, and the next collection.
     """
-    from mcrs.experiment.trainer import Trainer
+    from mcrs.experiment.experiment import Experiment
 
     cfg = compose_config(
         map_name, quick, ["logger=csv", "logger.progress_bar=false", f"threads={threads}", *extra], algo
@@ -426,7 +432,7 @@ def measure_loop(
     evals: list[float] = []
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="mcrs-bench-learner-") as run_dir:
-        trainer = Trainer(cfg, run_dir)
+        trainer = Experiment(cfg, run_dir)
         c = trainer.counters
         extend, update, evaluate = trainer.replay.extend, trainer._update, trainer._evaluate
 

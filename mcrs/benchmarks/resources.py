@@ -109,14 +109,14 @@ def compose(args: argparse.Namespace):
 def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
     """Train, sampling the RSS before every collector batch that crosses a multiple of ``--every`` and after
     the final evaluation and checkpoint (before the collector shuts down, which frees memory)."""
-    from mcrs.experiment.trainer import Trainer
+    from mcrs.experiment.experiment import Experiment
 
-    trainer = Trainer(compose(args), run_dir)
+    trainer = Experiment(compose(args), run_dir)
     samples: list[Sample] = []
 
     def sample() -> None:
         release_free_heap()
-        memory = trainer.episodic.memory.size if trainer.episodic is not None else 0
+        memory = trainer.callback("memory").memory.size if trainer.config.algo.memory.enabled else 0
         samples.append(
             Sample(trainer.counters.env_steps, rss_bytes() / MIB, len(trainer.replay), int(memory))
         )
@@ -182,7 +182,7 @@ def _report(args: argparse.Namespace, command: str) -> None:
         f"\nrun: {elapsed:.0f} s; replay at 50%: {full}"
         + (
             f"; memory at 50%: {middle.memory_entries}/{trainer.cfg.algo.memory.capacity} entries"
-            if trainer.episodic is not None
+            if trainer.config.algo.memory.enabled
             else ""
         )
     )
