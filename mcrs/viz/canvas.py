@@ -22,12 +22,14 @@ MISSED_COLOR = "#f46d43"
 
 
 def new_figure(width: float, height: float) -> Figure:
+    """A figure on its own Agg canvas (inches), never registered with pyplot."""
     fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
 
 def setup_grid(ax: Axes, cfg: EnvConfig, cell_lines: bool = True) -> None:
+    """Axes over the map's cells (centres at integers), square cells, optional cell borders."""
     ax.set_xlim(-0.5, cfg.width - 0.5)
     ax.set_ylim(-0.5, cfg.height - 0.5)
     ax.set_aspect("equal")
@@ -46,10 +48,12 @@ def as_image(values: np.ndarray) -> np.ndarray:
 
 
 def extent(cfg: EnvConfig) -> tuple[float, float, float, float]:
+    """``imshow``'s extent that puts each map value on its cell."""
     return (-0.5, cfg.width - 0.5, -0.5, cfg.height - 0.5)
 
 
 def draw_no_fly(ax: Axes, no_fly: np.ndarray) -> None:
+    """Hatched squares on the no-fly cells ``[Z, 2]``."""
     for x, y in no_fly:
         ax.add_patch(
             square(x, y, facecolor=NO_FLY_COLOR, alpha=0.35, edgecolor=NO_FLY_COLOR, hatch="xx", zorder=2)
@@ -57,10 +61,12 @@ def draw_no_fly(ax: Axes, no_fly: np.ndarray) -> None:
 
 
 def square(x: float, y: float, **kwargs) -> Rectangle:
+    """The unit square of cell (x, y)."""
     return Rectangle((x - 0.5, y - 0.5), 1.0, 1.0, **kwargs)
 
 
 def uav_colors(n: int) -> list:
+    """One qualitative colour per UAV (repeating beyond 20)."""
     cmap = colormaps["tab10" if n <= 10 else "tab20"]
     return [cmap(i % cmap.N) for i in range(n)]
 
