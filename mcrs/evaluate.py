@@ -189,17 +189,10 @@ def write_results(
 
 
 def write_figures(out_dir: Path, env_config: EnvConfig, policy_name: str, seed: int) -> list[Path]:
-    """The three pictures of one episode (seed ``seed``) of ``policy_name``."""
-    from mcrs.env.render import plot_scene, plot_uncertainty_contours, rollout_episode, save_episode_gif
+    """The three pictures of one episode (seed ``seed``) of ``policy_name`` (:mod:`mcrs.viz`)."""
+    from mcrs.viz import write_episode_pictures
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    episode = rollout_episode(env_config, policy_name, seed)
-    without = rollout_episode(env_config.replace(comm_range=0.0), policy_name, seed)
-    paths = [out_dir / "scene.png", out_dir / "uncertainty_contours.png", out_dir / "episode.gif"]
-    plot_scene(episode, env_config, paths[0])
-    plot_uncertainty_contours(episode, without, env_config, paths[1])
-    save_episode_gif(episode, env_config, paths[2])
-    return paths
+    return write_episode_pictures(out_dir, env_config, policy_name, seed)
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, float]]]:

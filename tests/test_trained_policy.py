@@ -13,7 +13,7 @@ from mcrs.experiment.experiment import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import make_policy
 from mcrs.policies.trained import TrainedPolicy
-from mcrs.render_episode import render
+from mcrs.viz import write_episode_pictures
 from tests.train_helpers import compose_config
 
 
@@ -47,7 +47,7 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
     model = sorted((run_dir / "checkpoints").glob("model_*.pt"))[-1]
     result = evaluate_policy(env_config, str(model), episodes=3, seed=0)
     assert result["episode_reward"][1] >= 0
-    paths = render(env_config, str(model), seed=0, out=tmp_path, gif=False)
+    paths = write_episode_pictures(tmp_path, env_config, str(model), seed=0, gif=False)
     assert all(p.is_file() for p in paths)
 
 
