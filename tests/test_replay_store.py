@@ -3,7 +3,6 @@ checkpoint whole, a reload restores the same slots and write position, and time-
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import pytest
@@ -11,9 +10,9 @@ import torch
 from tensordict import TensorDict
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.experiment import Experiment
 from mcrs.experiment.replay import make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
+from mcrs.experiment.experiment import Experiment
 from tests.train_helpers import compose_config
 
 
@@ -99,14 +98,3 @@ def test_bad_checkpoint_minutes_is_refused(tmp_path: Path) -> None:
 
     with pytest.raises(ConfigError, match=r"train\.checkpoint_minutes=-1\.0: must be >= 0"):
         Experiment(compose_config("train.checkpoint_minutes=-1"), tmp_path)
-
-
-def test_checkpoint_benchmark_quick_run_prints_its_figures(capsys: pytest.CaptureFixture[str]) -> None:
-    from mcrs.benchmarks.checkpoint import main
-
-    assert main(["--map", "map10", "--quick", "--new-episodes", "5", "--compare-inline"]) == 0
-    out = capsys.readouterr().out
-    assert "Trainer.save() with a full replay of 16 episodes" in out
-    assert re.search(r"checkpoint after 5 new episodes \(blocks rewritten: 1, [\d.]+ GiB\): [\d.]+ s", out)
-    assert re.search(r"the whole replay inline in last.pt: [\d.]+ s", out)
-    assert re.search(r"full map10 replay \(16 episodes\): [\d.]+ s \(goal <= 10 s: not judged", out)
