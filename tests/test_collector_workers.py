@@ -161,7 +161,6 @@ def test_a_failing_worker_stops_the_run_with_its_cause_and_the_run_resumes(tmp_p
     ("overrides", "message"),
     [
         (("train.collector=multiprocess", "train.collector_workers=3"), "not divisible by"),
-        (("train.collector=pool",), "allowed values are single, multiprocess"),
         (("train.collector_workers=0",), "must be >= 1"),
     ],
 )

@@ -39,8 +39,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 )
 LAYER = {package: level for level, packages in enumerate(LAYERS) for package in packages}
 
-#: Known imports against the layers, each with the change that removes it. The lead empties this list when
-#: issue 15's Experiment lands (trainer.py reads RESUME_MUTABLE from the mcrs-train CLI module).
+#: Known imports against the layers, each with the change that removes it (none: the list only shrinks).
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
 
 #: Modules allowed over 500 lines (none: the list only shrinks).

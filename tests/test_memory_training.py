@@ -125,19 +125,9 @@ def test_resume_continues_with_the_same_memory(algo: str, tmp_path: Path) -> Non
         ("algo.memory.delta=-1", r"algo\.memory\.delta=-1\.0: must be > 0"),
         ("algo.memory.capacity=0", r"algo\.memory\.capacity=0: must be >= 1 entry"),
         ("algo.memory_weight=-0.1", r"algo\.memory_weight=-0\.1: must be >= 0"),
-        ("algo.memory.embedding=pca", r"algo\.memory\.embedding='pca': allowed values are random, fc, cnn"),
-        ("algo.incentive=often", r"algo\.incentive='often': allowed values are none, fixed, change"),
         ("algo.memory.enabled=false", r"need the episodic memory: set algo\.memory\.enabled=true"),
         ("algo.memory.cnn_channels=[4,4]", r"algo\.memory\.cnn_channels=\[4, 4\]: must be 3 positive"),
         ("algo.curiosity_decay_rate=2", r"algo\.curiosity_decay_rate=2\.0: must be in \[0, 1\]"),
-        (
-            "algo.memory.delta_rule=side",
-            r"algo\.memory\.delta_rule='side': allowed values are volume, literal",
-        ),
-        (
-            "algo.memory.neighbourhood=cube",
-            r"algo\.memory\.neighbourhood='cube': allowed values are ball, box",
-        ),
         ("algo.memory.embedding_grad_clip=0", r"algo\.memory\.embedding_grad_clip=0\.0: must be > 0"),
     ],
 )

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import StrEnum
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -31,16 +31,31 @@ from mcrs.models.embeddings import EMBEDDINGS
 from mcrs.models.mixers import MIXERS
 from mcrs.objectives.value_factorisation import ValueFactorisationLoss
 
-Mixer = StrEnum("Mixer", MIXERS)
-Optimizer = StrEnum("Optimizer", ("rmsprop", "adam"))
-LoggerBackend = StrEnum("LoggerBackend", ("csv", "wandb", "tensorboard"))
-WandbMode = StrEnum("WandbMode", ("offline", "online"))
-ModelName = StrEnum("ModelName", ("gru",))
-Collector = StrEnum("Collector", ("single", "multiprocess"))
-Embedding = StrEnum("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
-Incentive = StrEnum("Incentive", ValueFactorisationLoss.INCENTIVES)
-DeltaRule = StrEnum("DeltaRule", DELTA_RULES)
-Neighbourhood = StrEnum("Neighbourhood", SHAPES)
+class Choice(str, Enum):
+    """A config choice: Hydra checks it against the members while composing; it compares equal to, prints
+    and formats as its value (``Mixer.qmix == "qmix"``), as ``enum.StrEnum`` does from Python 3.11 on."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+def _choices(name: str, values: tuple[str, ...]) -> type[Choice]:
+    return Choice(name, [(value, value) for value in values])  # member name = value: what users type
+
+
+Mixer = _choices("Mixer", MIXERS)
+Optimizer = _choices("Optimizer", ("rmsprop", "adam"))
+LoggerBackend = _choices("LoggerBackend", ("csv", "wandb", "tensorboard"))
+WandbMode = _choices("WandbMode", ("offline", "online"))
+ModelName = _choices("ModelName", ("gru",))
+Collector = _choices("Collector", ("single", "multiprocess"))
+Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
+Incentive = _choices("Incentive", ValueFactorisationLoss.INCENTIVES)
+DeltaRule = _choices("DeltaRule", DELTA_RULES)
+Neighbourhood = _choices("Neighbourhood", SHAPES)
 MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
 MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
 MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
@@ -202,7 +217,7 @@ def _positive(errors: list[str], name: str, value: float, allow_zero: bool = Fal
         errors.append(f"{name}={value}: must be {'>= 0' if allow_zero else '> 0'}")
 
 
-def _choice(errors: list[str], name: str, value: Any, allowed: type[StrEnum]) -> None:
+def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> None:
     """Hydra checks enums while composing; a Python caller may hand over any string."""
     values = [member.value for member in allowed]
     if str(value) not in values:
