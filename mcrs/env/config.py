@@ -235,12 +235,8 @@ def scenario(name: str = "map10", **overrides: Any) -> EnvConfig:
 
 
 def from_mapping(values: Any) -> EnvConfig:
-    """Build a validated config from a Hydra/OmegaConf node or a plain mapping."""
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(values, DictConfig):
-        values = OmegaConf.to_container(values, resolve=True, enum_to_str=True)
-    values = dict(values)
+    """Build a validated config from a Hydra/OmegaConf node, a :data:`ScenarioConfig` or a plain mapping."""
+    values = asdict(values) if is_dataclass(values) else _plain(values)
     _check_known_fields(values)
     for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
         if _is_int(values.get(name)):
