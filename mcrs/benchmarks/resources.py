@@ -144,7 +144,7 @@ def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
 
     trainer.collector.next_batch = sampled_next_batch  # the loop's one call per collector batch
     trainer.save = save_then_sample
-    trainer.train()
+    trainer.run()
     return samples, trainer
 
 
