@@ -49,7 +49,8 @@ The episodic-memory terms read, when switched on (row t describes the transition
 
 Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
 ``reward``, ``done``, ``terminated``, ``filled``, ``action_value``, ``memory_return``, ``memory_hit``,
-``memory_ratio``, ``intrinsic_reward``, ``agent_inputs``), so the loss plugs into other TorchRL multi-agent tasks.
+``memory_ratio``, ``intrinsic_reward``, ``agent_inputs``), so the loss plugs into other TorchRL multi-agent
+tasks.
 """
 
 from __future__ import annotations
