@@ -380,7 +380,6 @@ class EpisodicMemory:
         nu = outcome.new_from.numel()
         new_slots = (write + torch.arange(nu, device=dev)) % C
         old_slots = outcome.shift_slots[~outcome.shift_is_new]
-        old_cubes = self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots)))
         batch = {"keys": x, "returns": returns, "step": step, "episode": written}
         rows = {"codes": codes.view(n, -1), "positions": positions.view(n, -1)}
         first = min(nu, C - write)
@@ -408,11 +407,8 @@ class EpisodicMemory:
             self.xi[outcome.count_slots] = outcome.xi
         self.size += nu
 
-        # Index: every new slot, and the shifted old slots whose cube changed.
-        changed = (
-            self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots))) != old_cubes
-        )
-        fresh = torch.cat([new_slots, old_slots[changed]])
+        # Index: every slot whose key was written (new ones and shifted old ones).
+        fresh = torch.cat([new_slots, old_slots])
         self.index.add(self.keys.index_select(0, fresh), fresh)
         self._maintain()
         return InsertStats(
