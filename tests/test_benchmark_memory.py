@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from mcrs.benchmarks import memory as bench
+from mcrs.benchmarks import memory_anchors
 
 NUMBER = r"([\d,]+(?:\.\d+)?)"
 TINY = ["--entries", "3000", "--map", "map10", "--episodes", "2", "--lookups", "200", "--repeats", "1"]
@@ -143,8 +144,8 @@ def test_the_anchors_find_what_our_index_finds(shape: str) -> None:
     keys = torch.cat([keys + torch.randn(keys.shape, generator=generator) * memory.index.std * 0.1, keys * 3])
     _, hit, found = memory.lookup_keys(keys)
     assert 0 < int(hit.sum()) < len(keys)
-    tree = bench.kdtree_batched(memory, keys, workers=1)
+    tree = memory_anchors.kdtree_batched(memory, keys, workers=1)
     assert torch.equal(tree["found"], found)
-    flat = bench.faiss_flat(memory, keys)
+    flat = memory_anchors.faiss_flat(memory, keys)
     if flat is not None:
         assert torch.equal(flat["found"], found)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import mcrs.memory.index as index_module
-from mcrs.memory.index import GridIndex, float_order, merge_sorted, squared_distance
+from mcrs.memory.index import GridIndex, Records, float_order, merge_records, squared_distance
 
 INF = float("inf")
 
@@ -207,12 +207,26 @@ def test_negative_zero_and_the_order_of_floats() -> None:
         check(index, queries, keys, live)
 
 
-def test_merge_sorted_equals_sorting_the_union() -> None:
+def test_merge_records_equals_sorting_the_union() -> None:
+    """Merged records are the union sorted by key, each record's slot and copy carried with it."""
     generator = torch.Generator().manual_seed(6)
-    a = torch.randint(0, 1000, (5000,), generator=generator).sort().values
-    b = torch.randint(0, 1000, (300,), generator=generator).sort().values
-    assert torch.equal(merge_sorted(a, b), torch.cat([a, b]).sort().values)
-    assert torch.equal(merge_sorted(a, b[:0]), a) and torch.equal(merge_sorted(a[:0], b), b)
+
+    def records(n: int) -> Records:
+        order = torch.randint(0, 1000, (n,), generator=generator).sort().values
+        slot = torch.randint(0, 1 << 30, (n,), generator=generator, dtype=torch.int32)
+        return Records(order, slot, torch.stack([order.float() * 2, slot.float()]))
+
+    a, b = records(5000), records(300)
+    merged = merge_records(a, b)
+    assert torch.equal(merged.order, torch.cat([a.order, b.order]).sort().values)
+    assert torch.equal(merged.coords[0], merged.order.float() * 2)  # the rows travel together
+    assert torch.equal(merged.coords[1], merged.slot.float())
+    pairs = sorted(
+        zip(torch.cat([a.order, b.order]).tolist(), torch.cat([a.slot, b.slot]).tolist(), strict=True)
+    )
+    assert sorted(zip(merged.order.tolist(), merged.slot.tolist(), strict=True)) == pairs
+    assert torch.equal(merge_records(a, b.prefix(0)).order, a.order)
+    assert torch.equal(merge_records(a.prefix(0), b).slot, b.slot)
 
 
 def test_constant_dimension_gets_a_floor_not_a_division_by_zero() -> None:

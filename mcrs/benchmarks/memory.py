@@ -10,26 +10,34 @@ default sizes (1M map20 entries):
 * look-up of 3,200 keys: <= 20 ms, and >= 20x the reference approach of EMC/EMU (one scipy
   ``cKDTree.query`` per transition in a Python loop, tree built once beforehand - its build time is
   printed separately and not charged to it); the two must find the same entries. scipy is not a
-  dependency of the package: without it the stand-in reference is our index queried one key at a time;
+  dependency of the package: without it the stand-in reference is our index queried one key at a time.
+  Beside it the fair anchors (:mod:`mcrs.benchmarks.memory_anchors`): one batched cKDTree query of all
+  keys, and faiss's exact index, as ratios to ours (no goal);
 * re-embedding every stored state with the CNN encoder (``refresh_keys``: decode, embed, rebuild the
   index): <= 10 s;
 * the buffer's size (``nbytes``) <= 1.5 GiB, with the process's resident-memory growth next to it.
 
-The buffer is filled quickly, not by a million insertions: real env rollouts (random allowed actions, 1024
-episodes) are tiled and perturbed - a few extra readings on random cells, UAVs moved by one cell - into
-valid compact states written straight into the storage, then ``refresh_keys`` computes every key (that run
-is the re-embedding figure). At the default tolerance (eq. 35's volume, a box of half-side 0.095) the key
-distribution matters: a look-up verifies every entry of 16 cells of twice that side. A run's buffer holds
-states that Algorithm 1 kept apart (a state within the tolerance of an entry merges into it); the fill's
-perturbed copies of 1024 episodes (about 10 per state at 1M entries) are denser than that, so the figures
-are an upper bound.
+Times are wall clock with the process CPU time beside them (on a loaded machine the CPU time is the
+better estimate of a quiet machine's wall clock).
+
+Two fills (``--fill``). At the default tolerance (eq. 35's volume, a box of half-side 0.095) the key
+density decides the cost: every entry near a query is a candidate to test.
+
+* ``synthetic`` (default, judged, the worst case): real env rollouts (random allowed actions, 1024
+  episodes) tiled and perturbed - a few extra readings on random cells, UAVs moved by one cell - into
+  ``--entries`` valid compact states written straight into the storage, then ``refresh_keys`` computes every
+  key (that run is the re-embedding figure). About 10 near-copies per rolled-out state: a key that hits has
+  ~17 entries within the tolerance. No run builds that: Algorithm 1 merges a state within the tolerance of
+  an entry into it.
+* ``algorithm1``: ``--entries`` transitions of random-policy episodes inserted through Algorithm 1, as a
+  run inserts them (merges and shifts included). The buffer then holds far fewer entries (map20: about
+  0.25M after 1M transitions) at the density a run sees (~3 within the tolerance of a key that hits).
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import itertools
 import os
 import shlex
 import statistics
@@ -37,18 +45,18 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
-import numpy as np
 import torch
 
 from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.benchmarks.env_throughput import resident_bytes
+from mcrs.benchmarks.memory_anchors import anchors, reference_lookups
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.experiment.config import MemoryConfig
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import DELTA_RULES, match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
-from mcrs.memory.index import RECENT_MIN, RECENT_SHARE, SHAPES, squared_distance
+from mcrs.memory.index import RECENT_MIN, RECENT_SHARE, SHAPES
 
 GOAL_MAP = "map20"
 GOAL_ENTRIES = 1_000_000
@@ -59,9 +67,9 @@ GOAL_INSERT_MS = 50.0
 GOAL_REEMBED_S = 10.0
 GOAL_GIB = 1.5
 GOAL_RATIO = 20.0
-FAISS_KEYS = 32  # faiss's exact index is brute force (seconds per 100 keys): timed on this many, scaled
 GIB = 2**30
 EXTRA_READS = 8  # readings added to random cells of each synthetic state
+FILLS = ("synthetic", "algorithm1")
 FILL_EPISODES = 1024  # rolled-out episodes the synthetic states are perturbed copies of
 
 
@@ -114,6 +122,15 @@ def fill(memory: EpisodicMemory, config: EnvConfig, entries: int, seed: int, chu
     memory.start, memory.size = 0, entries
 
 
+def fill_by_algorithm1(memory: EpisodicMemory, config: EnvConfig, transitions: int, seed: int) -> None:
+    """Insert ``transitions`` transitions of rolled-out episodes (``FILL_EPISODES`` at a time) through
+    Algorithm 1, as a run does: entries merge, so the buffer holds fewer (the density a run sees)."""
+    per_batch = FILL_EPISODES * config.max_steps
+    for i in range(-(-transitions // per_batch)):
+        episodes = min(FILL_EPISODES, -(-(transitions - i * per_batch) // config.max_steps))
+        memory.insert(*rollout(config, episodes, seed + i))
+
+
 def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, float]:
     """Median wall-clock and process-CPU seconds of ``repeats`` calls after one warm-up call.
 
@@ -128,135 +145,6 @@ def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, floa
         wall.append(time.perf_counter() - start)
         cpu.append(time.process_time() - start_cpu)
     return statistics.median(wall), statistics.median(cpu)
-
-
-def reference_lookups(memory: EpisodicMemory, keys: torch.Tensor) -> tuple[str, float, float, torch.Tensor]:
-    """EMC/EMU's way: a cKDTree over the standardised keys, then one query per transition in Python.
-
-    Returns (label, build seconds, query-loop seconds, slot found or -1 per key). Without scipy (not a
-    dependency of the package), the stand-in is our own index queried one key at a time.
-    """
-    slots = memory.live_slots()
-    queries = memory.index.standardise(keys)
-    found = []
-    try:
-        from scipy.spatial import cKDTree
-    except ImportError:
-        start = time.perf_counter()
-        for z in queries.split(1):  # one transition at a time
-            slot, _ = memory.index.nearest(z, memory.keys, memory.live)
-            found.append(int(slot))
-        loop = time.perf_counter() - start
-        return (
-            "our grid index, one query per key in Python (scipy not installed)",
-            0.0,
-            loop,
-            torch.tensor(found),
-        )
-    stored = memory.index.standardise(memory.keys[slots]).numpy()
-    returns = memory.returns[slots].numpy()
-    tolerance = memory.delta
-    start = time.perf_counter()
-    tree = cKDTree(stored)
-    build = time.perf_counter() - start
-    start = time.perf_counter()
-    for z in queries.numpy():  # one transition at a time, as the reference code does
-        if memory.shape == "box":  # the entries in the box (Chebyshev ball), then the nearest of them
-            inside = tree.query_ball_point(z, r=tolerance, p=np.inf)
-            if inside:
-                d2 = ((stored[inside] - z) ** 2).sum(1)
-                ind = inside[int(np.argmin(d2))]
-                _ = returns[ind]
-                found.append(int(slots[ind]))
-            else:
-                found.append(-1)
-            continue
-        dist, ind = tree.query(z, k=1)
-        if dist < tolerance:
-            _ = returns[ind]
-            found.append(int(slots[ind]))
-        else:
-            found.append(-1)
-    loop = time.perf_counter() - start
-    return "scipy cKDTree, one query per key in Python", build, loop, torch.tensor(found)
-
-
-def exact_choice(
-    memory: EpisodicMemory, z: np.ndarray, owner: np.ndarray, row: np.ndarray, stored: np.ndarray
-) -> np.ndarray:
-    """Our answer from candidate pairs (query ``owner``, stored ``row``) that a library found: the exact
-    float32 test of the index's shape, then the nearest (lowest row on ties) per query; -1 where none."""
-    a, b = torch.from_numpy(z[owner]), torch.from_numpy(stored[row])
-    d2 = squared_distance(a, b)
-    inside = memory.index.matches(a, b, d2).numpy()
-    owner, row, d2 = owner[inside], row[inside], d2.numpy()[inside]
-    order = np.lexsort((row, d2, owner))
-    owner, row = owner[order], row[order]
-    first = np.ones(owner.size, dtype=bool)
-    first[1:] = owner[1:] != owner[:-1]
-    best = np.full(z.shape[0], -1, dtype=np.int64)
-    best[owner[first]] = row[first]
-    return best
-
-
-def kdtree_batched(
-    memory: EpisodicMemory, keys: torch.Tensor, workers: int
-) -> dict[str, float | torch.Tensor]:
-    """The fair anchor (scipy is optional): one batched cKDTree query of all keys in the norm of the shape
-    (box: ``query_ball_point`` with p = inf; ball: ``query`` k = 1 with ``distance_upper_bound``), radius a
-    hair above the tolerance, then our exact float32 test. Returns its build and query seconds (the query
-    alone, the cheapest part; ``select_s`` the exact choice after it) and the slot found per key."""
-    from scipy.spatial import cKDTree
-
-    slots = memory.live_slots()
-    stored = memory.index.standardise(memory.keys[slots]).numpy()
-    z = memory.index.standardise(keys).numpy()
-    radius = memory.delta * (1 + 1e-6)  # float64 tree vs float32 test: the exact test decides
-    start = time.perf_counter()
-    tree = cKDTree(stored)
-    build = time.perf_counter() - start
-    start = time.perf_counter()
-    if memory.shape == "box":
-        lists = tree.query_ball_point(z, r=radius, p=np.inf, workers=workers, return_sorted=False)
-        query = time.perf_counter() - start
-        start = time.perf_counter()
-        lengths = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
-        row = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
-        owner = np.repeat(np.arange(len(lists)), lengths)
-    else:
-        _, nearest = tree.query(z, k=1, distance_upper_bound=radius, workers=workers)
-        query = time.perf_counter() - start
-        start = time.perf_counter()
-        owner = np.flatnonzero(nearest < stored.shape[0])
-        row = nearest[owner]
-    best = exact_choice(memory, z, owner, row, stored)
-    select = time.perf_counter() - start
-    found = torch.where(torch.from_numpy(best) >= 0, slots[torch.from_numpy(best).clamp(min=0)], -1)
-    return {"build_s": build, "query_s": query, "select_s": select, "found": found}
-
-
-def faiss_flat(memory: EpisodicMemory, keys: torch.Tensor) -> dict[str, float | torch.Tensor] | None:
-    """faiss (optional): its exact index for this metric, ``IndexFlat`` (brute force; L-inf for the box,
-    L2 for the ball) with ``range_search``, then our exact test. None without faiss."""
-    try:
-        import faiss
-    except ImportError:
-        return None
-    faiss.omp_set_num_threads(max(1, torch.get_num_threads()))
-    slots = memory.live_slots()
-    stored = np.ascontiguousarray(memory.index.standardise(memory.keys[slots]).numpy())
-    z = np.ascontiguousarray(memory.index.standardise(keys).numpy())
-    radius = memory.delta * (1 + 1e-6)
-    box = memory.shape == "box"
-    index = faiss.IndexFlat(stored.shape[1], faiss.METRIC_Linf if box else faiss.METRIC_L2)
-    index.add(stored)
-    start = time.perf_counter()
-    limits, _, row = index.range_search(z, radius if box else radius * radius)
-    query = time.perf_counter() - start
-    owner = np.repeat(np.arange(z.shape[0]), np.diff(limits).astype(np.int64))
-    best = exact_choice(memory, z, owner, row.astype(np.int64), stored)
-    found = torch.where(torch.from_numpy(best) >= 0, slots[torch.from_numpy(best).clamp(min=0)], -1)
-    return {"query_s": query, "found": found}
 
 
 def upkeep(memory: EpisodicMemory, added: int) -> str:
@@ -279,44 +167,20 @@ def upkeep(memory: EpisodicMemory, added: int) -> str:
     )
 
 
-def anchors(memory: EpisodicMemory, keys: torch.Tensor, found: torch.Tensor, lookup_s: float) -> None:
-    """Print the fair anchors (batched cKDTree, faiss) beside our look-up, as ratios anchor / ours."""
-    n = len(keys)
-    try:
-        tree = kdtree_batched(memory, keys, workers=torch.get_num_threads())
-    except ImportError:
-        print("anchor scipy cKDTree, batched: scipy not installed", flush=True)
-    else:
-        same = int((tree["found"] == found).sum())
-        print(
-            f"anchor scipy cKDTree, batched ({'query_ball_point p=inf' if memory.shape == 'box' else 'query k=1'}, "
-            f"{torch.get_num_threads()} worker): build {tree['build_s']:.2f} s (what an insertion would "
-            f"rebuild), query {tree['query_s'] * 1e3:.1f} ms (+ {tree['select_s'] * 1e3:.1f} ms to pick the "
-            f"nearest inside); ratio query / ours = {tree['query_s'] / lookup_s:.1f}x; same entries found: "
-            f"{same:,} of {n:,}",
-            flush=True,
-        )
-    few = min(n, FAISS_KEYS)
-    flat = faiss_flat(memory, keys[:few])
-    if flat is None:
-        print("anchor faiss: not installed", flush=True)
-        return
-    same = int((flat["found"] == found[:few]).sum())
-    scaled = flat["query_s"] * n / few
-    print(
-        f"anchor faiss IndexFlat range_search (exact, brute force), {few:,} of the keys: "
-        f"{flat['query_s'] * 1e3:.1f} ms, {scaled * 1e3:.0f} ms scaled to {n:,}; ratio / ours = "
-        f"{scaled / lookup_s:.0f}x; same entries found: {same:,} of {few:,}",
-        flush=True,
-    )
-
-
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="mcrs-bench-memory",
         description="Insertion, look-up, re-embedding and size of the episodic memory D_E, with goals.",
     )
-    parser.add_argument("--entries", type=int, default=GOAL_ENTRIES, help="entries in the filled buffer")
+    parser.add_argument(
+        "--entries",
+        type=int,
+        default=GOAL_ENTRIES,
+        help="entries (synthetic fill) or transitions (algorithm1)",
+    )
+    parser.add_argument(
+        "--fill", choices=FILLS, default=FILLS[0], help="synthetic near-copies (worst case) or Algorithm 1"
+    )
     parser.add_argument("--map", choices=SCENARIOS, default=GOAL_MAP, help="env preset")
     parser.add_argument("--episodes", type=int, default=GOAL_EPISODES, help="episodes per inserted batch")
     parser.add_argument("--lookups", type=int, default=GOAL_LOOKUPS, help="keys per timed look-up")
@@ -358,19 +222,17 @@ def _run(args: argparse.Namespace, command: str) -> None:
     from mcrs.models.embeddings import make_embedding
 
     config = scenario(args.map)
-    judged = (args.entries, args.map, args.episodes, args.lookups) == (
-        GOAL_ENTRIES,
-        GOAL_MAP,
-        GOAL_EPISODES,
-        GOAL_LOOKUPS,
-    )
+    sizes = (args.entries, args.map, args.episodes, args.lookups)
+    judged = sizes == (GOAL_ENTRIES, GOAL_MAP, GOAL_EPISODES, GOAL_LOOKUPS) and args.fill == "synthetic"
+    synthetic = args.fill == "synthetic"
     transitions = args.episodes * config.max_steps
     tolerance = match_tolerance(args.delta, args.delta_rule, args.neighbourhood, 4)
     print(
         f"MCRS episodic-memory benchmark: device=cpu, torch threads={torch.get_num_threads()}, "
         f"cpus={os.cpu_count()}, load average {load_average()}\n"
         f"command: {command}\n"
-        f"{args.map}: state {config.state_dim} floats, T={config.max_steps}; {args.entries:,} entries, "
+        f"{args.map}: state {config.state_dim} floats, T={config.max_steps}; "
+        f"{args.entries:,} {'entries (synthetic fill)' if synthetic else 'transitions through Algorithm 1'}, "
         f"CNN embedding (key_dim 4), delta {args.delta:g} read as {args.delta_rule} ({args.neighbourhood} of "
         f"tolerance {tolerance:.4g}); insert batches of {args.episodes} episodes "
         f"({transitions:,} transitions); look-ups of {args.lookups:,} keys; medians of {args.repeats}",
@@ -389,7 +251,7 @@ def _run(args: argparse.Namespace, command: str) -> None:
         shape=args.neighbourhood,
     )
     start = time.perf_counter()
-    fill(memory, config, args.entries, seed=1)
+    (fill if synthetic else fill_by_algorithm1)(memory, config, args.entries, seed=1)
     fill_s = time.perf_counter() - start
 
     # Re-embedding: every stored state decoded, embedded, and the index rebuilt.
@@ -397,7 +259,8 @@ def _run(args: argparse.Namespace, command: str) -> None:
     memory.refresh_keys(chunk=args.chunk)
     reembed_s, reembed_cpu = time.perf_counter() - start, time.process_time() - start_cpu
     print(
-        f"\nfill (synthetic states written to the storage): {fill_s:.2f} s\n"
+        f"\nfill ({'synthetic states written to the storage' if synthetic else 'Algorithm 1'}): "
+        f"{fill_s:.2f} s, {len(memory):,} entries\n"
         f"re-embed {len(memory):,} states (refresh_keys, chunks of {args.chunk}): {reembed_s:.2f} s "
         f"({reembed_s / len(memory) * 1e6:.2f} us/state; cpu {reembed_cpu:.2f} s)",
         flush=True,
@@ -456,7 +319,8 @@ def _run(args: argparse.Namespace, command: str) -> None:
 
     if not judged:
         print(
-            "\ngoals: not judged (they apply to --entries 1000000 --map map20 --episodes 32 --lookups 3200)"
+            "\ngoals: not judged (they apply to --entries 1000000 --map map20 --episodes 32 --lookups 3200 "
+            "with the synthetic fill, the worst case)"
         )
         return
     lines = [

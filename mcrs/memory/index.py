@@ -134,20 +134,6 @@ class QueryPlan(NamedTuple):
     order: torch.Tensor
 
 
-def merge_sorted(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-    """Merge two sorted int64 arrays in O(len(a) + len(b)) (``a`` large, ``b`` small): a copy, not a sort.
-
-    ``out`` (at least ``len(a) + len(b)`` long, not overlapping ``a``) may provide the memory; the result
-    is its prefix.
-    """
-    if b.numel() == 0:
-        return a
-    total = a.numel() + b.numel()
-    out = a.new_empty(total) if out is None else out[:total]
-    _merge_into(a, b, out, *_merge_positions(a, b))
-    return out
-
-
 def merge_records(a: Records, b: Records, out: Records | None = None) -> Records:
     """Merge sorted records ``b`` (few) into sorted records ``a`` (many): one masked copy per array.
 
@@ -479,15 +465,17 @@ class GridIndex:
         d2 = None
         for i in range(columns.shape[0]):
             diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
-            square = diff * diff
-            d2 = square if d2 is None else d2 + square
-            inside = diff.abs() <= self.delta_f32 if self.shape == "box" else d2 < self.delta_sq
-            keep = flatnonzero(inside)
-            query, index, d2 = (
-                query.index_select(0, keep),
-                index.index_select(0, keep),
-                d2.index_select(0, keep),
-            )
+            if self.shape == "box":  # the distance only for the pairs that pass (below)
+                keep = flatnonzero(diff.abs() <= self.delta_f32)
+                query, index = query.index_select(0, keep), index.index_select(0, keep)
+                continue
+            d2 = diff * diff if d2 is None else d2 + diff * diff
+            keep = flatnonzero(d2 < self.delta_sq)
+            query, index, d2 = (x.index_select(0, keep) for x in (query, index, d2))
+        if d2 is None:
+            for i in range(columns.shape[0]):
+                diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
+                d2 = diff * diff if d2 is None else d2 + diff * diff
         return query, index, d2
 
     def matches(self, a: torch.Tensor, b: torch.Tensor, d2: torch.Tensor | None = None) -> torch.Tensor:
