@@ -18,38 +18,35 @@ with :func:`squared_distance` summing the float32 squared differences dimension 
 
 In both shapes the nearest candidate is the one of smallest squared distance (lowest slot on ties).
 
-**Layout (why it is fast at a large delta).** At eq. 35's tolerance a query's neighbourhood holds tens to
-hundreds of entries, so the cost is the candidates, not the search. Each record is a *sort key*, the slot
-and a copy of the slot's standardised key, in three arrays sorted by the sort key (CSR: a cell's records
-are contiguous, and candidates are read from consecutive memory, not gathered from random slots). The sort
-key is ``(prefix << 32) + order(z[d-1])``: ``prefix`` packs the grid cell ``floor(z[i] / side)`` of the
-first d - 1 dimensions (each modulo ``2^b``, ``b = 31 // (d - 1)``; cells that share a prefix only add
-candidates), ``order`` maps the last coordinate's float32 to an order-preserving 32-bit integer. Within a
-prefix cell the records are sorted by their last coordinate, so a query reads, for each of the at most
-``2^(d-1)`` cells met by ``[z - reach, z + reach]`` in the first d - 1 dimensions, exactly the records whose
-last coordinate lies in ``[z[d-1] - reach, z[d-1] + reach]``: two ``searchsorted`` per cell (on sorted
-search values: cache-friendly), no oversampling along the last dimension. Candidates are then tested
-dimension by dimension, keeping only those still inside (the box test, or the ball's partial sum, which
-can only grow): most are gone after one or two dimensions.
+**Layout (why it is fast at a large delta).** At eq. 35's tolerance a query's neighbourhood holds up to
+tens of entries, so the cost is the candidates. A record is a *sort key*, the slot and a copy of the slot's
+standardised key, in three arrays sorted by the sort key (CSR: candidates are read from consecutive
+memory, not gathered from random slots). The sort key is ``(prefix << 32) + order(z[d-1])``: ``prefix``
+packs the cell ``floor(z[i] / side)`` of the first d - 1 dimensions (each modulo ``2^b``,
+``b = 31 // (d - 1)``; cells sharing a prefix only add candidates), ``order`` maps the last coordinate's
+float32 to an order-preserving integer. So for each of the at most ``2^(d-1)`` cells met by
+``[z - reach, z + reach]`` a query reads exactly the records whose last coordinate lies in
+``[z[d-1] - reach, z[d-1] + reach]`` (two ``searchsorted`` on sorted values: cache-friendly), then tests
+them dimension by dimension, dropping a pair as soon as a coordinate leaves the box (or the ball's
+partial sum, which can only grow, reaches delta^2). Added records go to a small sorted *recent* array,
+merged into the main one past a sixteenth of it (a full copy, amortised over many insertions).
 
 **Exactness.** Cells have side ``2 delta (1 + 2^-10)``, computed in float64 from the float32 z. A point
 within delta of a query differs from it by less than ``reach = delta (1 + 2^-11)`` in every dimension (in
-either shape; float32 subtraction is correctly rounded, so the computed distance bounds the true
-difference up to a relative 2^-22), so it lies in a cell met by ``[z - reach, z + reach]``: since
-``2 reach < side``, at most two per dimension. The last coordinate's bounds are rounded outwards to
-float32 (``nextafter``). The float64 cell arithmetic is exact enough for ``|z| / delta < 1e10``.
+either shape; float32 subtraction is correctly rounded), so it lies in a cell met by
+``[z - reach, z + reach]``: at most two per dimension since ``2 reach < side``. The last coordinate's
+bounds are rounded outwards to float32 (``nextafter``). Exact for ``|z| / delta < 1e10``.
 
 **Records and staleness.** The owner adds a record for every slot whose key it writes (new or shifted;
-:meth:`GridIndex.add`). Records left behind (a shifted slot's old key, an evicted slot) are not removed: a
-candidate counts only if its slot is live and its copy equals the slot's current standardised key, so a
-stale record is harmless and costs a little time until the next rebuild purges it.
+:meth:`GridIndex.add`). Records left behind (a shifted slot's old key, an evicted slot) stay: a candidate
+counts only if its slot is live and its copy equals the slot's current standardised key, so a stale record
+only costs a little time until the next rebuild purges it.
 
-**Statistics.** ``mean`` and ``std`` change only when the index is rebuilt (:meth:`GridIndex.rebuild` with
-``refresh=True``) or are set explicitly (:meth:`GridIndex.set_statistics`, on an empty index or before a
-rebuild);
-the owner (:class:`~mcrs.memory.episodic.EpisodicMemory`) documents when that happens. Between two
-refreshes every key is indexed with the same statistics, so a look-up always equals the brute-force
-nearest neighbour over the current live keys standardised with the current statistics (ties: lowest slot).
+**Statistics.** ``mean`` and ``std`` change only at :meth:`GridIndex.rebuild` with ``refresh=True`` or
+through :meth:`GridIndex.set_statistics` (on an empty index or before a rebuild); the owner
+(:class:`~mcrs.memory.episodic.EpisodicMemory`) documents when. Between two refreshes a look-up always
+equals the brute-force nearest neighbour over the current live keys standardised with the current
+statistics (ties: lowest slot).
 """
 
 from __future__ import annotations
@@ -112,6 +109,13 @@ def repeat(values: torch.Tensor, counts: torch.Tensor, total: int) -> torch.Tens
     return torch.repeat_interleave(values, counts, output_size=total)
 
 
+def search_sorted(sequence: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``torch.searchsorted(sequence, values)`` (left); numpy's on the CPU, faster for sorted values."""
+    if sequence.device.type == "cpu":
+        return torch.from_numpy(np.searchsorted(sequence.numpy(), values.numpy()))
+    return torch.searchsorted(sequence, values)
+
+
 class Records(NamedTuple):
     """Index records sorted by ``order`` (int64 sort keys), with their ``slot`` (int32) and the copy of the
     slot's standardised key they were made from (``coords [d, n]`` float32, one row per dimension)."""
@@ -125,9 +129,8 @@ class Records(NamedTuple):
 
 
 class QueryPlan(NamedTuple):
-    """What a batch of queries searches: for each (query, cell) pair ``query [R]``, and the bounds of its
-    sort-key range (``[2R]``: R starts, then R exclusive stops) in ascending order (``sorted``) with the
-    permutation that sorted them (``order``)."""
+    """For each (query, cell) pair its ``query [R]``; the sort-key bounds (R starts, R exclusive stops)
+    ascending (``sorted [2R]``) with the permutation that sorted them (``order``)."""
 
     query: torch.Tensor
     sorted: torch.Tensor
@@ -142,21 +145,18 @@ def merge_records(a: Records, b: Records, out: Records | None = None) -> Records
     total = a.order.numel() + b.order.numel()
     if out is None:
         out = Records(
-            a.order.new_empty(total), a.slot.new_empty(total), a.coords.new_empty((a.coords.shape[0], total))
+            a.order.new_empty(total), a.slot.new_empty(total), a.coords.new_empty((len(a.coords), total))
         )
     out = out.prefix(total)
-    keep, position = _merge_positions(a.order, b.order)
+    # Where b's records go (after a's records of equal key), and the mask of a's.
+    position = torch.searchsorted(a.order, b.order, right=True) + torch.arange(
+        b.order.numel(), device=a.order.device
+    )
+    keep = torch.ones(total, dtype=torch.bool, device=a.order.device)
+    keep[position] = False
     for source, extra, target in zip(a, b, out, strict=True):
         _merge_into(source, extra, target, keep, position)
     return out
-
-
-def _merge_positions(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where the merge puts ``b``'s elements (``position``), and the mask of ``a``'s (``keep``)."""
-    position = torch.searchsorted(a, b, right=True) + torch.arange(b.numel(), device=a.device)
-    keep = torch.ones(a.numel() + b.numel(), dtype=torch.bool, device=a.device)
-    keep[position] = False
-    return keep, position
 
 
 def _merge_into(
@@ -217,10 +217,11 @@ class GridIndex:
         self._buffers: list[Records | None] = [None, None]  # merge outputs, reused
 
     def _empty(self, n: int) -> Records:
+        dev = self.device
         return Records(
-            torch.empty(n, dtype=torch.int64, device=self.device),
-            torch.empty(n, dtype=torch.int32, device=self.device),
-            torch.empty(self.key_dim, n, dtype=torch.float32, device=self.device),
+            torch.empty(n, dtype=torch.int64, device=dev),
+            torch.empty(n, dtype=torch.int32, device=dev),
+            torch.empty(self.key_dim, n, device=dev),
         )
 
     # ------------------------------------------------------------------------------------ geometry
@@ -336,12 +337,8 @@ class GridIndex:
 
     def nbytes(self) -> int:
         """Bytes held by the records and the merge buffers."""
-        held = {}
-        for records in (*self._buffers, self.records, self.recent):
-            if records is not None:
-                for t in records:
-                    held[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
-        return sum(held.values())
+        arrays = [t for r in (*self._buffers, self.records, self.recent) if r is not None for t in r]
+        return sum({t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in arrays}.values())
 
     # ------------------------------------------------------------------------------------ queries
     def nearest(
@@ -418,7 +415,7 @@ class GridIndex:
         if z.shape[0] == 0 or records.order.numel() == 0:
             return
         plan = self.query_cubes(z) if cubes is None else cubes
-        found = torch.searchsorted(records.order, plan.sorted)
+        found = search_sorted(records.order, plan.sorted)
         position = torch.empty_like(found)
         position[plan.order] = found
         R = plan.query.numel()
