@@ -63,9 +63,7 @@ def test_tiny_run_prints_every_figure(capsys: pytest.CaptureFixture[str]) -> Non
     size = re.search(rf"^buffer: {NUMBER} GiB held \(nbytes\); process resident memory growth", out, re.M)
     for match in (reembed, insert, upkeep, lookup, ratio, tree, size):
         assert match is not None, out
-    assert re.search(
-        r"^anchor faiss(: not installed| IndexFlat .* same entries found: 32 of 32)$", out, re.M
-    )
+    assert re.search(r"^anchor faiss(: not installed| IndexFlat .* same entries found: 32 of 32)$", out, re.M)
     assert float(insert.group(1)) > 0 and float(lookup.group(1)) > 0
     assert int(lookup.group(2)) >= 100  # the stored half of the keys are hits
     assert "goals: not judged" in out
