@@ -351,7 +351,6 @@ class EpisodicMemory:
 
         # Apply: the shifted old slots' cubes first (their keys are about to change), then the writes.
         old_slots = outcome.shift_slots[~outcome.shift_is_new]
-        old_cubes = self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots)))
         new_slots = apply_outcome(
             outcome,
             write,
@@ -371,11 +370,8 @@ class EpisodicMemory:
             self.xi[outcome.count_slots] = outcome.xi
         self.size += new_slots.numel()
 
-        # Index: every new slot, and the shifted old slots whose cube changed.
-        changed = (
-            self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots))) != old_cubes
-        )
-        fresh = torch.cat([new_slots, old_slots[changed]])
+        # Index: every slot whose key was written (new ones and shifted old ones).
+        fresh = torch.cat([new_slots, old_slots])
         self.index.add(self.keys.index_select(0, fresh), fresh)
         self._maintain()
         return InsertStats(
