@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 _LAZY = {
-    "Experiment": "mcrs.experiment.experiment",
+    "Experiment": "mcrs.experiment.trainer",
     "Callback": "mcrs.experiment.callbacks",
     "Config": "mcrs.experiment.config",
     "compose": "mcrs.experiment.config",

@@ -132,7 +132,7 @@ def _check_writable(directory: Path) -> None:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.experiment import Experiment
+    from mcrs.experiment.trainer import Experiment
 
     resume = cfg.resume is not None
     if resume:

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.experiment import Experiment
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, compose_config
 

@@ -12,8 +12,8 @@ import mcrs
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.config import AlgoConfig, Config, compose
-from mcrs.experiment.experiment import Experiment
 from mcrs.experiment.learner import Learner
+from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
 
 

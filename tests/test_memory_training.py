@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
 from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.experiment import Experiment
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import CONFIG_DIR, resume_config
 from tests.train_helpers import TINY_MEMORY, compose_config
 

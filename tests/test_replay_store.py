@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.replay import make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.experiment import Experiment
+from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import compose_config
 
 

@@ -9,8 +9,8 @@ import torch
 
 from mcrs.env.config import from_mapping
 from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.experiment import Experiment
 from mcrs.experiment.resources import estimate, memory_entry_bytes, replay_step_bytes
+from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import compose_config
 
 

@@ -25,8 +25,8 @@ import torch
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.experiment import Experiment
 from mcrs.experiment.rundir import LOCK, RunDirError, RunLock
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config, start_train
 

@@ -9,7 +9,7 @@ import torch
 
 from mcrs.env import MCRSEnv, scenario
 from mcrs.evaluate import evaluate_policy
-from mcrs.experiment.experiment import Experiment
+from mcrs.experiment.trainer import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import make_policy
 from mcrs.policies.trained import TrainedPolicy

@@ -15,7 +15,7 @@ import torch
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.experiment import Experiment, TrainingDiverged
+from mcrs.experiment.trainer import Experiment, TrainingDiverged
 from mcrs.train import resume_config, run
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config
 

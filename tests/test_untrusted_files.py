@@ -24,7 +24,7 @@ from omegaconf.errors import InterpolationResolutionError
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import validate
-from mcrs.experiment.experiment import Experiment
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import compose_config
 

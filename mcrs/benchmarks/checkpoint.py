@@ -32,7 +32,7 @@ from mcrs.env.config import SCENARIOS, from_mapping
 from mcrs.experiment import checkpoint as ckpt
 
 if TYPE_CHECKING:
-    from mcrs.experiment.experiment import Experiment
+    from mcrs.experiment.trainer import Experiment
 
 GOAL_SECONDS = 10.0
 GOAL_MAP = "map20"
@@ -129,7 +129,7 @@ def _time_checkpoints(trainer: Experiment, run_dir: Path, args: argparse.Namespa
 
 def _run(args: argparse.Namespace, report: Report) -> None:
     """Fill a replay, time the first and an incremental checkpoint (and the inline format), judge the goal."""
-    from mcrs.experiment.experiment import Experiment
+    from mcrs.experiment.trainer import Experiment
 
     extra = ["logger=csv", "logger.progress_bar=false", f"threads={args.threads}"]
     cfg = compose_config(args.map, args.quick, extra)

@@ -89,8 +89,8 @@ def _timed(step: Callable[[], Any], update: Callable[[Any], Any]) -> tuple[float
 
 def measure_updates(map_name: str, quick: bool, updates: int) -> tuple[EnvConfig, Agreement, UpdateTimes]:
     """Build both learners from the same weights, check their losses agree, then time them alternately."""
-    from mcrs.experiment.replay import make_episode_buffer
     from mcrs.experiment.learner import Learner
+    from mcrs.experiment.replay import make_episode_buffer
 
     cfg = compose_config(map_name, quick)
     env_config = from_mapping(cfg.env)

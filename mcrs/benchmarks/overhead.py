@@ -4,7 +4,7 @@ Why: the memory must cost close to nothing next to the learner (goal: a CNN-SEMU
 wall clock on map20 for the same env steps; JSON figure ``ratio``, printed as ``CNN_SEMU vs QMIX: X.XXx``).
 A 2M-step run takes hours, so this measures and projects:
 
-1. The real :class:`~mcrs.experiment.experiment.Experiment` of each algorithm runs ``--loop-steps`` env steps
+1. The real :class:`~mcrs.experiment.trainer.Experiment` of each algorithm runs ``--loop-steps`` env steps
    (pymarl preset; the memory inserts every batch, attaches look-ups to every learner batch and trains
    phi every ``t_emb`` = 10k steps, all inside the timed window), exactly as
    :func:`mcrs.benchmarks.loop.measure_loop` times QMIX; evaluation is timed apart and added back at

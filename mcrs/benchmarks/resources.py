@@ -111,7 +111,7 @@ def compose(args: argparse.Namespace):
 def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
     """Train, sampling the RSS before every collector batch that crosses a multiple of ``--every`` and after
     the final evaluation and checkpoint (before the collector shuts down, which frees memory)."""
-    from mcrs.experiment.experiment import Experiment
+    from mcrs.experiment.trainer import Experiment
 
     trainer = Experiment(compose(args), run_dir)
     samples: list[Sample] = []

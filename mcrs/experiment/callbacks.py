@@ -1,6 +1,6 @@
 """Callbacks: how an algorithm adds to the training loop without branching it (BenchMARL's shape).
 
-The :class:`~mcrs.experiment.experiment.Experiment` calls every callback's hooks in order:
+The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in order:
 
     on_setup(experiment)                 once, after everything is built (before a checkpoint is loaded)
     on_batch_collected(batch, ids)       after each collection: the episodes ``[E, T]`` and their ids ``[E]``
@@ -12,7 +12,7 @@ The :class:`~mcrs.experiment.experiment.Experiment` calls every callback's hooks
 Hooks return scalars to log (averaged over the log interval); ``name`` keys the checkpoint state and the
 ``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
 :class:`~mcrs.experiment.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
-:func:`mcrs.experiment.experiment.algorithm_callbacks` builds the ones an ``algo`` config asks for. A user's own callback (a
+:func:`mcrs.experiment.trainer.algorithm_callbacks` builds the ones an ``algo`` config asks for. A user's own callback (a
 scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
 """
 
@@ -28,7 +28,7 @@ from mcrs.experiment.learner import make_optimizer
 from mcrs.objectives.curiosity import EMCCuriosity
 
 if TYPE_CHECKING:
-    from mcrs.experiment.experiment import Experiment
+    from mcrs.experiment.trainer import Experiment
 
 Scalars = dict[str, float | torch.Tensor]
 

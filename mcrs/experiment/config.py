@@ -31,6 +31,7 @@ from mcrs.models.embeddings import EMBEDDINGS
 from mcrs.models.mixers import MIXERS
 from mcrs.objectives.value_factorisation import ValueFactorisationLoss
 
+
 class Choice(str, Enum):
     """A config choice: Hydra checks it against the members while composing; it compares equal to, prints
     and formats as its value (``Mixer.qmix == "qmix"``), as ``enum.StrEnum`` does from Python 3.11 on."""

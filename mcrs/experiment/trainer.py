@@ -174,6 +174,7 @@ class Experiment:
             next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes
         )
         self.last_eval: dict[str, float] = {}
+        self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
         for callback in self.callbacks:
             callback.on_setup(self)
         if resume:
@@ -221,7 +222,7 @@ class Experiment:
             f"{self.config.algo.name} {self.env_config.name}",
         )
         stats: dict[str, list[torch.Tensor]] = {}
-        self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
+        self._timer = dict.fromkeys(self._timer, 0.0)  # this session's clock
         collector_iter = iter(self.collector)
         self._last_save = time.monotonic()
         try:
@@ -351,9 +352,7 @@ class Experiment:
         """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed))
-        timer = getattr(self, "_timer", None)
-        if timer is not None:
-            timer["eval"] += time.perf_counter() - start
+        self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
