@@ -182,7 +182,7 @@ def test_only_omegaconfs_data_resolvers_exist() -> None:
     assert cfg.logger.project == os.environ["HOME"]
     for expression in ("${eval:1+1}", "${python:os.system}"):
         cfg = compose_config(f"logger.project='{expression}'")
-        with pytest.raises(ConfigError, match="logger.project: Unsupported interpolation type"):
+        with pytest.raises(ConfigError, match=r"logger\.project: Unsupported interpolation type"):
             validate(cfg)  # one line naming the field, as any bad config
 
 
