@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.core import METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.rundir import register_resolvers
 from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION
 
@@ -57,6 +58,7 @@ class EvalConfig:
 
 
 ConfigStore.instance().store(name="mcrs_eval_config", node=EvalConfig)
+register_resolvers()  # ${mcrs.num:...} in the sweep directory names (conf/study/comm_range.yaml)
 
 
 def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
