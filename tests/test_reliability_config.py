@@ -186,6 +186,7 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.w_collision=-inf", "w_collision=-inf: must be a finite number"),
     ("env.invalid_action=ignore", "invalid_action='ignore': must be one of ['raise', 'clip']"),
     ("env.expose_beliefs=maybe", "expose_beliefs='maybe': must be true or false"),
+    ("env.no_fly_shield=maybe", "no_fly_shield='maybe': must be true or false"),
     ("env.num_envs=0", "num_envs=0: must be an integer >= 1"),
     ("env.device=tpu", "device='tpu': is not a torch device"),
     ("env.device=cuda:7", "device='cuda:7'"),
