@@ -37,6 +37,7 @@ OVERRIDES = {
     "target_threshold": ("0.9", 0.9),
     "invalid_action": ("clip", "clip"),
     "expose_beliefs": ("true", True),
+    "no_fly_shield": ("true", True),
 }
 
 

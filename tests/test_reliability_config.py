@@ -209,6 +209,7 @@ WRONG_TYPES = [
     "env.max_steps=ten",
     "env.w_no_fly=abc",
     "env.expose_beliefs=maybe",
+    "env.no_fly_shield=maybe",
     "algo.mixing_embed_dim=abc",
     "algo.hypernet_layers=1.5",
     "algo.gamma=high",

@@ -46,6 +46,7 @@ class EnvConfig:
     target_threshold: float = 0.95
     invalid_action: str = "raise"
     expose_beliefs: bool = False
+    no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
     num_envs: int = 1
     device: str = "cpu"
 
@@ -177,8 +178,9 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         errors.append(f"comm_rounds={rounds!r}: must be an integer >= 1 or 'flood'")
     if cfg.invalid_action not in INVALID_ACTION_MODES:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
-    if not isinstance(cfg.expose_beliefs, bool):
-        errors.append(f"expose_beliefs={cfg.expose_beliefs!r}: must be true or false")
+    for name in ("expose_beliefs", "no_fly_shield"):
+        if not isinstance(getattr(cfg, name), bool):
+            errors.append(f"{name}={getattr(cfg, name)!r}: must be true or false")
     problem = device_problem(cfg.device)
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
