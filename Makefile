@@ -1,11 +1,12 @@
 # Two commands do all the set-up on a fresh machine (see README.md):
 #   make run    create .venv, install mcrs, train CNN-SEMU on map10 (writes to outputs/); make run ARGS="seed=1"
-#   make test   create .venv, install mcrs with the dev extra, lint and run the test suite
+#   make test   create .venv, install mcrs with the dev extra and run the fast tests (make test-slow: the
+#               rest; CI runs both, see .ci/run)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: install run test lint bench clean
+.PHONY: install run test test-slow test-all lint bench clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +25,12 @@ lint: install
 	$(BIN)/ruff format --check .
 
 test: install
+	$(BIN)/python -m pytest -q -m "not slow"
+
+test-slow: install
+	$(BIN)/python -m pytest -q -m slow
+
+test-all: install
 	$(BIN)/python -m pytest -q
 
 bench: install

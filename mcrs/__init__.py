@@ -1,0 +1,28 @@
+"""MCRS: multi-UAV reconnaissance and search with a limited communication range (Drones 2024, 8, 393).
+
+    import mcrs
+    experiment = mcrs.Experiment(mcrs.compose("algo=cnn_semu", "env=map20"), "outputs/my_run")
+    experiment.run()
+
+The names here load lazily, so ``import mcrs.env`` stays free of the training stack.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+_LAZY = {
+    "Experiment": "mcrs.experiment.trainer",
+    "Callback": "mcrs.experiment.callbacks",
+    "Config": "mcrs.experiment.config",
+    "compose": "mcrs.experiment.config",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'mcrs' has no attribute {name!r}")
+    from importlib import import_module
+
+    return getattr(import_module(_LAZY[name]), name)

@@ -14,15 +14,18 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import hydra
 import torch
+from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
 
-from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.core import METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.rundir import register_resolvers
 from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION
 
@@ -40,6 +43,35 @@ METRIC_LABELS = {
     "no_fly_violations": "no-fly violations",
     "coverage": "coverage",
 }
+
+
+@dataclass
+class EvalConfig:
+    """The ``mcrs-eval`` config (``conf/eval.yaml``): Hydra refuses unknown keys and wrong types with it."""
+
+    env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario (conf/env/ presets)
+    policy: str = "greedy"  # random | lawnmower | greedy | all | a checkpoint or mcrs-train run directory
+    episodes: int = 32  # K episodes, run as batches of K environments (the env's num_envs)
+    seed: int = 0  # seeds the environments and the policy's generator
+    figures: bool = True  # scene.png, uncertainty_contours.png, episode.gif
+    device: str = "cpu"  # where the environments run
+
+
+ConfigStore.instance().store(name="mcrs_eval_config", node=EvalConfig)
+register_resolvers()  # ${mcrs.num:...} in the sweep directory names (conf/study/comm_range.yaml)
+
+
+def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
+    """Problems of an evaluation config, each naming the field and what is allowed."""
+    errors = []
+    if cfg.episodes < 1:
+        errors.append(f"episodes={cfg.episodes}: must be >= 1")
+    if not 0 <= cfg.seed <= 2**63 - 1:
+        errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
+    problem = device_problem(cfg.device)
+    if problem:
+        errors.append(f"device={cfg.device!r}: {problem}")
+    return errors
 
 
 def policy_names(policy: str) -> list[str]:
@@ -159,24 +191,20 @@ def write_results(
 
 
 def write_figures(out_dir: Path, env_config: EnvConfig, policy_name: str, seed: int) -> list[Path]:
-    """The three pictures of one episode (seed ``seed``) of ``policy_name``."""
-    from mcrs.env.render import plot_scene, plot_uncertainty_contours, rollout_episode, save_episode_gif
+    """The three pictures of one episode (seed ``seed``) of ``policy_name`` (:mod:`mcrs.viz`)."""
+    from mcrs.viz import write_episode_pictures
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    episode = rollout_episode(env_config, policy_name, seed)
-    without = rollout_episode(env_config.replace(comm_range=0.0), policy_name, seed)
-    paths = [out_dir / "scene.png", out_dir / "uncertainty_contours.png", out_dir / "episode.gif"]
-    plot_scene(episode, env_config, paths[0])
-    plot_uncertainty_contours(episode, without, env_config, paths[1])
-    save_episode_gif(episode, env_config, paths[2])
-    return paths
+    return write_episode_pictures(out_dir, env_config, policy_name, seed)
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, float]]]:
     """Evaluate as configured, print the table and write the results (and figures) into ``out_dir``."""
+    errors = eval_errors(cfg)
+    if errors:
+        raise ValueError("invalid config: " + "; ".join(errors))
     names = policy_names(str(cfg.policy))
-    env_config = from_mapping(cfg.env)
     episodes, seed = int(cfg.episodes), int(cfg.seed)
+    env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = {name: episode_metrics(env_config, name, episodes, seed) for name in names}
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)

@@ -1,90 +1,95 @@
-"""``mcrs-render``: draw one episode of a policy (scene, figure-4 contours, animation) without Hydra.
+"""``mcrs-render``: draw one episode of a policy: scene, figure-4 contours, animation (a Hydra command).
 
-mcrs-render --env map20 --policy lawnmower --seed 3 --out outputs/render --no-gif
-mcrs-render --env map10 --set comm_range=3 --uav 2
-mcrs-render --env map10 --policy outputs/map10/qmix/<run>      (a trained agent's episode)
+The same ``key=value`` overrides as ``mcrs-train`` and ``mcrs-eval`` (``conf/render.yaml``); the pictures
+go into ``out`` (one numbered folder per run of a ``-m`` sweep)::
+
+    mcrs-render env=map20 policy=lawnmower seed=3 out=outputs/render gif=false
+    mcrs-render env.comm_range=3 uav=2
+    mcrs-render policy=outputs/map10/qmix/<run>        (a trained agent's episode)
 """
 
 from __future__ import annotations
 
-import argparse
-from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from omegaconf import OmegaConf
+import hydra
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig
 
-from mcrs.env.config import SCENARIOS, EnvConfig, scenario
-from mcrs.policies import POLICIES
+from mcrs.env.config import EnvConfig, from_mapping
 
-
-def parse_overrides(items: Sequence[str]) -> dict:
-    """``["comm_range=3", "max_steps=20"]`` -> typed values (YAML parsing, as Hydra would)."""
-    overrides = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key] = OmegaConf.create(f"v: {value}").v
-    return overrides
+# The Hydra configs: mcrs/conf links to the repo's conf/ (see mcrs.evaluate.CONFIG_DIR).
+CONFIG_DIR = str(Path(__file__).parent / "conf")
+SCHEMA_NAME = "mcrs_render"
 
 
-def render(
-    env_config: EnvConfig, policy: str, seed: int, out: Path, gif: bool = True, uav: int = 0
-) -> list[Path]:
-    """Write scene.png, uncertainty_contours.png and (optionally) episode.gif for one episode."""
-    from mcrs.env.render import plot_scene, plot_uncertainty_contours, rollout_episode, save_episode_gif
+@dataclass
+class RenderConfig:
+    """``conf/render.yaml``'s fields, typed: Hydra refuses ``seed=abc`` or ``gif=maybe`` itself."""
 
-    out.mkdir(parents=True, exist_ok=True)
-    episode = rollout_episode(env_config, policy, seed)
-    without = rollout_episode(env_config.replace(comm_range=0.0), policy, seed)
-    paths = [out / "scene.png", out / "uncertainty_contours.png"]
-    plot_scene(episode, env_config, paths[0])
-    plot_uncertainty_contours(episode, without, env_config, paths[1], uav=uav)
-    if gif:
-        paths.append(save_episode_gif(episode, env_config, out / "episode.gif"))
+    env: Any = MISSING  # the env group (conf/env/), validated by mcrs.env.config.from_mapping
+    policy: str = (
+        "greedy"  # random | lawnmower | greedy | a checkpoint (.pt file or mcrs-train run directory)
+    )
+    seed: int = 0  # the episode's and the policy's seed
+    uav: int = 0  # the UAV of the uncertainty contours
+    gif: bool = True  # also write episode.gif
+    out: str = "outputs/render"  # the folder of the pictures (hydra.run.dir)
+
+
+def register_configs() -> None:
+    """Register the schema (``conf/render.yaml`` names ``mcrs_render`` in its defaults)."""
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=RenderConfig)
+
+
+def checked(cfg: DictConfig) -> tuple[EnvConfig, str]:
+    """The env config and the policy of ``cfg``, every value checked before any drawing starts."""
+    from mcrs.policies import POLICIES, make_policy
+
+    try:
+        env_config = from_mapping(cfg.env)
+    except TypeError as error:
+        raise ValueError(str(error)) from None
+    policy = str(cfg.policy)
+    if policy not in POLICIES:
+        make_policy(policy, env_config)  # a checkpoint: fails early, naming the problem
+    if not 0 <= cfg.uav < env_config.n_uavs:
+        raise ValueError(
+            f"uav={cfg.uav}: must be in 0..{env_config.n_uavs - 1} ({env_config.name} has {env_config.n_uavs} UAVs)"
+        )
+    return env_config, policy
+
+
+def run(cfg: DictConfig, out_dir: Path) -> list[Path]:
+    """Check ``cfg``, draw its episode into ``out_dir`` and print the paths written."""
+    from mcrs.viz import write_episode_pictures
+
+    env_config, policy = checked(cfg)
+    paths = write_episode_pictures(
+        out_dir, env_config, policy, int(cfg.seed), gif=bool(cfg.gif), uav=int(cfg.uav)
+    )
+    for path in paths:
+        print(path, flush=True)
     return paths
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mcrs-render", description=__doc__.split("\n")[0])
-    parser.add_argument("--env", default="map10", choices=SCENARIOS, help="map preset (default map10)")
-    parser.add_argument(
-        "--policy",
-        default="greedy",
-        help=f"{', '.join(sorted(POLICIES))} (default greedy), or an mcrs-train checkpoint / run directory",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="episode and policy seed (default 0)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/render"), help="output folder")
-    parser.add_argument(
-        "--gif", action=argparse.BooleanOptionalAction, default=True, help="write episode.gif"
-    )
-    parser.add_argument("--uav", type=int, default=0, help="UAV of the uncertainty contours (default 0)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="environment field override, repeatable, e.g. --set comm_range=3",
-    )
-    return parser
+register_configs()
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+@hydra.main(config_path=CONFIG_DIR, config_name="render", version_base=None)
+def main(cfg: DictConfig) -> None:
+    """Console entry point ``mcrs-render`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        env_config = scenario(args.env, **parse_overrides(args.overrides))
-        if args.policy not in POLICIES:
-            from mcrs.policies import make_policy
-
-            make_policy(args.policy, env_config)  # fails early, naming the problem
-        if not 0 <= args.uav < env_config.n_uavs:
-            raise ValueError(f"--uav {args.uav}: must be in 0..{env_config.n_uavs - 1}")
-    except (ValueError, argparse.ArgumentTypeError) as error:
-        parser.error(str(error))
-    for path in render(env_config, args.policy, args.seed, args.out, gif=args.gif, uav=args.uav):
-        print(path)
+        run(cfg, out_dir)
+    except ValueError as error:  # bad input: one clear message, no traceback
+        if out_dir.is_dir() and not any(out_dir.iterdir()):
+            out_dir.rmdir()  # Hydra made it for this run: leave no empty folder behind
+        raise SystemExit(f"mcrs-render: error: {error}") from None
 
 
 if __name__ == "__main__":

@@ -22,23 +22,14 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.config import Config, ConfigError, register_configs
-from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, remove_if_unused
-
-CONFIG_DIR = str(Path(__file__).parent / "conf")
-#: Fields a resumed run may change (how long, how it reports); everything else must match the run.
-RESUME_MUTABLE = (
-    "train.total_env_steps",
-    "logger",
-    "resume",
-    "overwrite",
-    "threads",
-    "train.eval_interval",
-    "train.checkpoint_interval",
-    "train.checkpoint_minutes",
-    "train.collector",  # how episodes are collected (a crashed multiprocess run may go on in one process;
-    "train.collector_workers",  # the episodes then differ from an uninterrupted run's)
+from mcrs.experiment.config import (
+    CONFIG_DIR,
+    RESUME_MUTABLE,
+    Config,
+    ConfigError,
+    register_configs,
 )
+from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, remove_if_unused
 
 
 def _is_mutable(name: str) -> bool:
@@ -68,8 +59,8 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
         raise ConfigError(
             f"resume={cfg.resume}: not an mcrs-train run directory (needs config.yaml and checkpoints/{ckpt.LAST})"
         )
-    saved = _read_run_config(saved_path)
-    current = OmegaConf.to_container(cfg, resolve=True)
+    saved = ckpt.current_config(_read_run_config(saved_path))
+    current = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     conflicts = []
     for line in _differences(saved, current):
@@ -141,14 +132,14 @@ def _check_writable(directory: Path) -> None:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.trainer import Trainer
+    from mcrs.experiment.trainer import Experiment
 
     resume = cfg.resume is not None
     if resume:
         cfg, run_dir = resume_config(cfg, overrides or [])
-    trainer = Trainer(cfg, run_dir, resume=resume)
+    experiment = Experiment(cfg, run_dir, resume=resume)
     print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
-    result = trainer.train()
+    result = experiment.run()
     reward = result.get("episode_reward", float("nan"))
     print(
         f"final greedy evaluation ({cfg.train.eval_episodes} episodes): episode reward {reward:.2f}",
@@ -168,7 +159,7 @@ def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     from mcrs.experiment.collection import CollectorWorkerFailed
-    from mcrs.experiment.trainer import TrainingDiverged
+    from mcrs.objectives.gradient import TrainingDiverged
 
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)

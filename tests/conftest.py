@@ -12,3 +12,55 @@ torch.set_num_threads(1)
 settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("explore", deadline=None)
 settings.load_profile("ci")
+
+#: Modules whose tests train, launch processes or run benchmarks: ``make test-slow`` (CI runs it after
+#: ``make test``). Everything else is the fast set ``make test`` runs.
+SLOW_MODULES = {
+    "test_benchmark_checkpoint.py",
+    "test_benchmark_cli.py",
+    "test_benchmark_learner.py",
+    "test_benchmark_memory.py",
+    "test_benchmark_overhead.py",
+    "test_benchmark_resources.py",
+    "test_campaign.py",
+    "test_collector_workers.py",
+    "test_crash_safety.py",
+    "test_experiment_api.py",
+    "test_experiments.py",
+    "test_memory_training.py",
+    "test_records.py",
+    "test_report.py",
+    "test_run_dirs.py",
+    "test_training.py",
+    "test_untrusted_files.py",
+    "test_vmas_navigation.py",
+}
+#: Slow tests in otherwise fast modules (``module::test``).
+SLOW_TESTS = {
+    "test_evaluate.py::test_cli_runs_and_prints_table",
+    "test_evaluate.py::test_cli_unknown_policy_lists_allowed_names",
+    "test_evaluate.py::test_cli_bad_env_field_is_one_clear_message_without_traceback",
+    "test_reliability_config.py::test_cli_refuses_the_values_that_used_to_crash_late",
+    "test_render.py::test_mcrs_render_cli_writes_the_pictures_into_out_only",
+    "test_render.py::test_mcrs_render_cli_bad_input_is_one_line_without_traceback",
+    "test_replay_store.py::test_time_based_checkpoints_and_the_replay_beside_last_pt",
+    "test_resource_estimate.py::test_the_replay_estimate_is_the_bytes_a_full_buffer_holds",
+    "test_trained_policy.py::test_checkpoint_policy_matches_the_training_greedy_policy",
+}
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Mark the slow set (``-m slow``); the names above must exist, so the lists cannot rot."""
+    import pytest
+
+    seen_modules, seen_tests = set(), set()
+    for item in items:
+        name = f"{item.path.name}::{item.originalname}"
+        seen_modules.add(item.path.name)
+        seen_tests.add(name)
+        if item.path.name in SLOW_MODULES or name in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
+    whole_run = {"test_training.py", "test_env.py"} <= seen_modules  # only a full collection can judge
+    stale = (SLOW_MODULES - seen_modules) | (SLOW_TESTS - seen_tests) if whole_run else set()
+    if stale:
+        raise pytest.UsageError(f"tests/conftest.py names slow tests that do not exist: {sorted(stale)}")

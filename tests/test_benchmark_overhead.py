@@ -1,24 +1,44 @@
-"""The whole-run overhead benchmark runs both algorithms' real trainers and prints its projection."""
+"""The whole-run overhead benchmark runs both algorithms' real trainers and records its projection."""
 
 from __future__ import annotations
 
-import re
+import json
+from pathlib import Path
+from typing import Any
 
 import pytest
 
-from mcrs.benchmarks.learner import LoopResult
+from mcrs.benchmarks.loop import LoopResult
 from mcrs.benchmarks.overhead import main, project
 
+QUICK = ["--map", "map10", "--quick", "--loop-steps", "1", "--entries", "500", "--threads", "1"]
 
-def test_quick_run_prints_both_algorithms_and_the_ratio(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["--map", "map10", "--quick", "--loop-steps", "1", "--entries", "500", "--threads", "1"]) == 0
+
+def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
+    path = tmp_path / "overhead.json"
+    assert main([*argv, "--json", str(path)]) == 0
+    return json.loads(path.read_text())
+
+
+def test_quick_run_records_both_algorithms_and_the_ratio(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _run(tmp_path, QUICK)
+    figures = data["figures"]
+    rows = {row["algo"]: row for row in data["tables"]["algorithms"]}
+    assert set(rows) == {"qmix", "cnn_semu"}
+    for algo, row in rows.items():
+        assert row["env_steps_per_s"] > 0 and row["hours"] >= row["hours_window_eval"] > 0
+        assert figures[f"{algo}.hours"]["value"] == row["hours"]
+    assert rows["qmix"]["hours_growth"] == 0.0 and rows["cnn_semu"]["hours_growth"] > 0  # the growth term
+    assert figures["reembed_us_per_state"]["value"] > 0 and figures["insert_ms"]["value"] > 0
+    ratio = figures["ratio"]
+    assert ratio["value"] == pytest.approx(rows["cnn_semu"]["hours"] / rows["qmix"]["hours"])
+    assert ratio["goal"] == "<= 1.3" and ratio["not_judged"] == "map20 without --quick only"
     out = capsys.readouterr().out
-    assert re.search(r"^qmix\s+[\d,]+\s+[\d.]+", out, re.M)
-    assert re.search(r"^cnn_semu\s+[\d,]+\s+[\d.]+", out, re.M)
-    assert re.search(r"re-embedding probe: 500 states, [\d.]+ us/state", out)
-    assert re.search(
-        r"ratio cnn_semu / qmix: window [\d.]+x; whole 2M run [\d.]+x \(goal <= 1.3x: not judged", out
-    )
+    assert "re-embedding probe: 500 states" in out
+    assert f"whole 2M run {ratio['value']:.2f}x (goal <= 1.3x: not judged" in out
+    assert f"CNN_SEMU vs QMIX: {ratio['value']:.2f}x (whole run, map10, load average" in out
 
 
 def test_projection_adds_the_growth_of_re_embedding_with_the_buffer() -> None:
@@ -32,10 +52,18 @@ def test_projection_adds_the_growth_of_re_embedding_with_the_buffer() -> None:
     assert with_inserts == pytest.approx(0.032 * (2_000_000 - 20_000) / 3_200 / 3600)
 
 
-def test_emc_run_prints_its_ratio_to_qmix_against_its_own_goal(capsys: pytest.CaptureFixture[str]) -> None:
-    args = ["--map", "map10", "--algo", "emc", "--quick", "--loop-steps", "1", "--entries", "500"]
-    assert main([*args, "--threads", "1"]) == 0
-    out = capsys.readouterr().out
-    assert re.search(r"^emc\s+[\d,]+\s+[\d.]+", out, re.M)
-    assert re.search(r"ratio emc / qmix: .* \(goal <= 2x: not judged", out)
-    assert re.search(r"^EMC vs QMIX: \d+\.\d\dx \(whole run, map10, load average", out, re.M)
+def test_emc_run_records_its_ratio_to_qmix_against_its_own_goal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _run(tmp_path, [*QUICK, "--algo", "emc"])
+    assert {row["algo"] for row in data["tables"]["algorithms"]} == {"qmix", "emc"}
+    ratio = data["figures"]["ratio"]
+    assert ratio["value"] > 0 and ratio["goal"] == "<= 2" and ratio["passed"] is None
+    out = capsys.readouterr().out  # the line docs and issues quote
+    assert f"EMC vs QMIX: {ratio['value']:.2f}x (whole run, map10, load average" in out
+
+
+def test_bad_arguments_are_rejected_naming_the_argument(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["--entries", "0"])
+    assert "--entries must be >= 1, got 0" in capsys.readouterr().err

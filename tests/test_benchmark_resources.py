@@ -1,8 +1,11 @@
-"""``mcrs-bench-resources`` at a tiny size: the RSS curve, the bounded stores and the 50% -> 100% verdict."""
+"""``mcrs-bench-resources`` at a tiny size: the RSS curve, the bounded stores and the 50% -> 100% verdict,
+read from the JSON it writes."""
 
 from __future__ import annotations
 
-import re
+import json
+from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -16,36 +19,40 @@ TINY_RUN = [
 ]  # fmt: skip
 
 
-def _rows(out: str) -> list[tuple[int, float, int, int]]:
-    """The table rows: env_steps, rss_mib, replay_episodes, memory_entries."""
-    pattern = re.compile(r"^\s*(\d+)\s+([\d.]+)\s+(\d+)\s+(\d+)\s*$")
-    matches = [pattern.match(line) for line in out.splitlines()]
-    return [(int(m[1]), float(m[2]), int(m[3]), int(m[4])) for m in matches if m]
+def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
+    path = tmp_path / "resources.json"
+    assert main([*argv, "--json", str(path)]) == 0
+    return json.loads(path.read_text())
 
 
-def test_tiny_run_prints_the_curve_and_the_verdict(capsys: pytest.CaptureFixture) -> None:
-    assert main(TINY_RUN) == 0
+def test_tiny_run_records_the_curve_and_the_verdict(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    data = _run(tmp_path, TINY_RUN)
+    assert data["arguments"]["algo"] == "qmix" and data["arguments"]["env_steps"] == 800
+    rows = data["tables"]["samples"]
+    assert [r["env_steps"] for r in rows] == [0, 200, 400, 600, 800]
+    assert all(r["rss_mib"] > 50 for r in rows)  # a python process with torch: tens of MiB at least
+    assert rows[0]["replay_episodes"] == 0 and max(r["replay_episodes"] for r in rows) == 8  # fills, stays
+    figures = data["figures"]
+    assert figures["replay_full_at_half"]["value"] is True
+    assert "memory_entries_at_half" not in figures  # QMIX has no episodic memory
+    half, end = rows[2]["rss_mib"], rows[-1]["rss_mib"]  # the first sample at 50% of the run, the last
+    assert figures["rss_mib_half"]["value"] == half and figures["rss_mib_end"]["value"] == end
+    growth_fig = figures["rss_growth_percent"]
+    assert growth_fig["value"] == pytest.approx(100 * (end - half) / half)
+    assert growth_fig["goal"] == "< 5" and growth_fig["passed"] is (growth_fig["value"] < 5)
     out = capsys.readouterr().out
-    assert "MCRS resource benchmark: qmix on map10, 800 env steps, replay 8 episodes" in out
-    assert re.search(r"env_steps\s+rss_mib\s+replay_episodes\s+memory_entries", out)
-    rows = _rows(out)
-    assert [r[0] for r in rows] == [0, 200, 400, 600, 800]
-    assert all(r[1] > 50 for r in rows)  # a python process with torch: tens of MiB at least
-    assert rows[0][2] == 0 and max(r[2] for r in rows) == 8  # the replay fills and stays at its capacity
-    assert "replay at 50%: full" in out
-    assert re.search(r"RSS growth 50% -> 100% \(400 -> 800 env steps\): .* MiB = [+-]\d+\.\d\d% \(goal < 5%\): "
-                     r"(PASS|FAIL)", out)  # fmt: skip
+    assert out.startswith("MCRS resource benchmark: qmix on map10, 800 env steps, replay 8 episodes, ")
+    assert f"= {growth_fig['value']:+.2f}% (goal < 5%): {'PASS' if growth_fig['passed'] else 'FAIL'}" in out
 
 
-def test_cnn_semu_reports_memory_entries(capsys: pytest.CaptureFixture) -> None:
+def test_cnn_semu_records_memory_entries(tmp_path: Path) -> None:
     memory = ["--override", "algo.memory.capacity=60", "--override", "algo.memory.embedding_samples=32",
               "--override", "algo.memory.embedding_batch=16", "--override", "algo.memory.hidden_dim=16",
               "--override", "algo.memory.cnn_channels=[2,4,4]", "--override", "algo.memory.embedding_interval=200"]  # fmt: skip
-    assert main(["--algo", "cnn_semu", *TINY_RUN, *memory]) == 0
-    out = capsys.readouterr().out
-    rows = _rows(out)
-    assert rows[-1][3] > 0 and all(r[3] <= 60 for r in rows)  # the memory is bounded by its capacity
-    assert "memory at 50%:" in out
+    data = _run(tmp_path, ["--algo", "cnn_semu", *TINY_RUN, *memory])
+    rows = data["tables"]["samples"]
+    assert rows[-1]["memory_entries"] > 0 and all(r["memory_entries"] <= 60 for r in rows)  # bounded
+    assert 0 < data["figures"]["memory_entries_at_half"]["value"] <= 60
 
 
 def test_growth_is_measured_from_the_middle_of_the_run() -> None:

@@ -245,6 +245,11 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
         assert f"not started: {point.id} needs about 2.00 h, 1.50 h left" in out
         assert not point.run_dir(outputs).exists()
     assert "campaign: 0 runs ended, 2 not started (time budget)" in out
+    # An algorithm with no record of its own is judged by the slowest recorded one on its map.
+    write_record(records / "comm_range" / "smoke" / "earlier.json", {**earlier, "config": {
+        "env": {"name": "map10"}, "algo": {"name": "vdn"}}})  # fmt: skip
+    assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
+    assert f"not started: {first.id} needs about 2.00 h, 1.50 h left" in capsys.readouterr().out
     with open(outputs / ".campaign.lock", "a+") as lock:  # a campaign already running here
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         with pytest.raises(SystemExit, match="another mcrs-campaign run uses"):

@@ -5,7 +5,7 @@ import math
 import pytest
 from hydra import compose, initialize_config_dir
 
-from mcrs.env.config import SCENARIOS, field_names, from_mapping, scenario
+from mcrs.env.config import RUNTIME_FIELDS, SCENARIOS, field_names, from_mapping, scenario
 from mcrs.evaluate import CONFIG_DIR
 
 # Paper table 2: grid, UAVs, targets, no-fly zones, T; table 3: R_c = 5, R_sight = 4, d1 = d2 = 1,
@@ -37,8 +37,7 @@ OVERRIDES = {
     "target_threshold": ("0.9", 0.9),
     "invalid_action": ("clip", "clip"),
     "expose_beliefs": ("true", True),
-    "num_envs": ("7", 7),
-    "device": ("cpu", "cpu"),
+    "no_fly_shield": ("true", True),
 }
 
 
@@ -61,7 +60,8 @@ def test_presets_are_the_paper_tables(name):
 
 
 def test_every_field_has_an_override_here():
-    assert set(OVERRIDES) == set(field_names())
+    """Every scenario field; the runtime fields (num_envs, device) come from train.num_envs and device."""
+    assert set(OVERRIDES) == set(field_names()) - set(RUNTIME_FIELDS)
 
 
 @pytest.mark.parametrize("field", sorted(OVERRIDES))
@@ -71,6 +71,12 @@ def test_every_field_is_overridable_from_the_command_line(field):
     assert getattr(cfg, field) == expected
     default = scenario("map20")
     assert all(getattr(cfg, other) == getattr(default, other) for other in field_names() if other != field)
+
+
+@pytest.mark.parametrize("field", RUNTIME_FIELDS)
+def test_runtime_fields_are_not_scenario_keys(field):
+    with pytest.raises(Exception, match=field):
+        compose_env("map10", [f"env.{field}=1"])
 
 
 def test_bad_override_fails_with_the_field_named():

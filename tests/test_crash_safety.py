@@ -90,7 +90,7 @@ def test_sigkill_at_a_random_moment_then_resume(algo: str, seed: int, tmp_path: 
     # A batch may have been collected (and logged) after the last checkpoint but not saved: lost work.
     assert steps_at_kill - resumed_from <= INTERVAL, (steps_at_kill, resumed_from)
     if algo == "cnn_semu":
-        assert "episodic" in state and state["episodic"]["memory"]
+        assert "memory" in state["callbacks"] and state["callbacks"]["memory"]["memory"]
     # A save cut by the kill leaves a temporary: planted here too, so the clean-up is always exercised.
     (run_dir / "checkpoints" / ".last.pt.killed.tmp").write_bytes(b"half a checkpoint")
 

@@ -9,7 +9,7 @@ from torch import nn
 
 from mcrs.benchmarks.memory import rollout as env_rollout
 from mcrs.env.config import scenario
-from mcrs.memory import EpisodicMemory, InsertStats, StateCodec, discounted_returns, episodic
+from mcrs.memory import EpisodicMemory, InsertStats, StateCodec, discounted_returns, resolution
 from mcrs.memory.index import squared_distance
 
 INF = float("inf")
@@ -342,14 +342,14 @@ def test_batched_insert_equals_the_sequential_reference(
 ) -> None:
     """Clustered keys force many interactions inside each batch (shared entries, batch keys within delta,
     new entries hit later in the same batch), across several batches with eviction."""
-    sequential = episodic._sequential
+    sequential = resolution._sequential
     walked: list[int] = []
 
     def counting(memory, group, *args):
         walked.append(group.numel())
         return sequential(memory, group, *args)
 
-    monkeypatch.setattr(episodic, "_sequential", counting)
+    monkeypatch.setattr(resolution, "_sequential", counting)
     generator = torch.Generator().manual_seed(int(spread * 1e4) + track)
     capacity, delta, gamma = 700, 0.004, 0.9
     memory = EpisodicMemory(

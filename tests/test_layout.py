@@ -96,3 +96,14 @@ def test_state_layout_decodes_positions_and_maps() -> None:
     assert torch.equal(layout.cells(result.state, layout.no_fly_position), core.no_fly_pos)
     assert torch.equal(layout.cells(result.state, layout.target_position), core.target_pos)
     assert torch.equal(layout.maps(result.state), result.state_map)
+    # What the codec and the CNN embedding read: the maps' image at the head, then every position.
+    image = layout.map_image
+    assert image.shape == (2, cfg.width, cfg.height) and image.dim == layout.map_dim == 2 * cfg.n_cells
+    assert torch.equal(image.image(result.state), result.state_map)
+    assert layout.positions == slice(layout.map_dim, cfg.state_dim)
+    assert layout.n_positions == cfg.n_uavs + cfg.n_no_fly + cfg.n_targets
+    assert torch.equal(image.rest(result.state), result.state[..., layout.positions])
+    assert torch.equal(
+        layout.cells(result.state, layout.positions),
+        torch.cat([result.position, core.no_fly_pos, core.target_pos], dim=-2),
+    )

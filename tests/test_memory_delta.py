@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from mcrs.env.config import scenario
-from mcrs.experiment.episodic import EpisodicSide
+from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.memory.delta import match_tolerance, unit_ball_volume
 from tests.test_episodic_memory import rollout
 from tests.train_helpers import compose_config
@@ -48,12 +48,12 @@ def test_bad_delta_readings_are_refused() -> None:
 
 def _insert_two_batches(
     *overrides: str, seeds: tuple[int, int] = (0, 1)
-) -> tuple[EpisodicSide, list[dict[str, float]], float]:
+) -> tuple[EpisodicMemoryCallback, list[dict[str, float]], float]:
     """The default CNN-SEMU memory of map10 (untrained CNN) fed two batches of 16 real episodes (ids 0-15,
     then 16-31); returns the side, the insertion diagnostics and the foreign-hit rate of replaying the
     second batch."""
     cfg = compose_config("algo=cnn_semu", *overrides, tiny=False)
-    side = EpisodicSide(cfg, scenario("map10"), torch.device("cpu"))
+    side = EpisodicMemoryCallback(cfg, scenario("map10"), torch.device("cpu"))
     stats = []
     for b, seed in enumerate(seeds):
         # Real states s_0 .. s_{T-1}, as a collector batch of T-1 transitions (root s_t, "next" s_{t+1}).
@@ -76,7 +76,7 @@ def _insert_two_batches(
         {"state": state, "episode": (torch.arange(16) + 16).unsqueeze(1).expand(16, T)},
         batch_size=[16, T],
     )
-    side.lookup_transform()(episodes)
+    side.lookup(episodes)
     return side, stats, side.statistics().get("memory/foreign_hit_rate", 0.0)
 
 

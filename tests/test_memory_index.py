@@ -5,9 +5,20 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mcrs.memory.index import GridIndex, merge_sorted, squared_distance
+import mcrs.memory.index as index_module
+from mcrs.memory.index import GridIndex, Records, float_order, merge_records, squared_distance
 
 INF = float("inf")
+
+
+@pytest.fixture(params=["recent", "merged"])
+def upkeep(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Added records stay in the recent records (the default at these sizes), or are merged into the main
+    ones at every addition: both layouts must answer alike."""
+    if request.param == "merged":
+        monkeypatch.setattr(index_module, "RECENT_MIN", 0)
+        monkeypatch.setattr(index_module, "RECENT_SHARE", 1 << 40)
+    return request.param
 
 
 def brute_force(index: GridIndex, queries: torch.Tensor, keys: torch.Tensor, live: torch.Tensor):
@@ -40,7 +51,7 @@ def check(index: GridIndex, queries: torch.Tensor, keys: torch.Tensor, live: tor
 
 
 @pytest.mark.parametrize("shape", ["ball", "box"])
-@pytest.mark.parametrize("key_dim", [2, 4])
+@pytest.mark.parametrize("key_dim", [1, 2, 4, 8])
 def test_random_queries_match_brute_force(key_dim: int, shape: str) -> None:
     generator = torch.Generator().manual_seed(key_dim)
     capacity, delta = 4000, 0.08
@@ -83,12 +94,16 @@ def test_points_on_cube_borders_and_at_distance_delta(key_dim: int, shape: str) 
     queries = torch.cat(queries).to(torch.float32)
     # Also nudge queries bit by bit across the strict boundary d^2 = float32(delta^2).
     base = keys[:20].clone()
-    edge = base.clone()
-    edge[:, 0] += torch.tensor(delta, dtype=torch.float32)
-    nudged = [edge]
-    for _ in range(3):
-        nudged.append(torch.nextafter(nudged[-1], torch.full_like(edge, INF)))
-        nudged.insert(0, torch.nextafter(nudged[0], torch.full_like(edge, -INF)))
+    nudged = []
+    for axis in {0, key_dim - 1}:  # a prefix dimension, and the last one (searched by exact range)
+        for sign in (1.0, -1.0):
+            edge = base.clone()
+            edge[:, axis] += torch.tensor(sign * delta, dtype=torch.float32)
+            nudged.append(edge)
+            for _ in range(3):
+                nudged.append(torch.nextafter(nudged[-1], torch.full_like(edge, INF)))
+            for _ in range(3):
+                nudged.append(torch.nextafter(nudged[-4 if _ == 0 else -1], torch.full_like(edge, -INF)))
     queries = torch.cat([queries, *nudged, keys])
     hits = check(index, queries, keys, live)
     assert 0 < hits < queries.shape[0]
@@ -96,13 +111,14 @@ def test_points_on_cube_borders_and_at_distance_delta(key_dim: int, shape: str) 
     assert torch.equal(slot, torch.arange(20))  # a key and its duplicate: the lowest slot
 
 
-def test_stale_records_and_dead_slots_are_harmless() -> None:
+@pytest.mark.parametrize("shape", ["ball", "box"])
+def test_stale_records_and_dead_slots_are_harmless(shape: str, upkeep: str) -> None:
     """Moving keys (shifts) and killing slots (evictions) with records left behind changes nothing."""
     generator = torch.Generator().manual_seed(2)
     capacity, delta = 3000, 0.1
     keys = torch.randn(capacity, 4, generator=generator)
     live = torch.ones(capacity, dtype=torch.bool)
-    index = GridIndex(4, delta, capacity)
+    index = GridIndex(4, delta, capacity, shape=shape)
     index.rebuild(keys, torch.arange(capacity))
     before = keys.clone()
     # Shift 500 slots onto other places and add their new records; the old ones stay, stale.
@@ -116,12 +132,20 @@ def test_stale_records_and_dead_slots_are_harmless() -> None:
     keys[reused] = torch.randn(100, 4, generator=generator)
     live[reused] = True
     index.add(keys[reused], reused)
-    assert len(index) == capacity + 600
-    queries = torch.cat([before, keys, keys[moved] + 0.005])
+    # Nudge 200 keys within their cell (same prefix, the copy in the old record no longer matches).
+    nudged = torch.randperm(capacity, generator=generator)[:200]
+    keys[nudged] += 1e-4
+    index.add(keys[nudged], nudged)
+    assert len(index) == capacity + 800
+    changed = torch.cat([moved, dead, nudged, torch.arange(300)])  # and 300 untouched slots
+    queries = torch.cat([before[changed], keys[changed], keys[moved] + 0.005, before[nudged] - 0.9 * delta])
+    check(index, queries, keys, live)
+    index.flush()  # the recent records merged into the main ones: the same answers
+    assert len(index.recent.order) == 0 and len(index) == capacity + 800
     check(index, queries, keys, live)
 
 
-def test_added_records_are_visible_at_once() -> None:
+def test_added_records_are_visible_at_once(upkeep: str) -> None:
     keys = torch.zeros(100, 4)
     live = torch.zeros(100, dtype=torch.bool)
     index = GridIndex(4, 0.05, 100)
@@ -167,12 +191,42 @@ def test_many_candidates_are_processed_in_chunks(monkeypatch: pytest.MonkeyPatch
     check(index, keys[:100] + 0.001, keys, live)
 
 
-def test_merge_sorted_equals_sorting_the_union() -> None:
+def test_negative_zero_and_the_order_of_floats() -> None:
+    """The last coordinate is searched through its float32 bits: -0.0 and 0.0 are one value, and the order
+    of the bits is the order of the floats (negative, denormal, infinite included)."""
+    values = torch.tensor([-INF, -3.0, -1e-40, -0.0, 0.0, 1e-40, 2.5, INF])
+    order = float_order(values)
+    assert order[3] == order[4] and (order[1:4] > order[:3]).all() and (order[5:] > order[4:-1]).all()
+    keys = torch.tensor([[0.0, -0.0], [0.0, 0.0], [0.0, 0.05]])
+    live = torch.ones(3, dtype=torch.bool)
+    for shape in ("ball", "box"):
+        index = GridIndex(2, 0.05, 3, shape=shape)
+        index.mean, index.std = torch.zeros(2), torch.ones(2)
+        index.rebuild(keys, torch.arange(3), refresh=False)
+        queries = torch.tensor([[0.0, 0.0], [0.0, -0.0], [0.0, -0.05], [0.0, 0.1], [0.01, 0.04]])
+        check(index, queries, keys, live)
+
+
+def test_merge_records_equals_sorting_the_union() -> None:
+    """Merged records are the union sorted by key, each record's slot and copy carried with it."""
     generator = torch.Generator().manual_seed(6)
-    a = torch.randint(0, 1000, (5000,), generator=generator).sort().values
-    b = torch.randint(0, 1000, (300,), generator=generator).sort().values
-    assert torch.equal(merge_sorted(a, b), torch.cat([a, b]).sort().values)
-    assert torch.equal(merge_sorted(a, b[:0]), a) and torch.equal(merge_sorted(a[:0], b), b)
+
+    def records(n: int) -> Records:
+        order = torch.randint(0, 1000, (n,), generator=generator).sort().values
+        slot = torch.randint(0, 1 << 30, (n,), generator=generator, dtype=torch.int32)
+        return Records(order, slot, torch.stack([order.float() * 2, slot.float()]))
+
+    a, b = records(5000), records(300)
+    merged = merge_records(a, b)
+    assert torch.equal(merged.order, torch.cat([a.order, b.order]).sort().values)
+    assert torch.equal(merged.coords[0], merged.order.float() * 2)  # the rows travel together
+    assert torch.equal(merged.coords[1], merged.slot.float())
+    pairs = sorted(
+        zip(torch.cat([a.order, b.order]).tolist(), torch.cat([a.slot, b.slot]).tolist(), strict=True)
+    )
+    assert sorted(zip(merged.order.tolist(), merged.slot.tolist(), strict=True)) == pairs
+    assert torch.equal(merge_records(a, b.prefix(0)).order, a.order)
+    assert torch.equal(merge_records(a.prefix(0), b).slot, b.slot)
 
 
 def test_constant_dimension_gets_a_floor_not_a_division_by_zero() -> None:

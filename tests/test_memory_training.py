@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
-from mcrs.experiment.episodic import EpisodicSide
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.episodic import EpisodicMemoryCallback
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import CONFIG_DIR, resume_config
 from tests.train_helpers import TINY_MEMORY, compose_config
 
@@ -41,12 +41,12 @@ def test_mcrs_train_defaults_to_cnn_semu() -> None:
 @pytest.mark.parametrize("algo", MEMORY_ALGOS)
 def test_each_memory_algorithm_trains_and_logs_its_diagnostics(algo: str, tmp_path: Path) -> None:
     cfg = memory_config(f"algo={algo}")
-    trainer = Trainer(cfg, tmp_path)
-    result = trainer.train()
+    trainer = Experiment(cfg, tmp_path)
+    result = trainer.run()
     assert math.isfinite(result["episode_reward"])
     # 200 env steps of 10-step episodes: 20 x 11 states s_0..s_10 inserted (hits update instead of adding).
     size = scalars(tmp_path, "memory/size")
-    assert size and 0 < size[-1][1] <= 220 and len(trainer.episodic.memory) == size[-1][1]
+    assert size and 0 < size[-1][1] <= 220 and len(trainer.callback("memory").memory) == size[-1][1]
     names = ("train/memory_hit_rate", "train/q_taken_mean", "memory/insert_new", "memory/insert_hit_rate",
              "memory/lookup_hit_rate", "memory/foreign_hit_rate", "memory/tolerance")  # fmt: skip
     for name in names:
@@ -63,52 +63,52 @@ def test_each_memory_algorithm_trains_and_logs_its_diagnostics(algo: str, tmp_pa
         assert all(v > 0 for _, v in scalars(tmp_path, "train/curiosity_scale"))
     # The checkpoint carries the memory: a fresh memory loaded from it answers look-ups identically.
     state = ckpt.load(ckpt.checkpoint_path(tmp_path))
-    fresh = EpisodicSide(cfg, trainer.env_config, torch.device("cpu"))
-    fresh.load_state_dict(state["episodic"])
-    assert len(fresh.memory) == len(trainer.episodic.memory)
+    fresh = EpisodicMemoryCallback(cfg, trainer.env_config, torch.device("cpu"))
+    fresh.load_state_dict(state["callbacks"]["memory"])
+    assert len(fresh.memory) == len(trainer.callback("memory").memory)
     states = trainer.replay.storage.get(torch.arange(4)).get("state")[:, 1:]
     time = torch.arange(1, states.shape[1] + 1).float().div(cfg.env.max_steps).expand(4, -1)
     for a, b in zip(
-        fresh.memory.lookup(states, time), trainer.episodic.memory.lookup(states, time), strict=True
+        fresh.memory.lookup(states, time), trainer.callback("memory").memory.lookup(states, time), strict=True
     ):
         assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("mixer", ["vdn", "qplex"])
 def test_cnn_semu_on_other_mixers(mixer: str, tmp_path: Path) -> None:
-    trainer = Trainer(
+    trainer = Experiment(
         memory_config("algo=cnn_semu", f"algo.mixer={mixer}", "train.total_env_steps=80"), tmp_path
     )
-    assert math.isfinite(trainer.train()["episode_reward"])
+    assert math.isfinite(trainer.run()["episode_reward"])
 
 
 def test_memory_hits_reach_the_loss(tmp_path: Path) -> None:
     """With a huge tolerance every look-up hits: the memory term is active and logged as such."""
     overrides = ("algo.memory.delta=1e6", "algo.memory.delta_rule=literal", "train.total_env_steps=80")
-    trainer = Trainer(memory_config("algo=cnn_semu", *overrides), tmp_path)
-    trainer.train()
+    trainer = Experiment(memory_config("algo=cnn_semu", *overrides), tmp_path)
+    trainer.run()
     assert scalars(tmp_path, "train/memory_hit_rate")[-1][1] == pytest.approx(1.0)
     assert scalars(tmp_path, "train/loss_memory")[-1][1] > 0
     # Every transition found an entry: the memory holds one entry per distinct time step at most.
-    assert len(trainer.episodic.memory) < 80
+    assert len(trainer.callback("memory").memory) < 80
 
 
 @pytest.mark.parametrize("algo", ["cnn_semu", "emc"])
 def test_resume_continues_with_the_same_memory(algo: str, tmp_path: Path) -> None:
     overrides = [f"algo={algo}", "train.total_env_steps=200"]
-    straight = Trainer(memory_config(*overrides), tmp_path / "straight")
-    straight.train()
-    Trainer(memory_config(f"algo={algo}", "train.total_env_steps=120"), tmp_path / "half").train()
+    straight = Experiment(memory_config(*overrides), tmp_path / "straight")
+    straight.run()
+    Experiment(memory_config(f"algo={algo}", "train.total_env_steps=120"), tmp_path / "half").run()
     args = [f"resume={tmp_path / 'half'}", "train.total_env_steps=200"]
     cfg, run_dir = resume_config(memory_config(*args), args)
-    resumed = Trainer(cfg, run_dir, resume=True)
-    assert len(resumed.episodic.memory) > 0
-    resumed.train()
+    resumed = Experiment(cfg, run_dir, resume=True)
+    assert len(resumed.callback("memory").memory) > 0
+    resumed.run()
     for name, value in straight.learner.agent.state_dict().items():
         assert torch.equal(value, resumed.learner.agent.state_dict()[name]), name
-    for name, value in straight.episodic.embedding.state_dict().items():
-        assert torch.equal(value, resumed.episodic.embedding.state_dict()[name]), name
-    a, b = straight.episodic.memory.state_dict(), resumed.episodic.memory.state_dict()
+    for name, value in straight.callback("memory").embedding.state_dict().items():
+        assert torch.equal(value, resumed.callback("memory").embedding.state_dict()[name]), name
+    a, b = straight.callback("memory").memory.state_dict(), resumed.callback("memory").memory.state_dict()
     assert a.keys() == b.keys()
     for key in a:
         if isinstance(a[key], torch.Tensor):
@@ -125,19 +125,9 @@ def test_resume_continues_with_the_same_memory(algo: str, tmp_path: Path) -> Non
         ("algo.memory.delta=-1", r"algo\.memory\.delta=-1\.0: must be > 0"),
         ("algo.memory.capacity=0", r"algo\.memory\.capacity=0: must be >= 1 entry"),
         ("algo.memory_weight=-0.1", r"algo\.memory_weight=-0\.1: must be >= 0"),
-        ("algo.memory.embedding=pca", r"algo\.memory\.embedding='pca': allowed values are random, fc, cnn"),
-        ("algo.incentive=often", r"algo\.incentive='often': allowed values are none, fixed, change"),
         ("algo.memory.enabled=false", r"need the episodic memory: set algo\.memory\.enabled=true"),
         ("algo.memory.cnn_channels=[4,4]", r"algo\.memory\.cnn_channels=\[4, 4\]: must be 3 positive"),
         ("algo.curiosity_decay_rate=2", r"algo\.curiosity_decay_rate=2\.0: must be in \[0, 1\]"),
-        (
-            "algo.memory.delta_rule=side",
-            r"algo\.memory\.delta_rule='side': allowed values are volume, literal",
-        ),
-        (
-            "algo.memory.neighbourhood=cube",
-            r"algo\.memory\.neighbourhood='cube': allowed values are ball, box",
-        ),
         ("algo.memory.embedding_grad_clip=0", r"algo\.memory\.embedding_grad_clip=0\.0: must be > 0"),
     ],
 )
@@ -147,16 +137,16 @@ def test_bad_memory_settings_are_refused_at_start(override: str, message: str) -
 
 
 def test_a_memory_from_another_map_is_refused(tmp_path: Path) -> None:
-    small = Trainer(memory_config("algo=cnn_semu", "train.total_env_steps=40"), tmp_path / "a")
-    small.train()
-    other = Trainer(memory_config("algo=cnn_semu", "env=map15", "env.max_steps=10", "train.total_env_steps=40"),
+    small = Experiment(memory_config("algo=cnn_semu", "train.total_env_steps=40"), tmp_path / "a")
+    small.run()
+    other = Experiment(memory_config("algo=cnn_semu", "env=map15", "env.max_steps=10", "train.total_env_steps=40"),
                     tmp_path / "b")  # fmt: skip
     with pytest.raises(ValueError, match="map"):
-        other.episodic.memory.load_state_dict(small.episodic.memory.state_dict())
+        other.callback("memory").memory.load_state_dict(small.callback("memory").memory.state_dict())
 
 
 def test_curiosity_networks_use_the_learners_optimizer_setting(tmp_path: Path) -> None:
-    trainer = Trainer(memory_config("algo=emc", "train.optimizer=adam", "train.lr=0.002"), tmp_path)
-    curiosity = trainer.learner.curiosity
+    trainer = Experiment(memory_config("algo=emc", "train.optimizer=adam", "train.lr=0.002"), tmp_path)
+    curiosity = trainer.callback("curiosity").curiosity
     for optimizer in (curiosity.vdn_optimizer, curiosity.predictor_optimizer, trainer.learner.optimizer):
         assert isinstance(optimizer, torch.optim.Adam) and optimizer.defaults["lr"] == 0.002

@@ -183,20 +183,24 @@ def test_prune_keeps_the_weights_and_drops_the_replay(runs: Path, tmp_path: Path
     assert "no replay buffer" in resumed.stderr  # a pruned run is evidence, not a resumable run
 
 
-def test_prune_drops_the_episodic_memory_entries_but_keeps_the_embedding(tmp_path: Path) -> None:
+@pytest.mark.parametrize("layout", ["callbacks", "legacy"])
+def test_prune_drops_the_episodic_memory_entries_but_keeps_the_embedding(tmp_path: Path, layout: str) -> None:
+    memory = {"memory": {"keys": torch.zeros(1000, 4)}, "embedding": {"w": torch.ones(2)}}
     state = {
         "counters": {"env_steps": 10},
         "config": {},
         "learner": {"agent": {"w": torch.ones(3)}},
         "replay": {"length": 1, "episodes": {"obs": torch.zeros(100)}},
-        "episodic": {"memory": {"keys": torch.zeros(1000, 4)}, "embedding": {"w": torch.ones(2)}},
+        **({"callbacks": {"memory": memory}} if layout == "callbacks" else {"episodic": memory}),
     }
     ckpt.save_atomic(state, ckpt.checkpoint_path(tmp_path))
     ckpt.prune_bulk(tmp_path)
     after = ckpt.load(ckpt.checkpoint_path(tmp_path))
-    assert set(after["episodic"]) == {"embedding"} and "replay" not in after
-    assert after["pruned"]["dropped"] == ["replay", "episodic.memory"]
-    assert torch.equal(after["episodic"]["embedding"]["w"], torch.ones(2))
+    kept = after["callbacks"]["memory"] if layout == "callbacks" else after["episodic"]
+    assert set(kept) == {"embedding"} and "replay" not in after
+    dotted = "callbacks.memory.memory" if layout == "callbacks" else "episodic.memory"
+    assert after["pruned"]["dropped"] == ["replay", dotted]
+    assert torch.equal(kept["embedding"]["w"], torch.ones(2))
 
 
 def test_a_stopped_run_is_recorded_as_stopped_and_not_pruned(runs: Path, tmp_path: Path, capsys) -> None:

@@ -4,7 +4,7 @@ Each case composes the real Hydra config (``compose_config``) with one bad overr
 either Hydra refuses it while composing (wrong types, unknown keys) or :func:`validate` raises a
 :class:`ConfigError` whose message names the field and what is allowed. ``test_every_field_is_tried``
 fails when a field is added to a schema without bad inputs here. The number of bad inputs tried is
-``len(BAD_VALUES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)`` (printed by ``test_count_of_bad_inputs``).
+``len(BAD_VALUES) + len(BAD_CHOICES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)`` (printed by ``test_count_of_bad_inputs``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from mcrs.env.config import EnvConfig
+from mcrs.env.config import ScenarioConfig
 from mcrs.experiment.config import (
     AlgoConfig,
     Config,
@@ -37,8 +37,6 @@ BAD_VALUES: list[tuple[str, str]] = [
     # algo
     ("algo.name=", "algo.name='': must be a non-empty label"),
     ("algo.name=a/b", "algo.name='a/b': must be a non-empty label without '/'"),
-    ("algo.mixer=qtran", "algo.mixer='qtran': allowed values are qmix, vdn, qplex"),
-    ("algo.mixer=QMIX", "algo.mixer='QMIX': allowed values are qmix, vdn, qplex"),
     ("algo.mixing_embed_dim=0", f"algo.mixing_embed_dim=0: {POSITIVE}"),
     ("algo.mixing_embed_dim=-8", f"algo.mixing_embed_dim=-8: {POSITIVE}"),
     ("algo.hypernet_embed=0", f"algo.hypernet_embed=0: {POSITIVE}"),
@@ -55,7 +53,6 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("algo.memory_weight=-0.1", "algo.memory_weight=-0.1: must be >= 0"),
     ("algo.memory_weight=inf", "algo.memory_weight=inf: must be >= 0"),
     ("algo.memory_weight=0.1", "set algo.memory.enabled=true"),  # a memory term without the memory
-    ("algo.incentive=often", "algo.incentive='often': allowed values are none, fixed, change"),
     ("algo.incentive=fixed", "set algo.memory.enabled=true"),
     ("algo.incentive_threshold=inf", "algo.incentive_threshold=inf: must be a finite return"),
     ("algo.incentive_threshold=nan", "algo.incentive_threshold=nan: must be a finite return"),
@@ -66,7 +63,6 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("algo.curiosity_tau=-0.1", f"algo.curiosity_tau=-0.1: {UNIT}"),
     ("algo.curiosity_tau=1.1", f"algo.curiosity_tau=1.1: {UNIT}"),
     # algo.memory (checked by _memory_errors whether or not the memory is enabled)
-    ("algo.memory.embedding=pca", "algo.memory.embedding='pca': allowed values are random, fc, cnn"),
     ("algo.memory.key_dim=0", f"algo.memory.key_dim=0: {POSITIVE}"),
     ("algo.memory.key_dim=-1", f"algo.memory.key_dim=-1: {POSITIVE}"),
     ("algo.memory.hidden_dim=0", f"algo.memory.hidden_dim=0: {POSITIVE}"),
@@ -84,20 +80,14 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("algo.memory.embedding_lr=0", f"algo.memory.embedding_lr=0.0: {POSITIVE}"),
     ("algo.memory.embedding_lr=nan", f"algo.memory.embedding_lr=nan: {POSITIVE}"),
     ("algo.memory.state_weight=-0.1", "algo.memory.state_weight=-0.1: must be >= 0"),
-    ("algo.memory.delta_rule=side", "algo.memory.delta_rule='side': allowed values are volume, literal"),
-    ("algo.memory.neighbourhood=cube", "algo.memory.neighbourhood='cube': allowed values are ball, box"),
     ("algo.memory.embedding_grad_clip=0", "algo.memory.embedding_grad_clip=0.0: must be > 0"),
     ("algo.memory.embedding_grad_clip=-1", "algo.memory.embedding_grad_clip=-1.0: must be > 0"),
     # model
-    ("model.name=lstm", "model.name='lstm': allowed values are gru"),
     ("model.hidden_dim=0", f"model.hidden_dim=0: {POSITIVE}"),
     ("model.hidden_dim=-16", f"model.hidden_dim=-16: {POSITIVE}"),
     # logger
-    ("logger.backend=mlflow", "logger.backend='mlflow': allowed values are csv, wandb, tensorboard"),
     ("logger.project=", "logger.project='': must be a non-empty name"),
     ("logger.project=' '", "logger.project=' ': must be a non-empty name"),
-    ("logger.wandb_mode=cloud", "logger.wandb_mode='cloud': allowed values are offline, online"),
-    ("logger.wandb_mode=disabled", "logger.wandb_mode='disabled': allowed values are offline, online"),
     ("logger.log_interval=0", f"logger.log_interval=0: {POSITIVE}"),
     ("logger.log_interval=-1", f"logger.log_interval=-1: {POSITIVE}"),
     # train
@@ -110,7 +100,6 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("train.replay_episodes=2", "train.replay_episodes=2 < train.batch_episodes=4: the buffer must hold"),
     ("train.updates_per_episode=-1", "train.updates_per_episode=-1.0: must be >= 0"),
     ("train.updates_per_episode=inf", "train.updates_per_episode=inf: must be >= 0"),
-    ("train.optimizer=sgd", "train.optimizer='sgd': allowed values are rmsprop, adam"),
     ("train.lr=0", f"train.lr=0.0: {POSITIVE}"),
     ("train.lr=-1", f"train.lr=-1.0: {POSITIVE}"),
     ("train.lr=nan", f"train.lr=nan: {POSITIVE}"),
@@ -130,13 +119,13 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("train.eval_interval=0", f"train.eval_interval=0: {POSITIVE}"),
     ("train.eval_interval=-1", f"train.eval_interval=-1: {POSITIVE}"),
     ("train.eval_episodes=0", f"train.eval_episodes=0: {POSITIVE}"),
+    ("train.keep_checkpoints=-1", "train.keep_checkpoints=-1: must be >= 0"),
     ("train.eval_seed=-1", "train.eval_seed=-1: must be in [0, 2**63 - 1]"),
     ("train.eval_seed=9223372036854775808", "train.eval_seed=9223372036854775808: must be in [0, 2**63 - 1]"),
     ("train.checkpoint_interval=0", f"train.checkpoint_interval=0: {POSITIVE}"),
     ("train.checkpoint_interval=-100", f"train.checkpoint_interval=-100: {POSITIVE}"),
     ("train.checkpoint_minutes=-5", "train.checkpoint_minutes=-5.0: must be >= 0"),
     ("train.checkpoint_minutes=inf", "train.checkpoint_minutes=inf: must be >= 0"),
-    ("train.collector=threads", "train.collector='threads': allowed values are single, multiprocess"),
     ("train.collector_workers=0", "train.collector_workers=0: must be >= 1"),
     ("train.collector_workers=-2", "train.collector_workers=-2: must be >= 1"),
     (
@@ -155,16 +144,13 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.name=", "env.name='': must be a non-empty label"),
     ("env.name=a/b", "env.name='a/b': must be a non-empty label without '/'"),
     ("env.width=0", "width=0: must be an integer >= 1"),
-    ("env.width=abc", "width='abc': must be an integer >= 1"),
     ("env.height=-3", "height=-3: must be an integer >= 1"),
-    ("env.height=2.5", "height=2.5: must be an integer >= 1"),
     ("env.n_uavs=0", "n_uavs=0: must be an integer >= 1"),
     ("env.n_uavs=500", "n_uavs=500 > 97 free cells"),
     ("env.n_targets=-1", "n_targets=-1: must be an integer >= 0"),
     ("env.n_targets=99", "n_targets + n_no_fly = 99 + 3 > 100 cells"),
     ("env.n_no_fly=-1", "n_no_fly=-1: must be an integer >= 0"),
     ("env.max_steps=0", "max_steps=0: must be an integer >= 1"),
-    ("env.max_steps=ten", "max_steps='ten': must be an integer >= 1"),
     ("env.comm_range=-1", "comm_range=-1.0: must be a distance >= 0"),
     ("env.comm_range=nan", "comm_range=nan: must be a distance >= 0"),
     ("env.comm_rounds=0", "comm_rounds=0: must be an integer >= 1 or 'flood'"),
@@ -173,25 +159,20 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.sight_range=inf", "sight_range=inf: must be finite and > 0"),
     ("env.no_fly_safety=-1", "no_fly_safety=-1.0: must be a distance >= 0"),
     ("env.uav_safety=-0.5", "uav_safety=-0.5: must be a distance >= 0"),
-    ("env.m_f=1", "m_f=1: must be a probability in [0, 1)"),
+    ("env.m_f=1", "m_f=1.0: must be a probability in [0, 1)"),
     ("env.m_f=-0.1", "m_f=-0.1: must be a probability in [0, 1)"),
     ("env.m_e=1.5", "m_e=1.5: must be a probability in [0, 1)"),
     ("env.p_detect=1.5", "p_detect=1.5: must be a probability in [0, 1]"),
     ("env.p_detect=-0.1", "p_detect=-0.1: must be a probability in [0, 1]"),
-    ("env.p_false_alarm=2", "p_false_alarm=2: must be a probability in [0, 1]"),
+    ("env.p_false_alarm=2", "p_false_alarm=2.0: must be a probability in [0, 1]"),
     ("env.target_threshold=1.1", "target_threshold=1.1: must be a probability in [0, 1]"),
     ("env.w_uncertainty=inf", "w_uncertainty=inf: must be a finite number"),
     ("env.w_discovery=nan", "w_discovery=nan: must be a finite number"),
-    ("env.w_no_fly=abc", "w_no_fly='abc': must be a finite number"),
     ("env.w_collision=-inf", "w_collision=-inf: must be a finite number"),
     ("env.invalid_action=ignore", "invalid_action='ignore': must be one of ['raise', 'clip']"),
-    ("env.expose_beliefs=maybe", "expose_beliefs='maybe': must be true or false"),
-    ("env.num_envs=0", "num_envs=0: must be an integer >= 1"),
-    ("env.device=tpu", "device='tpu': is not a torch device"),
-    ("env.device=cuda:7", "device='cuda:7'"),
-    ("+env.widht=3", "unknown environment field(s) ['widht']"),
     # Values that passed the per-field rules and crashed later (issue 14, list 4): refused up front, the
     # sizes by an estimate of the memory the run needs (mcrs/experiment/resources.py).
+    ("+env.widht=3", "unknown field(s) env.widht"),  # + forces a key past the schema
     ("algo=cnn_semu|algo.memory.capacity=3000000000", "algo.memory.capacity=3000000000: must be <= 2**31 - 1"),
     ("algo=cnn_semu|algo.memory.embedding_batch=200000",
      "algo.memory.embedding_batch=200000 > algo.memory.embedding_samples=102400"),
@@ -205,8 +186,30 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("device=mps", "device='mps': MPS (Apple GPU) is not available on this machine"),
 ]  # fmt: skip
 
+#: Choices (enums in the schema) Hydra refuses while composing, naming the field and the allowed values.
+BAD_CHOICES: list[tuple[str, str]] = [
+    ("algo.mixer=qtran", "qmix, vdn, qplex"),
+    ("algo.mixer=QMIX", "qmix, vdn, qplex"),
+    ("algo.incentive=often", "none, fixed, change"),
+    ("algo.memory.embedding=pca", "random, fc, cnn"),
+    ("algo.memory.delta_rule=side", "volume, literal"),
+    ("algo.memory.neighbourhood=cube", "ball, box"),
+    ("model.name=lstm", "gru"),
+    ("logger.backend=mlflow", "csv, wandb, tensorboard"),
+    ("logger.wandb_mode=cloud", "offline, online"),
+    ("logger.wandb_mode=disabled", "offline, online"),
+    ("train.optimizer=sgd", "rmsprop, adam"),
+    ("train.collector=threads", "single, multiprocess"),
+]
+
 #: Overrides Hydra refuses while composing: wrong types for the typed schema.
 WRONG_TYPES = [
+    "env.width=abc",
+    "env.height=2.5",
+    "env.max_steps=ten",
+    "env.w_no_fly=abc",
+    "env.expose_beliefs=maybe",
+    "env.no_fly_shield=maybe",
     "algo.mixing_embed_dim=abc",
     "algo.hypernet_layers=1.5",
     "algo.gamma=high",
@@ -240,6 +243,8 @@ WRONG_TYPES = [
 
 #: Keys that do not exist (typos) and group options that do not exist.
 UNKNOWN_KEYS = [
+    "env.num_envs=4",  # runtime fields are train.num_envs and device, not the scenario's
+    "env.device=cpu",
     "algo.lrr=1",
     "algo.memory.capcity=1",
     "model.hiden_dim=3",
@@ -276,6 +281,23 @@ def test_wrong_type_fails_while_composing(override: str) -> None:
     message = f"{info.value} {info.value.__cause__}"
     key = override.split("=", 1)[0]
     assert key.split(".")[-1] in message, message  # the field is named
+
+
+@pytest.mark.parametrize(("override", "allowed"), BAD_CHOICES, ids=[_case_id(c) for c in BAD_CHOICES])
+def test_bad_choice_fails_while_composing_naming_the_allowed_values(override: str, allowed: str) -> None:
+    with pytest.raises((ConfigCompositionException, ValidationError)) as info:
+        compose_config(override)
+    message = f"{info.value} {info.value.__cause__}"
+    assert override.split("=", 1)[0] in message and f"expected one of [{allowed}]" in message, message
+
+
+def test_bad_choice_from_python_is_refused_by_validate() -> None:
+    """A Python caller's dataclass is not checked by Hydra: validate names the field and the choices."""
+    config = Config(algo=AlgoConfig(mixer="qtran"), train=TrainConfig(optimizer="sgd"))
+    with pytest.raises(ConfigError) as info:
+        validate(config)
+    assert "algo.mixer='qtran': allowed values are qmix, vdn, qplex" in str(info.value)
+    assert "train.optimizer='sgd': allowed values are rmsprop, adam" in str(info.value)
 
 
 @pytest.mark.parametrize("override", UNKNOWN_KEYS)
@@ -335,19 +357,20 @@ def test_every_field_is_tried() -> None:
         | _schema_fields(LoggerConfig, "logger.")
         | _schema_fields(TrainConfig, "train.")
         | {f.name for f in fields(Config) if f.name not in ("algo", "model", "logger", "train")}
-        | {f"env.{f.name}" for f in fields(EnvConfig)}
+        | {f"env.{f.name}" for f in fields(ScenarioConfig)}
     )
-    tried = _tried([o for o, _ in BAD_VALUES] + WRONG_TYPES)
+    tried = _tried([o for o, _ in BAD_VALUES] + [o for o, _ in BAD_CHOICES] + WRONG_TYPES)
     missing = schema - tried - NOT_VALUE_CHECKED
     assert not missing, f"fields without bad inputs: {sorted(missing)}"
 
 
 def test_count_of_bad_inputs(capsys: pytest.CaptureFixture) -> None:
-    total = len(BAD_VALUES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)
+    total = len(BAD_VALUES) + len(BAD_CHOICES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)
     with capsys.disabled():
         print(
             f"\nbad config inputs tried: {total} "
-            f"({len(BAD_VALUES)} values, {len(WRONG_TYPES)} wrong types, {len(UNKNOWN_KEYS)} unknown keys)"
+            f"({len(BAD_VALUES)} values, {len(BAD_CHOICES)} choices, {len(WRONG_TYPES)} wrong types, "
+            f"{len(UNKNOWN_KEYS)} unknown keys)"
         )
     assert total >= 150
 

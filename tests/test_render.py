@@ -1,15 +1,23 @@
-"""Episode pictures: right file formats, and figure 4's data shows what communication buys."""
+"""Episode pictures (mcrs.viz): right file formats, figure 4's data shows what communication buys, and
+the mcrs-render command (Hydra, typed schema, one-line errors)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from PIL import Image
 
 from mcrs.env import scenario
-from mcrs.env.render import (
+from mcrs.render_episode import CONFIG_DIR
+from mcrs.render_episode import run as render_run
+from mcrs.viz import (
     episode_frames,
     plot_scene,
     plot_uncertainty_contours,
@@ -17,8 +25,8 @@ from mcrs.env.render import (
     rollout_episode,
     save_episode_gif,
     uncertainty_contour_data,
+    write_episode_pictures,
 )
-from mcrs.render_episode import main as render_main
 
 SHORT = scenario("map10", max_steps=8)
 
@@ -115,24 +123,85 @@ def test_contours_with_communication_are_less_uncertain(comm_pair) -> None:
         uncertainty_contour_data(with_comm, cfg, 0, (51,))
 
 
-def test_mcrs_render_cli_writes_the_pictures(tmp_path: Path, capsys) -> None:
-    out = tmp_path / "render"
-    render_main(
-        [
-            "--env",
-            "map10",
-            "--policy",
-            "lawnmower",
-            "--seed",
-            "2",
-            "--out",
-            str(out),
-            "--no-gif",
-            "--set",
-            "max_steps=6",
-        ]
+def test_write_episode_pictures_is_the_one_routine(tmp_path: Path) -> None:
+    paths = write_episode_pictures(tmp_path / "pictures", SHORT, "lawnmower", seed=1, uav=3)
+    assert [p.name for p in paths] == ["scene.png", "uncertainty_contours.png", "episode.gif"]
+    _assert_image(paths[0], "PNG")
+    _assert_image(paths[1], "PNG")
+    assert Image.open(paths[2]).n_frames == SHORT.max_steps + 1
+    assert (
+        write_episode_pictures(tmp_path / "no_gif", SHORT, "random", seed=1, gif=False)[-1].suffix == ".png"
     )
-    _assert_image(out / "scene.png", "PNG")
-    _assert_image(out / "uncertainty_contours.png", "PNG")
-    assert not (out / "episode.gif").exists()
-    assert "scene.png" in capsys.readouterr().out
+    with pytest.raises(ValueError, match=r"uav=4: must be in 0\.\.3"):
+        write_episode_pictures(tmp_path / "bad", SHORT, "random", seed=1, uav=4)
+
+
+def _compose(overrides: list[str]):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        return compose("render", overrides=overrides)
+
+
+def test_render_config_is_typed_and_composes() -> None:
+    cfg = _compose([])
+    assert (cfg.policy, cfg.seed, cfg.uav, cfg.gif, cfg.out, cfg.env.name) == (
+        "greedy",
+        0,
+        0,
+        True,
+        "outputs/render",
+        "map10",
+    )
+    cfg = _compose(["env=map20", "env.comm_range=3", "seed=4", "gif=false", "uav=9"])
+    assert (cfg.env.name, cfg.env.comm_range, cfg.seed, cfg.gif, cfg.uav) == ("map20", 3, 4, False, 9)
+    for bad in ("seed=abc", "gif=maybe", "bogus=1"):  # the schema refuses them before any work
+        with pytest.raises(ConfigCompositionException):
+            _compose([bad])
+
+
+def test_render_run_in_process(tmp_path: Path, capsys) -> None:
+    cfg = _compose(["env.max_steps=6", "policy=lawnmower", "seed=2", "gif=false"])
+    paths = render_run(cfg, tmp_path)
+    _assert_image(tmp_path / "scene.png", "PNG")
+    _assert_image(tmp_path / "uncertainty_contours.png", "PNG")
+    assert not (tmp_path / "episode.gif").exists()
+    assert capsys.readouterr().out.split() == [str(p) for p in paths]
+    for bad, message in [
+        ("policy=bogus", "unknown policy 'bogus'"),
+        ("uav=4", r"uav=4: must be in 0\.\.3"),
+        ("env.comm_range=-1", "comm_range"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            render_run(_compose(["env.max_steps=6", bad]), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()  # checked before anything is drawn
+
+
+def _cli(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mcrs.render_episode", *overrides],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "HYDRA_FULL_ERROR": "0"},
+        cwd=cwd,
+    )
+
+
+def test_mcrs_render_cli_writes_the_pictures_into_out_only(tmp_path: Path) -> None:
+    out = tmp_path / "render"
+    done = _cli(
+        tmp_path, "env=map10", "policy=lawnmower", "seed=2", f"out={out}", "gif=false", "env.max_steps=6"
+    )
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.iterdir()) == [
+        "scene.png",
+        "uncertainty_contours.png",
+    ]  # no .hydra/, logs
+    assert done.stdout.split() == [str(out / "scene.png"), str(out / "uncertainty_contours.png")]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["render"]
+
+
+def test_mcrs_render_cli_bad_input_is_one_line_without_traceback(tmp_path: Path) -> None:
+    done = _cli(tmp_path, "uav=7", f"out={tmp_path / 'render'}")
+    assert done.returncode != 0
+    assert done.stderr.strip() == "mcrs-render: error: uav=7: must be in 0..3 (map10 has 4 UAVs)"
+    assert not (tmp_path / "render").exists()

@@ -3,7 +3,6 @@ checkpoint whole, a reload restores the same slots and write position, and time-
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import pytest
@@ -13,7 +12,7 @@ from tensordict import TensorDict
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.replay import make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import compose_config
 
 
@@ -86,7 +85,7 @@ def test_time_based_checkpoints_and_the_replay_beside_last_pt(tmp_path: Path) ->
     # No step-based checkpoint before the end; a time interval that every batch exceeds.
     cfg = compose_config("train.total_env_steps=120", "train.checkpoint_interval=1000000",
                          "train.checkpoint_minutes=1e-9")  # fmt: skip
-    Trainer(cfg, tmp_path).train()
+    Experiment(cfg, tmp_path).run()
     saved = sorted(p.name for p in (tmp_path / "checkpoints").glob("model_*.pt"))
     assert saved == [f"model_{s:09d}.pt" for s in (40, 80, 120)]
     state = ckpt.load(ckpt.checkpoint_path(tmp_path))
@@ -98,15 +97,4 @@ def test_bad_checkpoint_minutes_is_refused(tmp_path: Path) -> None:
     from mcrs.experiment.config import ConfigError
 
     with pytest.raises(ConfigError, match=r"train\.checkpoint_minutes=-1\.0: must be >= 0"):
-        Trainer(compose_config("train.checkpoint_minutes=-1"), tmp_path)
-
-
-def test_checkpoint_benchmark_quick_run_prints_its_figures(capsys: pytest.CaptureFixture[str]) -> None:
-    from mcrs.benchmarks.checkpoint import main
-
-    assert main(["--map", "map10", "--quick", "--new-episodes", "5", "--compare-inline"]) == 0
-    out = capsys.readouterr().out
-    assert "Trainer.save() with a full replay of 16 episodes" in out
-    assert re.search(r"checkpoint after 5 new episodes \(blocks rewritten: 1, [\d.]+ GiB\): [\d.]+ s", out)
-    assert re.search(r"the whole replay inline in last.pt: [\d.]+ s", out)
-    assert re.search(r"full map10 replay \(16 episodes\): [\d.]+ s \(goal <= 10 s: not judged", out)
+        Experiment(compose_config("train.checkpoint_minutes=-1"), tmp_path)

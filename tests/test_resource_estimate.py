@@ -8,16 +8,16 @@ from pathlib import Path
 import torch
 
 from mcrs.env.config import from_mapping
-from mcrs.experiment.episodic import EpisodicSide
+from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.resources import estimate, memory_entry_bytes, replay_step_bytes
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import compose_config
 
 
 def test_the_replay_estimate_is_the_bytes_a_full_buffer_holds(tmp_path: Path) -> None:
     cfg = compose_config("train.total_env_steps=200")  # 20 episodes: the tiny buffer is full
-    trainer = Trainer(cfg, tmp_path / "run")
-    trainer.train()
+    trainer = Experiment(cfg, tmp_path / "run")
+    trainer.run()
     assert len(trainer.replay) == cfg.train.replay_episodes
     held = sum(v.numel() * v.element_size() for v in trainer.replay.storage._storage.values(True, True))
     T = trainer.env_config.max_steps
@@ -35,7 +35,9 @@ def test_the_episodic_memory_estimate_covers_what_it_allocates() -> None:
             cfg = compose_config(
                 "algo=cnn_semu", f"env={env}", f"algo.memory.capacity={capacity}", tiny=False
             )
-            sizes.append(EpisodicSide(cfg, from_mapping(cfg.env), torch.device("cpu")).memory.nbytes())
+            sizes.append(
+                EpisodicMemoryCallback(cfg, from_mapping(cfg.env), torch.device("cpu")).memory.nbytes()
+            )
         per_entry = (sizes[1] - sizes[0]) / 1000
         assert (
             per_entry <= memory_entry_bytes(from_mapping(cfg.env), cfg.algo.memory.key_dim) <= 1.3 * per_entry

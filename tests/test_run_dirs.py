@@ -26,7 +26,7 @@ import torch
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
 from mcrs.experiment.rundir import LOCK, RunDirError, RunLock
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config, start_train
 
@@ -126,25 +126,25 @@ def test_a_second_writer_and_a_resume_of_a_live_run_are_refused_naming_the_pid(t
 
 
 def test_the_lock_is_held_while_the_trainer_lives_and_released_by_train(tmp_path: Path) -> None:
-    trainer = Trainer(compose_config("train.total_env_steps=40"), tmp_path / "run")
+    trainer = Experiment(compose_config("train.total_env_steps=40"), tmp_path / "run")
     with pytest.raises(RunDirError, match=f"in use by process {os.getpid()}"):
-        Trainer(compose_config("train.total_env_steps=40"), tmp_path / "run")
-    trainer.train()
+        Experiment(compose_config("train.total_env_steps=40"), tmp_path / "run")
+    trainer.run()
     assert (tmp_path / "run" / LOCK).is_file()
     RunLock(tmp_path / "run").release()  # free again
 
 
 # ------------------------------------------------------------------------------ foreign checkpoints
-def _resume(run_dir: Path, *extra: str) -> Trainer:
+def _resume(run_dir: Path, *extra: str) -> Experiment:
     overrides = [f"resume={run_dir}", *extra]
     cfg, run_dir = resume_config(compose_config(*overrides), overrides)
-    return Trainer(cfg, run_dir, resume=True)
+    return Experiment(cfg, run_dir, resume=True)
 
 
 @pytest.fixture(scope="module")
 def qmix_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     run_dir = tmp_path_factory.mktemp("qmix") / "run"
-    Trainer(compose_config("train.total_env_steps=40"), run_dir).train()
+    Experiment(compose_config("train.total_env_steps=40"), run_dir).run()
     return run_dir
 
 
@@ -163,7 +163,7 @@ def test_a_foreign_checkpoint_is_refused_naming_the_first_difference(
     other: list[str], difference: str, qmix_run: Path, tmp_path: Path
 ) -> None:
     foreign = tmp_path / "foreign"
-    Trainer(compose_config("train.total_env_steps=40", *other), foreign).train()
+    Experiment(compose_config("train.total_env_steps=40", *other), foreign).run()
     run_dir = tmp_path / "run"
     shutil.copytree(qmix_run, run_dir)
     shutil.copy(ckpt.checkpoint_path(foreign), ckpt.checkpoint_path(run_dir))
@@ -213,7 +213,7 @@ def test_first_difference_skips_schema_changes_but_not_network_changes() -> None
 
 def test_cli_refuses_a_foreign_checkpoint_in_one_line(qmix_run: Path, tmp_path: Path) -> None:
     foreign = tmp_path / "foreign"
-    Trainer(compose_config("algo=cnn_semu", *TINY_MEMORY, "train.total_env_steps=40"), foreign).train()
+    Experiment(compose_config("algo=cnn_semu", *TINY_MEMORY, "train.total_env_steps=40"), foreign).run()
     run_dir = tmp_path / "run"
     shutil.copytree(qmix_run, run_dir)
     shutil.copy(ckpt.checkpoint_path(foreign), ckpt.checkpoint_path(run_dir))
@@ -229,18 +229,18 @@ def test_a_resumed_run_logs_every_row_once_and_checkpoints_where_a_straight_run_
     checkpoints are the straight run's, row for row (wall-clock timings aside)."""
     common = ["train.checkpoint_interval=80", "train.eval_interval=40"]
     straight = tmp_path / "straight"
-    Trainer(compose_config("train.total_env_steps=200", *common), straight).train()
+    Experiment(compose_config("train.total_env_steps=200", *common), straight).run()
 
     run_dir = tmp_path / "run"
-    Trainer(compose_config("train.total_env_steps=80", *common), run_dir).train()
+    Experiment(compose_config("train.total_env_steps=80", *common), run_dir).run()
     at_80 = tmp_path / "checkpoints_at_80"  # last.pt and the replay's block files it names
     shutil.copytree(run_dir / "checkpoints", at_80)
-    _resume(run_dir, "train.total_env_steps=120").train()  # logs rows at 120 ...
+    _resume(run_dir, "train.total_env_steps=120").run()  # logs rows at 120 ...
     shutil.rmtree(run_dir / "checkpoints")  # ... then dies before checkpointing them
     shutil.copytree(at_80, run_dir / "checkpoints")
     assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120]
 
-    _resume(run_dir, "train.total_env_steps=200").train()
+    _resume(run_dir, "train.total_env_steps=200").run()
     assert _csv_logs(run_dir) == _csv_logs(straight)
     assert [int(r[0]) for r in _rows(run_dir)] == [40, 80, 120, 160, 200]
     assert [int(float(r[0])) for r in _rows(run_dir, "eval/episode_reward")] == [0, 40, 80, 120, 160, 200]
@@ -256,13 +256,13 @@ def test_a_resumed_run_logs_every_row_once_and_checkpoints_where_a_straight_run_
 # ------------------------------------------------------------------------------ fresh runs
 def test_a_fresh_run_refuses_a_non_empty_directory_unless_told_to_overwrite(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    Trainer(compose_config("train.total_env_steps=80", "train.checkpoint_interval=40"), run_dir).train()
+    Experiment(compose_config("train.total_env_steps=80", "train.checkpoint_interval=40"), run_dir).run()
     assert (run_dir / "checkpoints" / "model_000000040.pt").is_file()
     with pytest.raises(RunDirError, match=r"is not empty \(checkpoints, config.yaml, logs\).*overwrite=true"):
-        Trainer(compose_config("train.total_env_steps=40"), run_dir)
+        Experiment(compose_config("train.total_env_steps=40"), run_dir)
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80  # untouched
 
-    Trainer(compose_config("train.total_env_steps=40", "overwrite=true", "seed=3"), run_dir).train()
+    Experiment(compose_config("train.total_env_steps=40", "overwrite=true", "seed=3"), run_dir).run()
     kept = sorted(p.name for p in (run_dir / "checkpoints").iterdir())
     assert kept == ["last.pt", "model_000000040.pt", "replay_00000_000001.pt"]  # only the new run's files
     assert [int(r[0]) for r in _rows(run_dir)] == [40]  # the old run's rows are gone, not mixed
@@ -270,7 +270,7 @@ def test_a_fresh_run_refuses_a_non_empty_directory_unless_told_to_overwrite(tmp_
 
     (run_dir / "notes.txt").write_text("mine")  # overwrite replaces a run, never other files
     with pytest.raises(RunDirError, match=r"holds files that no run wrote \(notes.txt\)"):
-        Trainer(compose_config("train.total_env_steps=40", "overwrite=true"), run_dir)
+        Experiment(compose_config("train.total_env_steps=40", "overwrite=true"), run_dir)
     assert (run_dir / "notes.txt").read_text() == "mine" and ckpt.checkpoint_path(run_dir).is_file()
 
 
@@ -279,7 +279,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     run_dir = tmp_path / "run"
-    trainer = Trainer(compose_config("train.total_env_steps=200", "train.checkpoint_interval=40"), run_dir)
+    trainer = Experiment(compose_config("train.total_env_steps=200", "train.checkpoint_interval=40"), run_dir)
     saves = {"last": 0, "full": False}
     real_save = ckpt.save_atomic
 
@@ -301,7 +301,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(
     monkeypatch.setattr(ckpt, "save_atomic", counting_save)
     monkeypatch.setattr(ckpt._Writer, "write", write)
     with pytest.raises(RunDirError) as info:
-        trainer.train()
+        trainer.run()
     message = str(info.value)
     assert "\n" not in message
     assert message.startswith(
@@ -311,7 +311,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80
     assert not [p.name for p in (run_dir / "checkpoints").iterdir() if p.name.startswith(".")]
     monkeypatch.undo()
-    _resume(run_dir, "train.total_env_steps=120").train()  # the lock was released; the run goes on
+    _resume(run_dir, "train.total_env_steps=120").run()  # the lock was released; the run goes on
 
 
 def test_cli_file_too_large_is_one_line_and_the_last_checkpoint_is_intact(tmp_path: Path) -> None:

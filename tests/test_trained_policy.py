@@ -9,23 +9,23 @@ import torch
 
 from mcrs.env import MCRSEnv, scenario
 from mcrs.evaluate import evaluate_policy
-from mcrs.experiment.trainer import Trainer
+from mcrs.experiment.trainer import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import make_policy
 from mcrs.policies.trained import TrainedPolicy
-from mcrs.render_episode import render
+from mcrs.viz import write_episode_pictures
 from tests.train_helpers import compose_config
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("run")
-    Trainer(compose_config("train.total_env_steps=80"), path).train()
+    Experiment(compose_config("train.total_env_steps=80"), path).run()
     return path
 
 
 def test_checkpoint_policy_matches_the_training_greedy_policy(run_dir: Path) -> None:
-    trainer = Trainer(compose_config("train.total_env_steps=80"), run_dir, resume=True)
+    trainer = Experiment(compose_config("train.total_env_steps=80"), run_dir, resume=True)
     env_config = scenario("map10", max_steps=10, num_envs=3)
     policy = make_policy(str(run_dir), env_config)
     assert isinstance(policy, TrainedPolicy)
@@ -47,7 +47,7 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
     model = sorted((run_dir / "checkpoints").glob("model_*.pt"))[-1]
     result = evaluate_policy(env_config, str(model), episodes=3, seed=0)
     assert result["episode_reward"][1] >= 0
-    paths = render(env_config, str(model), seed=0, out=tmp_path, gif=False)
+    paths = write_episode_pictures(tmp_path, env_config, str(model), seed=0, gif=False)
     assert all(p.is_file() for p in paths)
 
 

@@ -37,10 +37,10 @@ class MemorySample:
 
 
 def _episodic_state(run: TrainingRun) -> dict:
-    payload = ckpt.load(ckpt.checkpoint_path(run.path), mmap=True)
-    if "episodic" not in payload:
+    payload = ckpt.current_layout(ckpt.load(ckpt.checkpoint_path(run.path), mmap=True))
+    if "memory" not in payload.get("callbacks", {}):
         raise ValueError(f"{run.path}: its last.pt holds no episodic memory (algo {run.algo_name})")
-    return payload["episodic"]
+    return payload["callbacks"]["memory"]
 
 
 def sample_memory(run: TrainingRun, n: int, seed: int = 0) -> MemorySample:

@@ -1,1 +1,2 @@
-"""Performance benchmarks of the environment (``mcrs-bench-env``), run by hand and in CI smoke tests."""
+"""Benchmark commands (``mcrs-bench-*``), run by hand and in smoke tests; each prints its figures and writes
+them as JSON through :mod:`mcrs.benchmarks.harness`."""

@@ -7,6 +7,9 @@ figures, printed here next to the measurements with PASS/FAIL:
 * >= 100x the classic loop that steps one PettingZoo environment at a time (``MCRSParallelEnv``);
 * 10,000 parallel map20 environments fit in <= 2 GiB.
 
+In the JSON (:mod:`mcrs.benchmarks.harness`): figures ``goal_env_steps_per_s``, ``<map>.ratio_to_pettingzoo``,
+``memory_projected_gib``, ``memory_measured_gib``; every row in the table ``throughput``.
+
 The TorchRL path is timed the way a collector drives it: ``env.step_and_maybe_reset(td)`` in a loop, with
 uniformly random *allowed* actions drawn for all environments at once from ``("agents", "action_mask")``.
 Drawing the actions is inside the timed loop, as a policy would be. The PettingZoo reference steps one
@@ -21,7 +24,6 @@ from __future__ import annotations
 import argparse
 import gc
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from mcrs.benchmarks.common import load_average, pass_fail
+from mcrs.benchmarks.common import pass_fail
+from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 from mcrs.env.config import SCENARIOS, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
@@ -191,55 +194,42 @@ def measure_memory(map_name: str, num_envs: int, device: torch.device, steps: in
     return None if after is None else after - before
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="mcrs-bench-env",
-        description="Throughput (env-steps/s, agent-steps/s) and memory of the MCRS environment, with goals.",
+def _parser() -> argparse.ArgumentParser:
+    parser = make_parser(
+        "mcrs-bench-env",
+        "Throughput (env-steps/s, agent-steps/s) and memory of the MCRS environment, with goals.",
     )
     parser.add_argument("--maps", nargs="+", choices=SCENARIOS, default=list(SCENARIOS), help="presets")
     parser.add_argument(
         "--num-envs", nargs="+", type=int, default=[1, 64, GOAL_NUM_ENVS], help="batch sizes of MCRSEnv"
     )
     parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per MCRSEnv row")
-    parser.add_argument(
-        "--threads", type=int, default=0, help="torch intra-op threads for MCRSEnv (0: torch's default)"
-    )
     parser.add_argument("--device", default="cpu", help="torch device of MCRSEnv (PettingZoo runs on cpu)")
     parser.add_argument(
         "--skip-memory", action="store_true", help=f"skip the {MEMORY_NUM_ENVS}-environment memory check"
     )
-    args = parser.parse_args(argv)
-    if any(n < 1 for n in args.num_envs):
-        parser.error(f"--num-envs must be >= 1, got {args.num_envs}")
-    if args.threads < 0:
-        parser.error(f"--threads must be >= 0, got {args.threads}")
+    return parser
+
+
+def _validate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    require_at_least(parser, args, 1, "num_envs")
     if args.seconds <= 0:
         parser.error(f"--seconds must be > 0, got {args.seconds}")
-    return args
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print the table, the PettingZoo ratios, memory and the goals."""
-    args = _parse_args(argv)
-    threads = torch.get_num_threads()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
-        _run(args)
-    finally:
-        torch.set_num_threads(threads)  # main() also runs in-process (tests): leave the process as found
-    return 0
+    return run_benchmark(_parser(), argv, _run, _validate)
 
 
-def _run(args: argparse.Namespace) -> None:
+def _run(args: argparse.Namespace, report: Report) -> None:
     """Memory first, then the throughput rows, the ratios, and the goals with PASS/FAIL."""
     device = torch.device(args.device)
     num_envs_list = sorted(set(args.num_envs))
     largest = num_envs_list[-1]
     goals: list[str] = []
+    report.header("environment benchmark", device=str(device))
     print(
-        f"MCRS environment benchmark: device={device}, torch threads={torch.get_num_threads()}, "
-        f"cpus={os.cpu_count()}, load average {load_average()}\n"
         f"each row: best of up to {REPEATS} timed runs of whole episodes, ~{args.seconds:g} s in all per MCRSEnv row; "
         "PettingZoo loop: one env at a time, 1 torch thread",
         flush=True,
@@ -251,11 +241,21 @@ def _run(args: argparse.Namespace) -> None:
         print("\nmemory (episode state held by the core, core.state_nbytes() / num_envs):", flush=True)
         per_env = {name: state_bytes_per_env(name) for name in SCENARIOS}
         for name, nbytes in per_env.items():
+            report.figure(f"{name}.state_bytes_per_env", nbytes, "B")
             print(f"  {name:<6} {nbytes:>10,.0f} bytes/env", flush=True)
-        projected = per_env[GOAL_MAP] * MEMORY_NUM_ENVS / GIB
-        print(f"  projection, {MEMORY_NUM_ENVS:,} {GOAL_MAP} envs: {projected:.3f} GiB", flush=True)
+        memory_goal = Goal("<=", GOAL_GIB)
+        projected = report.figure(
+            "memory_projected_gib", per_env[GOAL_MAP] * MEMORY_NUM_ENVS / GIB, "GiB", memory_goal,
+            note=f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs, core.state_nbytes()",
+        )  # fmt: skip
+        print(f"  projection, {MEMORY_NUM_ENVS:,} {GOAL_MAP} envs: {projected.value:.3f} GiB", flush=True)
         measured = measure_memory(GOAL_MAP, MEMORY_NUM_ENVS, device)
         what = "CUDA memory_allocated" if device.type == "cuda" else "VmRSS"
+        measured_fig = report.figure(
+            "memory_measured_gib", None if measured is None else measured / GIB, "GiB", memory_goal,
+            not_judged="" if measured is not None else f"{what} not readable here",
+            note=f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs built, reset and stepped 3 times: {what} growth",
+        )  # fmt: skip
         if measured is None:
             print(f"  measured: n/a ({what} not readable here)", flush=True)
             measured_text = "measured n/a"
@@ -265,10 +265,10 @@ def _run(args: argparse.Namespace) -> None:
                 f"{what} {measured / GIB:+.3f} GiB",
                 flush=True,
             )
-            measured_text = f"measured {measured / GIB:+.3f} GiB {pass_fail(measured / GIB <= GOAL_GIB)}"
+            measured_text = f"measured {measured / GIB:+.3f} GiB {measured_fig.verdict}"
         goals.append(
-            f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs <= {GOAL_GIB:g} GiB: projected {projected:.3f} GiB "
-            f"{pass_fail(projected <= GOAL_GIB)}; {measured_text}"
+            f"{MEMORY_NUM_ENVS:,} {GOAL_MAP} envs <= {GOAL_GIB:g} GiB: projected {projected.value:.3f} GiB "
+            f"{projected.verdict}; {measured_text}"
         )
 
     print(f"\n{'map':<6} {'path':<10} {'num_envs':>8} {'env-steps/s':>13} {'agent-steps/s':>14}", flush=True)
@@ -276,27 +276,45 @@ def _run(args: argparse.Namespace) -> None:
     for name in args.maps:
         for num_envs in num_envs_list:
             rows[name, "MCRSEnv", num_envs] = row = measure_torchrl(name, num_envs, args.seconds, device)
-            _print_row(row)
+            _print_row(row, report)
         rows[name, "PettingZoo", 1] = row = measure_pettingzoo(name, max(args.seconds / 2, 0.1))
-        _print_row(row)
+        _print_row(row, report)
 
     print(flush=True)
+    judged = largest == GOAL_NUM_ENVS
     for name in args.maps:
-        ratio = rows[name, "MCRSEnv", largest].env_steps / rows[name, "PettingZoo", 1].env_steps
-        verdict = pass_fail(ratio >= GOAL_RATIO)
-        judged = largest == GOAL_NUM_ENVS
-        note = f"goal >= {GOAL_RATIO:g}x: {verdict}" if judged else f"goal judged at {GOAL_NUM_ENVS}"
-        print(f"ratio {name}: MCRSEnv@{largest} / PettingZoo loop = {ratio:,.1f}x  ({note})", flush=True)
+        ratio = report.figure(
+            f"{name}.ratio_to_pettingzoo",
+            rows[name, "MCRSEnv", largest].env_steps / rows[name, "PettingZoo", 1].env_steps,
+            "x",
+            Goal(">=", GOAL_RATIO),
+            not_judged="" if judged else f"judged at num_envs {GOAL_NUM_ENVS}",
+            note=f"MCRSEnv@{largest} / PettingZoo loop",
+        )
+        note = f"goal >= {GOAL_RATIO:g}x: {ratio.verdict}" if judged else f"goal judged at {GOAL_NUM_ENVS}"
+        print(
+            f"ratio {name}: MCRSEnv@{largest} / PettingZoo loop = {ratio.value:,.1f}x  ({note})", flush=True
+        )
         if judged:
             goals.append(
-                f"{name} MCRSEnv@{largest} >= {GOAL_RATIO:g}x PettingZoo loop: {ratio:,.1f}x {verdict}"
+                f"{name} MCRSEnv@{largest} >= {GOAL_RATIO:g}x PettingZoo loop: {ratio.value:,.1f}x {ratio.verdict}"
             )
 
     goal_row = rows.get((GOAL_MAP, "MCRSEnv", GOAL_NUM_ENVS))
+    env_fig = report.figure(
+        "goal_env_steps_per_s", None if goal_row is None else goal_row.env_steps, "env-steps/s",
+        Goal(">=", GOAL_ENV_STEPS), not_judged="" if goal_row is not None else "not measured",
+        note=f"{GOAL_MAP} MCRSEnv@{GOAL_NUM_ENVS}",
+    )  # fmt: skip
+    agent_fig = report.figure(
+        "goal_agent_steps_per_s", None if goal_row is None else goal_row.agent_steps, "agent-steps/s",
+        Goal(">=", GOAL_AGENT_STEPS), not_judged="" if goal_row is not None else "not measured",
+        note=f"{GOAL_MAP} MCRSEnv@{GOAL_NUM_ENVS}",
+    )  # fmt: skip
     if goal_row is None:
         goals.insert(0, f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s: n/a (not measured)")
     else:
-        ok = goal_row.env_steps >= GOAL_ENV_STEPS and goal_row.agent_steps >= GOAL_AGENT_STEPS
+        ok = bool(env_fig.passed and agent_fig.passed)
         goals.insert(
             0,
             f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s ({GOAL_AGENT_STEPS:,} agent-steps/s): "
@@ -307,7 +325,11 @@ def _run(args: argparse.Namespace) -> None:
         print(f"  {line}", flush=True)
 
 
-def _print_row(row: Row) -> None:
+def _print_row(row: Row, report: Report) -> None:
+    report.row(
+        "throughput", map=row.map_name, path=row.path, num_envs=row.num_envs, steps=row.steps,
+        seconds=row.seconds, env_steps_per_s=row.env_steps, agent_steps_per_s=row.agent_steps,
+    )  # fmt: skip
     print(
         f"{row.map_name:<6} {row.path:<10} {row.num_envs:>8} {row.env_steps:>13,.0f} {row.agent_steps:>14,.0f}",
         flush=True,

@@ -1,12 +1,13 @@
 """Whole-run cost of the episodic memory (``mcrs-bench-overhead``): CNN-SEMU against QMIX, same env steps.
 
 Why: the memory must cost close to nothing next to the learner (goal: a CNN-SEMU run at most 1.3x QMIX's
-wall clock on map20 for the same env steps). A 2M-step run takes hours, so this measures and projects:
+wall clock on map20 for the same env steps; JSON figure ``ratio``, printed as ``CNN_SEMU vs QMIX: X.XXx``).
+A 2M-step run takes hours, so this measures and projects:
 
-1. The real :class:`~mcrs.experiment.trainer.Trainer` of each algorithm runs ``--loop-steps`` env steps
+1. The real :class:`~mcrs.experiment.trainer.Experiment` of each algorithm runs ``--loop-steps`` env steps
    (pymarl preset; the memory inserts every batch, attaches look-ups to every learner batch and trains
    phi every ``t_emb`` = 10k steps, all inside the timed window), exactly as
-   :func:`mcrs.benchmarks.learner.measure_loop` times QMIX; evaluation is timed apart and added back at
+   :func:`mcrs.benchmarks.loop.measure_loop` times QMIX; evaluation is timed apart and added back at
    the preset's interval for both.
 2. What a short window cannot show grows with the buffer: re-embedding after every training of phi costs
    time per stored state, and the buffer holds min(env steps, capacity) states. A synthetic buffer of
@@ -19,16 +20,12 @@ wall clock on map20 for the same env steps). A 2M-step run takes hours, so this 
 from __future__ import annotations
 
 import argparse
-import os
-import shlex
-import sys
 import time
 from collections.abc import Sequence
 
-import torch
-
-from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
-from mcrs.benchmarks.learner import GOAL_STEPS, LoopResult, compose_config, measure_loop
+from mcrs.benchmarks.common import compose_config, load_average
+from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
+from mcrs.benchmarks.loop import GOAL_STEPS, LoopResult, measure_loop
 from mcrs.benchmarks.memory import fill, median_seconds, rollout
 from mcrs.env.config import SCENARIOS, from_mapping
 from mcrs.experiment.episodic import build_embedding
@@ -81,39 +78,31 @@ def project(
     return loop.hours(GOAL_STEPS, True) + extra / 3600, extra / 3600
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="mcrs-bench-overhead",
-        description="Whole-run wall clock of a memory algorithm against QMIX (measured window + projection).",
+def _parser() -> argparse.ArgumentParser:
+    parser = make_parser(
+        "mcrs-bench-overhead",
+        "Whole-run wall clock of a memory algorithm against QMIX (measured window + projection).",
+        quick="tiny episodes and batches: a smoke test",
     )
     parser.add_argument("--map", choices=SCENARIOS, default=GOAL_MAP)
     parser.add_argument("--algo", default="cnn_semu", help="the memory algorithm compared with qmix")
     parser.add_argument("--loop-steps", type=int, default=DEFAULT_LOOP_STEPS, help="env steps per timed run")
     parser.add_argument("--entries", type=int, default=1_000_000, help="states of the re-embedding probe")
-    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
-    parser.add_argument("--quick", action="store_true", help="tiny episodes and batches: a smoke test")
-    args = parser.parse_args(argv)
-    for name in ("loop_steps", "entries"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.threads < 0:
-        parser.error(f"--threads must be >= 0, got {args.threads}")
-    return args
+    return parser
+
+
+def _validate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    require_at_least(parser, args, 1, "loop_steps", "entries")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    command = shlex.join(["mcrs-bench-overhead", *(sys.argv[1:] if argv is None else argv)])
-    args = _parse_args(argv)
-    with benchmark_process(args.threads):
-        _run(args, command)
-    return 0
+    return run_benchmark(_parser(), argv, _run, _validate)
 
 
-def _run(args: argparse.Namespace, command: str) -> None:
+def _run(args: argparse.Namespace, report: Report) -> None:
+    report.header("memory overhead benchmark")
     print(
-        f"MCRS memory overhead benchmark: device=cpu, torch threads={torch.get_num_threads()}, "
-        f"cpus={os.cpu_count()}, load average {load_average()}\ncommand: {command}\n"
-        f"{args.map}, pymarl preset; each algorithm's real Trainer for {args.loop_steps:,} env steps "
+        f"{args.map}, pymarl preset; each algorithm's real Experiment for {args.loop_steps:,} env steps "
         "(steady-state window, evaluation timed apart), then a projection to "
         f"{GOAL_STEPS / 1e6:g}M env steps",
         flush=True,
@@ -126,6 +115,13 @@ def _run(args: argparse.Namespace, command: str) -> None:
     }
     per_state, insert_s, interval, capacity = reembed_and_insert_cost(
         args.map, args.algo, args.entries, args.quick
+    )
+    report.figure("reembed_us_per_state", per_state * 1e6, "us")
+    report.figure(
+        "insert_ms",
+        insert_s * 1e3,
+        "ms",
+        note=f"one collector batch into a full {args.entries:,}-entry buffer",
     )
     print(
         f"\nre-embedding probe: {args.entries:,} states, {per_state * 1e6:.2f} us/state "
@@ -144,19 +140,37 @@ def _run(args: argparse.Namespace, command: str) -> None:
         else:
             total, extra = project(loop, per_state, insert_s, interval, capacity, batch_steps)
         hours[algo] = total
+        window_hours = loop.hours(GOAL_STEPS, True)
+        report.row(
+            "algorithms", algo=algo, env_steps_per_s=loop.env_steps_per_s, seconds_per_update=per_update,
+            hours_window_eval=window_hours, hours_growth=extra, hours=total,
+        )  # fmt: skip
+        report.figure(f"{algo}.env_steps_per_s", loop.env_steps_per_s, "env-steps/s")
+        report.figure(f"{algo}.hours", total, "h", note=f"projected whole {GOAL_STEPS / 1e6:g}M-step run")
         print(
-            f"{algo:<10} {loop.env_steps_per_s:>12,.0f} {per_update:>9.4f} {loop.hours(GOAL_STEPS, True):>19.2f} "
+            f"{algo:<10} {loop.env_steps_per_s:>12,.0f} {per_update:>9.4f} {window_hours:>19.2f} "
             f"{extra:>10.2f} {total:>7.2f}",
             flush=True,
         )
-    ratio = hours[args.algo] / hours["qmix"]
     window_ratio = loops["qmix"].env_steps_per_s / loops[args.algo].env_steps_per_s
+    report.figure("window_ratio", window_ratio, "x", note=f"{args.algo} / qmix, measured window only")
     judged = args.map == GOAL_MAP and not args.quick
     goal = GOAL_RATIOS.get(args.algo, GOAL_RATIO)
-    verdict = pass_fail(ratio <= goal) if judged else "not judged (map20 without --quick only)"
+    ratio = report.figure(
+        "ratio",
+        hours[args.algo] / hours["qmix"],
+        "x",
+        Goal("<=", goal),
+        not_judged="" if judged else "map20 without --quick only",
+        note=f"{args.algo} / qmix, whole {GOAL_STEPS / 1e6:g}M run",
+    )
     print(
         f"\nratio {args.algo} / qmix: window {window_ratio:.2f}x; whole {GOAL_STEPS / 1e6:g}M run "
-        f"{ratio:.2f}x (goal <= {goal:g}x: {verdict})\n"
-        f"{args.algo.upper()} vs QMIX: {ratio:.2f}x (whole run, {args.map}, load average {load_average()})",
+        f"{ratio.value:.2f}x (goal <= {goal:g}x: {ratio.verdict})\n"
+        f"{args.algo.upper()} vs QMIX: {ratio.value:.2f}x (whole run, {args.map}, load average {load_average()})",
         flush=True,
     )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

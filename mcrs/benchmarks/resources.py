@@ -9,7 +9,8 @@ This trains in-process (default: map10, QMIX, 200k env steps, a replay of 500 ep
 the first eighth of the run), samples the RSS (VmRSS of /proc/self/status, or psutil; after
 ``gc.collect()`` and glibc's ``malloc_trim(0)``, so that freed allocator cache is not read as growth) every
 ``--every`` env steps and prints the curve (env steps, RSS, replay episodes, memory entries), then the growth between
-50% and 100% of the run with PASS/FAIL against < 5%. The run directory is a temporary folder, removed at
+50% and 100% of the run with PASS/FAIL against < 5% (JSON: figure ``rss_growth_percent``, table ``samples``).
+The run directory is a temporary folder, removed at
 the end (checkpoints included).
 
     mcrs-bench-resources                                         # QMIX, map10, 200k env steps
@@ -22,16 +23,14 @@ import argparse
 import contextlib
 import ctypes
 import gc
-import shlex
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
 from mcrs.benchmarks.env_throughput import resident_bytes
+from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 
 GOAL_GROWTH = 0.05  # RSS growth between 50% and 100% of the run
 MIB = 2**20
@@ -66,8 +65,8 @@ def rss_bytes() -> int:
     return int(psutil.Process().memory_info().rss)
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="mcrs-bench-resources", description=__doc__.split("\n\n")[0])
+def _parser() -> argparse.ArgumentParser:
+    parser = make_parser("mcrs-bench-resources", __doc__.split("\n\n")[0], threads=1)
     parser.add_argument("--algo", default="qmix", help="algo group option (qmix, cnn_semu, ...)")
     parser.add_argument("--env", default="map10", help="env group option (map10, map15, map20)")
     parser.add_argument("--env-steps", type=int, default=200_000, help="length of the run")
@@ -75,14 +74,17 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--replay-episodes", type=int, default=500, help="replay capacity (small: fills early)"
     )
     parser.add_argument("--every", type=int, default=10_000, help="env steps between RSS samples")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument(
         "--override",
         action="append",
         default=[],
         help="extra Hydra override, e.g. algo.memory.capacity=20000",
     )
-    return parser.parse_args(argv)
+    return parser
+
+
+def _validate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    require_at_least(parser, args, 1, "env_steps", "replay_episodes", "every")
 
 
 def compose(args: argparse.Namespace):
@@ -109,14 +111,14 @@ def compose(args: argparse.Namespace):
 def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
     """Train, sampling the RSS before every collector batch that crosses a multiple of ``--every`` and after
     the final evaluation and checkpoint (before the collector shuts down, which frees memory)."""
-    from mcrs.experiment.trainer import Trainer
+    from mcrs.experiment.trainer import Experiment
 
-    trainer = Trainer(compose(args), run_dir)
+    trainer = Experiment(compose(args), run_dir)
     samples: list[Sample] = []
 
     def sample() -> None:
         release_free_heap()
-        memory = trainer.episodic.memory.size if trainer.episodic is not None else 0
+        memory = trainer.callback("memory").memory.size if trainer.config.algo.memory.enabled else 0
         samples.append(
             Sample(trainer.counters.env_steps, rss_bytes() / MIB, len(trainer.replay), int(memory))
         )
@@ -142,7 +144,7 @@ def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
 
     trainer.collector.next_batch = sampled_next_batch  # the loop's one call per collector batch
     trainer.save = save_then_sample
-    trainer.train()
+    trainer.run()
     return samples, trainer
 
 
@@ -154,42 +156,40 @@ def growth(samples: list[Sample], total: int) -> tuple[Sample, Sample, float]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    command = shlex.join(["mcrs-bench-resources", *(sys.argv[1:] if argv is None else argv)])
-    args = _parse_args(argv)
-    with benchmark_process(args.threads):
-        _report(args, command)
-    return 0
+    return run_benchmark(_parser(), argv, _report, _validate)
 
 
-def _report(args: argparse.Namespace, command: str) -> None:
-    print(
-        f"MCRS resource benchmark: {args.algo} on {args.env}, {args.env_steps} env steps, replay "
-        f"{args.replay_episodes} episodes, torch threads {args.threads}, load average {load_average()}\n"
-        f"command: {command}",
-        flush=True,
+def _report(args: argparse.Namespace, report: Report) -> None:
+    report.header(
+        "resource benchmark",
+        details=f"{args.algo} on {args.env}, {args.env_steps} env steps, replay {args.replay_episodes} episodes, ",
     )
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="mcrs-bench-resources-") as tmp:
         samples, trainer = run(args, Path(tmp) / "run")
-    elapsed = time.perf_counter() - start
+    elapsed = report.figure("run_seconds", time.perf_counter() - start, "s")
     print(f"\n{'env_steps':>10} {'rss_mib':>9} {'replay_episodes':>16} {'memory_entries':>15}")
     for s in samples:
+        report.row("samples", **asdict(s))
         print(f"{s.env_steps:>10} {s.rss_mib:>9.1f} {s.replay_episodes:>16} {s.memory_entries:>15}")
     middle, last, rise = growth(samples, args.env_steps)
     capacity = trainer.cfg.train.replay_episodes
+    report.figure("replay_full_at_half", middle.replay_episodes >= capacity)
     full = "full" if middle.replay_episodes >= capacity else f"NOT full ({middle.replay_episodes}/{capacity})"
-    print(
-        f"\nrun: {elapsed:.0f} s; replay at 50%: {full}"
-        + (
-            f"; memory at 50%: {middle.memory_entries}/{trainer.cfg.algo.memory.capacity} entries"
-            if trainer.episodic is not None
-            else ""
-        )
+    memory_text = ""
+    if trainer.config.algo.memory.enabled:
+        report.figure("memory_entries_at_half", middle.memory_entries, "entries")
+        memory_text = f"; memory at 50%: {middle.memory_entries}/{trainer.cfg.algo.memory.capacity} entries"
+    print(f"\nrun: {elapsed.value:.0f} s; replay at 50%: {full}{memory_text}")
+    report.figure("rss_mib_half", middle.rss_mib, "MiB", note=f"at {middle.env_steps} env steps")
+    report.figure("rss_mib_end", last.rss_mib, "MiB", note=f"at {last.env_steps} env steps")
+    fig = report.figure(
+        "rss_growth_percent", 100 * rise, "%", Goal("<", 100 * GOAL_GROWTH), note="50% -> 100% of the run"
     )
     print(
         f"RSS growth 50% -> 100% ({middle.env_steps} -> {last.env_steps} env steps): "
-        f"{middle.rss_mib:.1f} -> {last.rss_mib:.1f} MiB = {100 * rise:+.2f}% "
-        f"(goal < {100 * GOAL_GROWTH:.0f}%): {pass_fail(rise < GOAL_GROWTH)}",
+        f"{middle.rss_mib:.1f} -> {last.rss_mib:.1f} MiB = {fig.value:+.2f}% "
+        f"(goal < {100 * GOAL_GROWTH:.0f}%): {fig.verdict}",
         flush=True,
     )
 

@@ -113,8 +113,12 @@ class Campaign:
 
     def estimate_s(self, state: Progress, speeds: dict[tuple[str, str], float]) -> float | None:
         """Seconds left for a point: its own speed so far (a partial run), else that of recorded runs of
-        the same map and algorithm; None when neither is known."""
+        the same map and algorithm, else the slowest recorded algorithm on that map (an algorithm's first
+        run would otherwise start whatever time is left); None when the map has no record."""
         speed = speeds.get((state.point.env, state.point.algo))
+        same_map = [v for (env, _), v in speeds.items() if env == state.point.env]
+        if speed is None and same_map:
+            speed = min(same_map)
         if state.state == "partial":
             seconds = loop_time_s(state.point.run_dir(self.outputs))
             if seconds and state.env_steps:

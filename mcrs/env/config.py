@@ -8,11 +8,14 @@ commands see.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, make_dataclass, replace
 from importlib import resources
-from typing import Any
+from typing import Any, get_type_hints
 
 SCENARIOS = ("map10", "map15", "map20")
+#: Fields of how the env runs, not of the scenario: set by the command that runs it (``train.num_envs``,
+#: ``mcrs-eval``'s ``episodes``, ``device``), never by the scenario presets.
+RUNTIME_FIELDS = ("num_envs", "device")
 INVALID_ACTION_MODES = ("raise", "clip")
 
 
@@ -43,6 +46,7 @@ class EnvConfig:
     target_threshold: float = 0.95
     invalid_action: str = "raise"
     expose_beliefs: bool = False
+    no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
     num_envs: int = 1
     device: str = "cpu"
 
@@ -71,12 +75,53 @@ class EnvConfig:
             return max(self.n_uavs - 1, 1)
         return int(self.comm_rounds)
 
+    @classmethod
+    def from_scenario(cls, scenario: Any, *, num_envs: int = 1, device: str = "cpu") -> EnvConfig:
+        """The env config of a scenario (:data:`ScenarioConfig`, a mapping or an OmegaConf node) run as
+        ``num_envs`` parallel environments on ``device``."""
+        values = asdict(scenario) if is_dataclass(scenario) else _plain(scenario)
+        return from_mapping({**values, "num_envs": num_envs, "device": device})
+
+    def scenario(self) -> dict[str, Any]:
+        """The scenario fields (everything but :data:`RUNTIME_FIELDS`)."""
+        return {k: v for k, v in asdict(self).items() if k not in RUNTIME_FIELDS}
+
     def replace(self, **overrides: Any) -> EnvConfig:
         _check_known_fields(overrides)
         return replace(self, **overrides)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def _plain(values: Any) -> dict[str, Any]:
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(values, DictConfig):
+        return OmegaConf.to_container(values, resolve=True, enum_to_str=True)
+    return dict(values)
+
+
+def _scenario_schema() -> type:
+    """The scenario's fields as a mutable dataclass: the schema of the ``env`` config group (Hydra checks
+    types and unknown keys with it), generated from :class:`EnvConfig` so the fields are written once."""
+    hints = get_type_hints(EnvConfig)
+    return make_dataclass(
+        "ScenarioConfig",
+        [
+            (f.name, hints[f.name], field(default=f.default))
+            for f in fields(EnvConfig)
+            if f.name not in RUNTIME_FIELDS
+        ],
+        namespace={
+            "__doc__": "The scenario part of :class:`EnvConfig` (the ``env`` node of the configs).",
+            "__module__": __name__,
+        },
+    )
+
+
+#: The ``env`` node's schema: :class:`EnvConfig` without its runtime fields.
+ScenarioConfig = _scenario_schema()
 
 
 def field_names() -> list[str]:
@@ -133,11 +178,12 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         errors.append(f"comm_rounds={rounds!r}: must be an integer >= 1 or 'flood'")
     if cfg.invalid_action not in INVALID_ACTION_MODES:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
-    if not isinstance(cfg.expose_beliefs, bool):
-        errors.append(f"expose_beliefs={cfg.expose_beliefs!r}: must be true or false")
-    device_problem = _device_problem(cfg.device)
-    if device_problem:
-        errors.append(f"device={cfg.device!r}: {device_problem}")
+    for name in ("expose_beliefs", "no_fly_shield"):
+        if not isinstance(getattr(cfg, name), bool):
+            errors.append(f"{name}={getattr(cfg, name)!r}: must be true or false")
+    problem = device_problem(cfg.device)
+    if problem:
+        errors.append(f"device={cfg.device!r}: {problem}")
     if not errors:
         cells = cfg.width * cfg.height
         if cfg.n_targets + cfg.n_no_fly > cells:
@@ -153,7 +199,7 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
     return errors
 
 
-def _device_problem(device: Any) -> str | None:
+def device_problem(device: Any) -> str | None:
     """Why ``device`` cannot hold the environment here, or None when it can."""
     import torch
 
@@ -191,12 +237,8 @@ def scenario(name: str = "map10", **overrides: Any) -> EnvConfig:
 
 
 def from_mapping(values: Any) -> EnvConfig:
-    """Build a validated config from a Hydra/OmegaConf node or a plain mapping."""
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(values, DictConfig):
-        values = OmegaConf.to_container(values, resolve=True)
-    values = dict(values)
+    """Build a validated config from a Hydra/OmegaConf node, a :data:`ScenarioConfig` or a plain mapping."""
+    values = asdict(values) if is_dataclass(values) else _plain(values)
     _check_known_fields(values)
     for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
         if _is_int(values.get(name)):

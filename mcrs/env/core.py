@@ -16,6 +16,7 @@ import torch
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
 from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
+from mcrs.env.shield import safe_move_table, shielded_mask
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
 # 6 upper-right, 7 upper-left.
@@ -132,6 +133,10 @@ class MCRSCore:
         self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
         self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
+        # no_fly_shield: per env, the moves from each cell that end farther than d1 from every zone.
+        self._safe_moves = (
+            safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
+        )
         self._mask = self._action_mask()  # the action mask of the current positions
 
     # ------------------------------------------------------------------ public API
@@ -268,7 +273,8 @@ class MCRSCore:
             if not allowed.all():
                 env, uav = (~allowed).nonzero()[0].tolist()
                 raise ValueError(
-                    f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid from "
+                    f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid "
+                    f"{'or enter d1 of a no-fly zone (no_fly_shield) ' if self.config.no_fly_shield else ''}from "
                     f"{self.uav_pos[env, uav].tolist()}; allowed here: "
                     f"{self._mask[env, uav].nonzero().squeeze(-1).tolist()} "
                     "(set invalid_action=clip to clip such moves instead)"
@@ -301,6 +307,10 @@ class MCRSCore:
         """Begin episodes in ``envs`` from flat cells of no-fly zones, targets and UAV starts."""
         c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
         self.no_fly_pos[envs] = self._cell_to_xy(no_fly)
+        if self._safe_moves is not None:
+            self._safe_moves[envs] = safe_move_table(
+                self.no_fly_pos[envs], self._moves, self._mask_of_cell, c
+            )
         self.target_pos[envs] = self._cell_to_xy(targets)
         self.uav_pos[envs] = self._cell_to_xy(starts)
         is_target = torch.zeros(M, C, dtype=torch.bool, device=dev)
@@ -397,8 +407,11 @@ class MCRSCore:
     def _uav_cells(self) -> torch.Tensor:
         return self.uav_pos[..., 0] * self.config.height + self.uav_pos[..., 1]
 
-    def _action_mask(self) -> torch.Tensor:
-        return self._mask_of_cell[self._uav_cells()]
+    def _action_mask(self, cell: torch.Tensor | None = None) -> torch.Tensor:
+        """``[E, N, 8]``: on-grid moves, less those ending within d1 of a zone under ``no_fly_shield``."""
+        cell = self._uav_cells() if cell is None else cell
+        unshielded = self._mask_of_cell[cell]
+        return unshielded if self._safe_moves is None else shielded_mask(self._safe_moves, cell, unshielded)
 
     def _observation(self, geometry: Geometry, cell: torch.Tensor) -> torch.Tensor:
         c = self.config
@@ -441,7 +454,7 @@ class MCRSCore:
         if neighbours is None:
             neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
         cell = self._uav_cells()
-        self._mask = self._mask_of_cell[cell]
+        self._mask = self._action_mask(cell)
         positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
         state = torch.cat(
             [self.global_belief.view(E, -1)]

@@ -1,14 +1,16 @@
 """Named slices of the flat observation and state vectors, so that no consumer hard-codes offsets.
 
 The observation of UAV i (paper eqs. 18-21) and the global state (eq. 22) are flat vectors built by
-:class:`~mcrs.env.core.MCRSCore`. Policies, renderers and analysis read parts of them through
-:class:`ObservationLayout` and :class:`StateLayout`; if the layout ever changes, only this module changes.
+:class:`~mcrs.env.core.MCRSCore`. Policies, renderers, the episodic memory's state codec, the embeddings and analysis read parts of them
+through :class:`ObservationLayout`, :class:`StateLayout` and :class:`MapImage`; if the layout ever
+changes, only this module changes.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import pairwise
+from typing import ClassVar
 
 import torch
 
@@ -89,6 +91,38 @@ class ObservationLayout:
 
 
 @dataclass(frozen=True)
+class MapImage:
+    """The head of the global state: the maps m(U) then m(F), each x-major (index ``x * L2 + y``).
+
+    Read as an image ``[2, L1, L2]`` (channels m(U), m(F); the env's ``state_map`` key), it is what the
+    CNN embedding convolves; a model that only knows the map's size (not the numbers of UAVs, zones and
+    targets behind it) takes it from here.
+    """
+
+    width: int
+    height: int
+    channels: ClassVar[int] = 2  # m(U), m(F)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(2, L1, L2)``."""
+        return (self.channels, self.width, self.height)
+
+    @property
+    def dim(self) -> int:
+        """How many state values the maps take (``2 L1 L2``); the rest of the state follows them."""
+        return self.channels * self.width * self.height
+
+    def image(self, state: torch.Tensor) -> torch.Tensor:
+        """``[..., 2, L1, L2]``: a view of the maps at the head of ``state [..., D]``."""
+        return state[..., : self.dim].unflatten(-1, self.shape)
+
+    def rest(self, state: torch.Tensor) -> torch.Tensor:
+        """``[..., D - 2 L1 L2]``: what follows the maps (the scaled positions)."""
+        return state[..., self.dim :]
+
+
+@dataclass(frozen=True)
 class StateLayout:
     """Where each part of the global state (paper eq. 22, length ``2 L1 L2 + 2N + 2N_Z + 2N_T``) lies."""
 
@@ -110,13 +144,36 @@ class StateLayout:
             raise AssertionError(f"state layout length {starts[-1]} != config state_dim {cfg.state_dim}")
         return cls(unknown, full, uavs, no_fly, targets, cfg.state_dim, cfg.width, cfg.height)
 
+    @property
+    def map_image(self) -> MapImage:
+        """The maps at the head of the state (``unknown`` then ``full``) as an image."""
+        return MapImage(self.width, self.height)
+
+    @property
+    def map_dim(self) -> int:
+        """``2 L1 L2``: the maps come first; the positions start here."""
+        return self.full.stop
+
+    @property
+    def positions(self) -> slice:
+        """Every position part, (x, y) pairs: UAVs, then no-fly zones, then targets (to the end)."""
+        return slice(self.uav_position.start, self.target_position.stop)
+
+    @property
+    def n_positions(self) -> int:
+        """``N + N_Z + N_T``: the (x, y) pairs in :attr:`positions`."""
+        return (self.positions.stop - self.positions.start) // 2
+
+    @property
+    def pos_scale(self) -> tuple[int, int]:
+        """``(L1 - 1, L2 - 1)`` clamped to >= 1: a position value is ``cell / pos_scale`` in float32."""
+        return (max(self.width - 1, 1), max(self.height - 1, 1))
+
     def cells(self, state: torch.Tensor, part: slice) -> torch.Tensor:
         """``[..., K, 2]`` int64 cells (x, y) of a position part (``uav_position`` etc.) of ``state``."""
-        scale = torch.tensor(
-            [max(self.width - 1, 1), max(self.height - 1, 1)], dtype=state.dtype, device=state.device
-        )
+        scale = torch.tensor(self.pos_scale, dtype=state.dtype, device=state.device)
         return (state[..., part].unflatten(-1, (-1, 2)) * scale).round().to(torch.int64)
 
     def maps(self, state: torch.Tensor) -> torch.Tensor:
         """``[..., 2, L1, L2]``: global m(U), m(F) as images (the same as the ``state_map`` key)."""
-        return state[..., : self.full.stop].unflatten(-1, (2, self.width, self.height))
+        return self.map_image.image(state)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -131,7 +132,7 @@ def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:
 #: Where a checkpoint keeps the bulk that only resuming needs: the replay buffer and the episodic memory's
 #: entries (the memory's embedding weights stay). Dotted paths into ``last.pt``; one place to change when
 #: the layout does (e.g. a replay kept in separate files).
-BULK = ("replay", "replay_blocks", "episodic.memory")
+BULK = ("replay", "replay_blocks", "callbacks.memory.memory", "episodic.memory")
 
 
 def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
@@ -162,3 +163,70 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
         for block in path.parent.glob("replay_*_*.pt"):
             block.unlink(missing_ok=True)
     return before, path.stat().st_size
+
+
+def current_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A saved config in today's layout: the env's runtime fields were once saved under ``env``."""
+    env = {k: v for k, v in config.get("env", {}).items() if k not in ("num_envs", "device")}
+    return {**config, "env": env} if "env" in config else config
+
+
+def current_layout(state: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint in today's layout: before callbacks, the memory was saved as ``episodic`` and EMC's
+    curiosity inside the learner's state, and the embedding's schedule among the counters."""
+    if "callbacks" in state:
+        return state
+    learner = dict(state["learner"])
+    callbacks: dict[str, Any] = {}
+    if "curiosity" in learner:
+        callbacks["curiosity"] = learner.pop("curiosity")
+    if "episodic" in state:
+        callbacks["memory"] = {
+            **state["episodic"],
+            "next_embedding": state["counters"].get("next_embedding", 0),
+            "last_eval_reward": state.get("last_eval", {}).get("episode_reward"),
+        }
+    return {**state, "learner": learner, "callbacks": callbacks}
+
+
+def weights_path(run_dir: str | Path, env_steps: int) -> Path:
+    """``checkpoints/model_<steps>.pt``: the policy's weights at ``env_steps`` (what ``mcrs-eval`` loads)."""
+    return checkpoint_path(run_dir, f"model_{env_steps:09d}.pt")
+
+
+def prune_weights(run_dir: str | Path, keep: int) -> list[Path]:
+    """Delete all but the newest ``keep`` weight files of ``run_dir`` (0 keeps them all); returns the
+    deleted paths. ``last.pt`` is never touched."""
+    if keep <= 0:
+        return []
+    files = sorted(checkpoint_path(run_dir).parent.glob("model_*.pt"))  # zero-padded steps sort in order
+    stale = files[:-keep]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
+def load_resumable(
+    path: Path,
+    expected: dict[str, Any],
+    fingerprint_of: Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]],
+    map_location: str | torch.device,
+) -> dict[str, Any]:
+    """``path``'s state, if it belongs to the run whose fingerprint is ``expected`` and can resume it.
+
+    ``fingerprint_of(config, learner)`` derives a fingerprint for checkpoints written before they carried one.
+    """
+    from mcrs.experiment.rundir import first_difference
+
+    state = load(path, map_location=map_location)
+    saved = state.get("fingerprint")
+    if saved is None:  # written before fingerprints: derived from the config and weights it holds
+        saved = fingerprint_of(current_config(state.get("config", {})), state.get("learner", {}))
+    difference = first_difference(saved, expected)
+    if difference is not None:
+        raise CheckpointError(f"{path} does not belong to this run: {difference}")
+    if "replay" not in state and "replay_blocks" not in state:
+        raise CheckpointError(
+            f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
+        )
+    return state

@@ -1,42 +1,84 @@
 """Typed schemas of the training config, registered in Hydra's ConfigStore, and their validation.
 
-The schemas make Hydra refuse unknown keys and wrong types while composing (``algo.lrr=1`` or
-``train.lr=abc`` fail before anything runs); :func:`validate` then checks values, with one message per
-problem naming the field, the value and what is allowed. ``env`` is checked by
-:class:`mcrs.env.EnvConfig`, which owns its own rules.
+One typed node per concept: ``env`` (the scenario: the map, team, sensing, communication and reward of the
+paper's tables 2-3), ``algo`` (with ``algo.memory``), ``model``, ``train``, ``logger``; the env's runtime
+fields come from ``train.num_envs`` and ``device``. Choices are enums. The schemas make Hydra refuse
+unknown keys, wrong types and unknown choices while composing (``algo.lrr=1``, ``train.lr=abc``,
+``algo.mixer=qtran`` fail before anything runs); :func:`validate` then checks values once, with one message
+per problem naming the field, the value and what is allowed. The scenario's rules are
+:class:`mcrs.env.EnvConfig`'s own.
+
+    config = compose("algo=qmix", "env=map20", "seed=3")     # a typed Config, as mcrs-train composes it
+    Experiment(config, "outputs/my_run").run()
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from mcrs.env.config import _device_problem, from_mapping
+from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.memory.delta import DELTA_RULES
 from mcrs.memory.index import SHAPES
+from mcrs.models.embeddings import EMBEDDINGS
 from mcrs.models.mixers import MIXERS
+from mcrs.objectives.value_factorisation import ValueFactorisationLoss
 
-OPTIMIZERS = ("rmsprop", "adam")
-LOGGERS = ("csv", "wandb", "tensorboard")
-WANDB_MODES = ("offline", "online")
-MODELS = ("gru",)
-COLLECTORS = ("single", "multiprocess")
+
+class Choice(str, Enum):
+    """A config choice: Hydra checks it against the members while composing; it compares equal to, prints
+    and formats as its value (``Mixer.qmix == "qmix"``), as ``enum.StrEnum`` does from Python 3.11 on."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+def _choices(name: str, values: tuple[str, ...]) -> type[Choice]:
+    return Choice(name, [(value, value) for value in values])  # member name = value: what users type
+
+
+Mixer = _choices("Mixer", MIXERS)
+Optimizer = _choices("Optimizer", ("rmsprop", "adam"))
+LoggerBackend = _choices("LoggerBackend", ("csv", "wandb", "tensorboard"))
+WandbMode = _choices("WandbMode", ("offline", "online"))
+ModelName = _choices("ModelName", ("gru",))
+Collector = _choices("Collector", ("single", "multiprocess"))
+Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
+Incentive = _choices("Incentive", ValueFactorisationLoss.INCENTIVES)
+DeltaRule = _choices("DeltaRule", DELTA_RULES)
+Neighbourhood = _choices("Neighbourhood", SHAPES)
 MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
 MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
 MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
+CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "conf")  # the packaged Hydra presets
+#: Fields a resumed run may change (how long, how it reports); everything else must match the run.
+RESUME_MUTABLE = (
+    "train.total_env_steps",
+    "logger",
+    "resume",
+    "overwrite",
+    "threads",
+    "train.eval_interval",
+    "train.checkpoint_interval",
+    "train.checkpoint_minutes",
+    "train.keep_checkpoints",
+    "train.collector",  # how episodes are collected (a crashed multiprocess run may go on in one process;
+    "train.collector_workers",  # the episodes then differ from an uninterrupted run's)
+)
 
 
 class ConfigError(ValueError):
     """A config that cannot run; the message lists every problem."""
-
-
-EMBEDDINGS = ("random", "fc", "cnn")
-INCENTIVES = ("none", "fixed", "change")
-NEIGHBOURHOODS = SHAPES  # the index's shapes
 
 
 @dataclass
@@ -44,16 +86,18 @@ class MemoryConfig:
     """The episodic buffer D_E and its state embedding phi (paper Algorithm 1, eq. 31; table 3)."""
 
     enabled: bool = False
-    embedding: str = "cnn"  # random (EMC) | fc (SEMU, EMU's dCAE) | cnn (CNN-SEMU)
+    embedding: Embedding = Embedding.cnn  # random (EMC) | fc (SEMU, EMU's dCAE) | cnn (CNN-SEMU)
     key_dim: int = 4  # dimension of the keys x = phi(s)
     hidden_dim: int = 64  # width of the encoder and decoder layers
     cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])  # the CNN's three conv layers
     capacity: int = 1_000_000  # entries; the oldest are evicted when full
     delta: float = 1.3e-3  # table 3 / eq. 35; what it means is delta_rule's (mcrs/memory/delta.py)
-    delta_rule: str = (
-        "volume"  # volume: delta is eq. 35's key-space volume per entry | literal: the tolerance
-    )
-    neighbourhood: str = "box"  # box: EMU's |z_i - z'_i| <= tol in every dimension | ball: Euclidean < tol
+    delta_rule: DeltaRule = (
+        DeltaRule.volume
+    )  # volume: eq. 35's key-space volume per entry | literal: the tolerance
+    neighbourhood: Neighbourhood = (
+        Neighbourhood.box
+    )  # box: EMU's |z_i - z'_i| <= tol in every dimension | ball: Euclidean < tol
     embedding_interval: int = 10_000  # t_emb: env steps between trainings of the embedding
     embedding_samples: int = 102_400  # memory entries drawn per training of the embedding
     embedding_batch: int = 1024
@@ -68,7 +112,7 @@ class AlgoConfig:
     """The value-factorisation algorithm: which mixer, the TD target and the episodic-memory terms."""
 
     name: str = "qmix"  # label of the algorithm (run names, reports)
-    mixer: str = "qmix"  # qmix | vdn | qplex
+    mixer: Mixer = Mixer.qmix
     mixing_embed_dim: int = 32  # QMIX mixing width
     hypernet_embed: int = 64  # hidden width of the hypernetworks (QMIX, QPLEX)
     hypernet_layers: int = 2  # QMIX hypernetwork depth: 1 (TorchRL) or 2 (pymarl)
@@ -79,7 +123,9 @@ class AlgoConfig:
     double_q: bool = True
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     memory_weight: float = 0.0  # lambda of eq. 32: weight of the one-step memory target (0: off)
-    incentive: str = "none"  # EMU's episodic incentive: none | fixed (return threshold) | change
+    incentive: Incentive = (
+        Incentive.none
+    )  # EMU's episodic incentive: none | fixed (return threshold) | change
     incentive_threshold: float = 365.0  # "fixed": episodes with a return >= this are desirable
     curiosity_scale: float = 0.0  # EMC's curiosity reward scale (0: off)
     curiosity_decay_rate: float = 0.9  # the scale is multiplied by this ...
@@ -91,7 +137,7 @@ class AlgoConfig:
 class ModelConfig:
     """The shared recurrent agent network."""
 
-    name: str = "gru"
+    name: ModelName = ModelName.gru
     hidden_dim: int = 64
     agent_id: bool = True  # one-hot agent id as input
     last_action: bool = True  # one-hot last action as input
@@ -101,9 +147,9 @@ class ModelConfig:
 class LoggerConfig:
     """Where metrics go (TorchRL loggers). Nothing leaves the machine unless wandb_mode=online."""
 
-    backend: str = "csv"  # csv | wandb | tensorboard
+    backend: LoggerBackend = LoggerBackend.csv
     project: str = "mcrs"  # wandb project
-    wandb_mode: str = "offline"  # offline | online
+    wandb_mode: WandbMode = WandbMode.offline
     log_interval: int = 2000  # env steps between train/ and time/ log rows (means over the interval)
     progress_bar: bool = True
 
@@ -117,7 +163,7 @@ class TrainConfig:
     batch_episodes: int = 32  # episodes per learner update
     replay_episodes: int = 5000  # replay capacity in episodes
     updates_per_episode: float = 1.0  # learner updates per collected episode
-    optimizer: str = "rmsprop"  # rmsprop | adam
+    optimizer: Optimizer = Optimizer.rmsprop
     lr: float = 5e-4
     rmsprop_alpha: float = 0.99
     optim_eps: float = 1e-5
@@ -131,8 +177,13 @@ class TrainConfig:
     eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
     checkpoint_interval: int = 100_000
     checkpoint_minutes: float = 0.0  # also checkpoint every this many minutes of wall clock (0: off)
+    keep_checkpoints: int = (
+        5  # weight files model_<steps>.pt kept, the newest (0: all); last.pt is always kept
+    )
     save_replay: bool = True  # checkpoints carry the replay buffer, so a resumed run is identical
-    collector: str = "single"  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
+    collector: Collector = (
+        Collector.single
+    )  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
     collector_workers: int = 2  # multiprocess: worker processes, each collecting num_envs / workers episodes
 
 
@@ -140,7 +191,7 @@ class TrainConfig:
 class Config:
     """The whole ``mcrs-train`` config (``conf/config.yaml``)."""
 
-    env: dict[str, Any] = field(default_factory=dict)
+    env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario; conf/env/ holds the presets
     algo: AlgoConfig = field(default_factory=AlgoConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
@@ -149,7 +200,7 @@ class Config:
     experiment: str = "none"  # label of the section-6 preset that launched the run (conf/experiment/)
     budget: str = "none"  # label of the budget (conf/budget/): smoke, cpu or paper
     seed: int = 0
-    device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ...
+    device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ... (the env's runtime field)
     threads: int = 0  # torch CPU threads; 0 keeps torch's default
     resume: str | None = None  # a run directory to continue
     overwrite: bool = False  # a fresh run may replace the previous run in a non-empty hydra.run.dir
@@ -167,23 +218,36 @@ def _positive(errors: list[str], name: str, value: float, allow_zero: bool = Fal
         errors.append(f"{name}={value}: must be {'>= 0' if allow_zero else '> 0'}")
 
 
-def _choice(errors: list[str], name: str, value: str, allowed: tuple[str, ...]) -> None:
-    if value not in allowed:
-        errors.append(f"{name}={value!r}: allowed values are {', '.join(allowed)}")
+def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> None:
+    """Hydra checks enums while composing; a Python caller may hand over any string."""
+    values = [member.value for member in allowed]
+    if str(value) not in values:
+        errors.append(f"{name}={str(value)!r}: allowed values are {', '.join(values)}")
 
 
-def validation_errors(cfg: DictConfig) -> list[str]:
-    """Every problem of a composed config, one message each (empty when it can run)."""
+def validation_errors(cfg: Config | DictConfig) -> list[str]:
+    """Every problem of a config, one message each (empty when it can run)."""
+    return _problems(as_typed(cfg))[0]
+
+
+def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
+    """Every problem of a config, and the env config it runs on (None when the env part is wrong)."""
     errors: list[str] = []
-    try:
-        from_mapping(cfg.env)
+    a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
+    env_config = None
+    problem = device_problem(cfg.device)
+    if problem:
+        errors.append(f"device={cfg.device!r}: {problem}")
+    try:  # the scenario's own rules (on the CPU when the device is wrong: that is reported above)
+        env_config = EnvConfig.from_scenario(
+            cfg.env, num_envs=t.num_envs, device="cpu" if problem else cfg.device
+        )
     except (ValueError, TypeError) as error:
         errors.append(f"env: {error}")
-    a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
-    _choice(errors, "algo.mixer", a.mixer, MIXERS)
-    _choice(errors, "train.optimizer", t.optimizer, OPTIMIZERS)
-    _choice(errors, "logger.backend", lg.backend, LOGGERS)
-    _choice(errors, "logger.wandb_mode", lg.wandb_mode, WANDB_MODES)
+    _choice(errors, "algo.mixer", a.mixer, Mixer)
+    _choice(errors, "train.optimizer", t.optimizer, Optimizer)
+    _choice(errors, "logger.backend", lg.backend, LoggerBackend)
+    _choice(errors, "logger.wandb_mode", lg.wandb_mode, WandbMode)
     if a.hypernet_layers not in (1, 2):
         errors.append(f"algo.hypernet_layers={a.hypernet_layers}: allowed values are 1, 2")
     if a.qplex_adv_layers not in (1, 2, 3):
@@ -193,7 +257,7 @@ def validation_errors(cfg: DictConfig) -> list[str]:
     for name in ("gamma", "td_lambda"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
-    errors += _memory_errors(cfg)
+    errors += _memory_errors(cfg, env_config)
     _positive(errors, "model.hidden_dim", m.hidden_dim)
     _positive(errors, "logger.log_interval", lg.log_interval)
     for name in (
@@ -204,6 +268,10 @@ def validation_errors(cfg: DictConfig) -> list[str]:
         _positive(errors, f"train.{name}", getattr(t, name))
     _positive(errors, "train.updates_per_episode", t.updates_per_episode, allow_zero=True)
     _positive(errors, "train.checkpoint_minutes", t.checkpoint_minutes, allow_zero=True)
+    if t.keep_checkpoints < 0:
+        errors.append(
+            f"train.keep_checkpoints={t.keep_checkpoints}: must be >= 0 (0 keeps every weight file)"
+        )
     for name in ("eps_start", "eps_end", "rmsprop_alpha"):
         if not 0.0 <= getattr(t, name) <= 1.0:
             errors.append(f"train.{name}={getattr(t, name)}: must be in [0, 1]")
@@ -214,10 +282,10 @@ def validation_errors(cfg: DictConfig) -> list[str]:
             f"train.replay_episodes={t.replay_episodes} < train.batch_episodes={t.batch_episodes}: "
             "the buffer must hold a whole batch"
         )
-    _choice(errors, "train.collector", t.collector, COLLECTORS)
+    _choice(errors, "train.collector", t.collector, Collector)
     if t.collector_workers < 1:
         errors.append(f"train.collector_workers={t.collector_workers}: must be >= 1")
-    elif t.collector == "multiprocess" and t.num_envs % t.collector_workers:
+    elif str(t.collector) == "multiprocess" and t.num_envs % t.collector_workers:
         errors.append(
             f"train.num_envs={t.num_envs} is not divisible by train.collector_workers={t.collector_workers}: "
             "each worker collects the same number of whole episodes"
@@ -226,14 +294,14 @@ def validation_errors(cfg: DictConfig) -> list[str]:
         errors.append(f"train.eval_seed={t.eval_seed}: must be in [0, 2**63 - 1]")
     if not 0 <= cfg.seed <= MAX_SEED:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
-    _choice(errors, "model.name", m.name, MODELS)
+    _choice(errors, "model.name", m.name, ModelName)
     if not str(lg.project).strip():
         errors.append(f"logger.project={lg.project!r}: must be a non-empty name")
     if not str(a.name).strip() or "/" in str(a.name):
         errors.append(
             f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)"
         )
-    labels = {"env.name": str(cfg.env.get("name", "")), "experiment": cfg.experiment, "budget": cfg.budget}
+    labels = {"env.name": str(cfg.env.name), "experiment": cfg.experiment, "budget": cfg.budget}
     for field_name, label in labels.items():
         if not str(label).strip() or "/" in str(label):
             errors.append(
@@ -241,9 +309,6 @@ def validation_errors(cfg: DictConfig) -> list[str]:
             )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
-    problem = _device_problem(cfg.device)
-    if problem:
-        errors.append(f"device={cfg.device!r}: {problem}")
     _positive(errors, "threads", cfg.threads, allow_zero=True)
     from mcrs.experiment.resources import cpu_count, resource_errors
 
@@ -251,20 +316,19 @@ def validation_errors(cfg: DictConfig) -> list[str]:
         errors.append(
             f"threads={cfg.threads}: this machine has {cpu_count()} CPU cores: use 0 (torch's default) to {cpu_count()}"
         )
-    if not errors:  # sizes are sane: estimate the memory the run needs, check the machine has it
-        env_config = from_mapping(cfg.env).replace(num_envs=t.num_envs)
+    if not errors and env_config is not None:  # sizes are sane: does this machine have what the run needs?
         errors += resource_errors(cfg, env_config)
-    return errors
+    return errors, env_config
 
 
-def _memory_errors(cfg: DictConfig) -> list[str]:
+def _memory_errors(cfg: Config, env_config: EnvConfig | None) -> list[str]:
     """Problems of the episodic-memory fields (only checked where they matter)."""
     errors: list[str] = []
     a, mem = cfg.algo, cfg.algo.memory
-    _choice(errors, "algo.incentive", a.incentive, INCENTIVES)
-    _choice(errors, "algo.memory.embedding", mem.embedding, EMBEDDINGS)
-    _choice(errors, "algo.memory.delta_rule", mem.delta_rule, DELTA_RULES)
-    _choice(errors, "algo.memory.neighbourhood", mem.neighbourhood, NEIGHBOURHOODS)
+    _choice(errors, "algo.incentive", a.incentive, Incentive)
+    _choice(errors, "algo.memory.embedding", mem.embedding, Embedding)
+    _choice(errors, "algo.memory.delta_rule", mem.delta_rule, DeltaRule)
+    _choice(errors, "algo.memory.neighbourhood", mem.neighbourhood, Neighbourhood)
     if a.memory_weight < 0 or not math.isfinite(a.memory_weight):
         errors.append(f"algo.memory_weight={a.memory_weight}: must be >= 0 (lambda of eq. 32)")
     _positive(errors, "algo.curiosity_scale", a.curiosity_scale, allow_zero=True)
@@ -272,7 +336,7 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
     for name in ("curiosity_decay_rate", "curiosity_tau"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
-    uses_memory = a.memory_weight > 0 or a.incentive != "none"
+    uses_memory = a.memory_weight > 0 or str(a.incentive) != "none"
     if uses_memory and not mem.enabled:
         errors.append(
             f"algo.memory.enabled=false, but algo.memory_weight={a.memory_weight} and "
@@ -299,7 +363,7 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
             f"algo.memory.embedding_batch={mem.embedding_batch} > algo.memory.embedding_samples="
             f"{mem.embedding_samples}: each training of the embedding draws its batches from the samples"
         )
-    max_steps = cfg.env.get("max_steps", 0)
+    max_steps = cfg.env.max_steps
     if mem.enabled and isinstance(max_steps, int) and max_steps >= MAX_STEPS_LIMIT:
         errors.append(
             f"env.max_steps={max_steps}: the episodic memory stores steps as int16: at most {MAX_STEPS_LIMIT - 1}"
@@ -308,34 +372,77 @@ def _memory_errors(cfg: DictConfig) -> list[str]:
         errors.append(
             f"algo.memory.key_dim={mem.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"
         )
-    if mem.enabled and not errors:
-        errors += _embedding_fit_errors(cfg)
+    if mem.enabled and not errors and env_config is not None:
+        errors += _embedding_fit_errors(cfg, env_config)
     return errors
 
 
-def _embedding_fit_errors(cfg: DictConfig) -> list[str]:
+def _embedding_fit_errors(cfg: Config, env_config: EnvConfig) -> list[str]:
     """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
     from mcrs.experiment.episodic import build_embedding  # here: it imports the models
 
-    mem = cfg.algo.memory
-    try:
-        env_config = from_mapping(cfg.env)
-    except (ValueError, TypeError):
-        return []  # reported as an env problem
     try:
         build_embedding(cfg, env_config)
     except ValueError as error:
-        return [f"algo.memory.embedding={mem.embedding!r} does not fit {env_config.name}: {error}"]
+        return [
+            f"algo.memory.embedding={str(cfg.algo.memory.embedding)!r} does not fit {env_config.name}: {error}"
+        ]
     return []
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` listing every problem of ``cfg``."""
-    errors = validation_errors(cfg)
+def validate(cfg: Config | DictConfig) -> EnvConfig:
+    """Raise :class:`ConfigError` listing every problem of ``cfg``; return the env config it runs on."""
+    errors, env_config = _problems(as_typed(cfg))
     if errors:
         raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
+    assert env_config is not None
+    return env_config
 
 
-def to_container(cfg: DictConfig) -> dict[str, Any]:
-    """A plain, resolved dict of the config (for checkpoints and loggers)."""
-    return OmegaConf.to_container(cfg, resolve=True)
+def as_typed(cfg: Config | DictConfig) -> Config:
+    """The typed :class:`Config` of a composed ``DictConfig`` (a :class:`Config` is returned as it is)."""
+    if isinstance(cfg, Config):
+        return cfg
+    try:
+        typed = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), cfg))
+    except OmegaConfBaseException as error:
+        key = getattr(error, "full_key", None)
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise ConfigError(f"invalid config: {key + ': ' if key else ''}{first}") from None
+    given = _keys(OmegaConf.to_container(cfg, resolve=False))
+    unknown = sorted(given - _keys(OmegaConf.to_container(OmegaConf.structured(typed), resolve=False)))
+    if unknown:  # a key forced past the schema (``+env.widht=3``): to_object would drop it silently
+        raise ConfigError(f"invalid config: unknown field(s) {', '.join(unknown)}: no schema has them")
+    return typed
+
+
+def _keys(tree: Any, prefix: str = "") -> set[str]:
+    """The dotted keys of a nested dict (lists are leaves)."""
+    if not isinstance(tree, dict):
+        return {prefix[:-1]} if prefix else set()
+    keys: set[str] = set()
+    for key, value in tree.items():
+        keys |= _keys(value, f"{prefix}{key}.")
+    return keys
+
+
+def as_dictconfig(cfg: Config | DictConfig) -> DictConfig:
+    """The config as an OmegaConf node (for YAML and for Hydra-style access)."""
+    return cfg if isinstance(cfg, DictConfig) else OmegaConf.structured(cfg)
+
+
+def to_container(cfg: Config | DictConfig) -> dict[str, Any]:
+    """A plain, resolved dict of the config, choices as strings (checkpoints, loggers, fingerprints)."""
+    return OmegaConf.to_container(as_dictconfig(cfg), resolve=True, enum_to_str=True)
+
+
+def compose(*overrides: str) -> Config:
+    """The typed config ``mcrs-train <overrides>`` would run, composed from the packaged presets
+    (``compose("algo=qmix", "env=map20", "train.total_env_steps=100000")``)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    register_configs()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = hydra_compose(config_name="config", overrides=list(overrides))
+    return as_typed(cfg)

@@ -1,5 +1,5 @@
-"""The episodic-memory side of a run (paper Algorithm 2, lines 4-11): D_E, the embedding phi and its
-training.
+"""The episodic memory of a run as a callback (paper Algorithm 2, lines 4-11): D_E, the embedding phi and
+its training.
 
     after each collection:        insert the new episodes, s_0 .. s_T, into D_E (Algorithm 1)
     every t_emb env steps:        train phi on a sample of D_E (eq. 31), then re-embed every stored state
@@ -14,10 +14,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
+from mcrs.experiment.callbacks import Callback, Scalars
+from mcrs.experiment.config import Config
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
@@ -25,11 +26,11 @@ from mcrs.memory.transform import EpisodicLookup
 from mcrs.models.embeddings import EmbeddingTrainer, make_embedding
 
 
-def build_embedding(cfg: DictConfig, env_config: EnvConfig):
+def build_embedding(cfg: Config, env_config: EnvConfig):
     """phi for this config and map (raises ValueError when it does not fit the map)."""
     mem = cfg.algo.memory
     return make_embedding(
-        mem.embedding,
+        str(mem.embedding),
         env_config.state_dim,
         (env_config.width, env_config.height),
         key_dim=mem.key_dim,
@@ -39,15 +40,17 @@ def build_embedding(cfg: DictConfig, env_config: EnvConfig):
     )
 
 
-class EpisodicSide:
+class EpisodicMemoryCallback(Callback):
     """D_E with its embedding and the embedding's trainer, for one run."""
 
-    def __init__(self, cfg: DictConfig, env_config: EnvConfig, device: torch.device) -> None:
+    name = "memory"
+
+    def __init__(self, cfg: Config, env_config: EnvConfig, device: torch.device) -> None:
         mem, a = cfg.algo.memory, cfg.algo
-        self.incentive, self.threshold = a.incentive, float(a.incentive_threshold)
+        self.incentive, self.threshold = str(a.incentive), float(a.incentive_threshold)
         self.max_steps = env_config.max_steps
         self.embedding = build_embedding(cfg, env_config).to(device)
-        self.tolerance = match_tolerance(mem.delta, mem.delta_rule, mem.neighbourhood, mem.key_dim)
+        self.tolerance = match_tolerance(mem.delta, str(mem.delta_rule), str(mem.neighbourhood), mem.key_dim)
         self.memory = EpisodicMemory(
             self.embedding,
             StateCodec(env_config),
@@ -57,7 +60,7 @@ class EpisodicSide:
             max_steps=env_config.max_steps,
             track_desirability=a.incentive != "none",
             device=device,
-            shape=mem.neighbourhood,
+            shape=str(mem.neighbourhood),
             counter_reset=mem.counter_reset,
         )
         self.trainer = (
@@ -73,12 +76,29 @@ class EpisodicSide:
             else None
         )
         self.interval = int(mem.embedding_interval)
+        self.next_embedding = self.interval  # env step of the next training of phi
+        self.last_eval_reward: float | None = None  # EMU-change's threshold
         self.lookup = EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
 
-    def lookup_transform(self) -> EpisodicLookup:
-        """The replay-buffer transform that attaches the memory to sampled batches."""
-        return self.lookup
+    # ------------------------------------------------------------------ hooks
+    def on_setup(self, experiment) -> None:
+        """Every batch the replay samples carries the memory's H(phi(s_{t+1})) from now on."""
+        super().on_setup(experiment)
+        experiment.replay.append_transform(self.lookup)
 
+    def on_batch_collected(self, batch: TensorDictBase, episode_ids: torch.Tensor) -> Scalars:
+        """Algorithm 1 on the new episodes; phi is retrained every t_emb env steps."""
+        stats: Scalars = dict(self.insert(batch, episode_ids, self.last_eval_reward))
+        env_steps = self.experiment.counters.env_steps
+        if env_steps >= self.next_embedding:
+            stats.update(self.train_embedding())
+            self.next_embedding += self.interval
+        return stats
+
+    def on_evaluation_end(self, metrics: dict[str, float]) -> None:
+        self.last_eval_reward = metrics.get("episode_reward")
+
+    # ------------------------------------------------------------------ the memory
     def insert(
         self, batch: TensorDictBase, episode: torch.Tensor, last_eval_reward: float | None
     ) -> dict[str, float]:
@@ -118,12 +138,19 @@ class EpisodicSide:
         return {f"memory/{k}": float(v) for k, v in stats.items()}
 
     def state_dict(self) -> dict[str, Any]:
-        state: dict[str, Any] = {"memory": self.memory.state_dict(), "embedding": self.embedding.state_dict()}
+        state: dict[str, Any] = {
+            "memory": self.memory.state_dict(),
+            "embedding": self.embedding.state_dict(),
+            "next_embedding": self.next_embedding,
+            "last_eval_reward": self.last_eval_reward,
+        }
         if self.trainer is not None:
             state["embedding_trainer"] = self.trainer.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.next_embedding = int(state["next_embedding"])
+        self.last_eval_reward = state["last_eval_reward"]
         self.embedding.load_state_dict(state["embedding"])
         if self.trainer is not None:
             self.trainer.load_state_dict(state["embedding_trainer"])

@@ -63,3 +63,19 @@ def _hparams(config: dict[str, Any]) -> dict[str, Any]:
 def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
     for name, value in values.items():
         logger.log_scalar(name, float(value), step=step)
+
+
+def progress_bar(total: int, initial: int, enabled: bool, description: str):
+    """tqdm's bar over env steps (``logger.progress_bar``); disabled, it costs nothing."""
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total,
+        initial=initial,
+        unit="step",
+        unit_scale=True,
+        dynamic_ncols=True,
+        mininterval=1.0,
+        disable=not enabled,
+        desc=description,
+    )

@@ -12,11 +12,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
-from omegaconf import DictConfig
 
 from mcrs.env.config import EnvConfig
+
+if TYPE_CHECKING:
+    from mcrs.experiment.config import Config
 
 GiB = 1024**3
 #: What a process holds before any store: Python, torch, TorchRL and the env code (measured RSS about 370
@@ -58,21 +61,21 @@ def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
     return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 8 + 9 + 24
 
 
-def network_bytes(cfg: DictConfig, env: EnvConfig) -> tuple[int, str]:
+def network_bytes(cfg: Config, env: EnvConfig) -> tuple[int, str]:
     """Parameters (built on the ``meta`` device: nothing is allocated) times five: the weights, the target
     copy, the gradient and two optimiser moments. Returns the bytes and a problem, if they cannot be built."""
-    from mcrs.experiment.trainer import build_agent, build_mixer
+    from mcrs.experiment.learner import build_agent, build_mixer
 
     try:
         with torch.device("meta"):
-            params = sum(p.numel() for p in build_agent(cfg, env).parameters())
-            params += sum(p.numel() for p in build_mixer(cfg, env).parameters())
+            params = sum(p.numel() for p in build_agent(cfg.model, env).parameters())
+            params += sum(p.numel() for p in build_mixer(cfg.algo, env).parameters())
     except (RuntimeError, ValueError, OverflowError, TypeError) as error:
         return 0, (str(error).strip().splitlines() or [type(error).__name__])[0]
     return 5 * 4 * params, ""
 
 
-def estimate(cfg: DictConfig, env: EnvConfig) -> list[Store]:
+def estimate(cfg: Config, env: EnvConfig) -> list[Store]:
     """The stores of a run of ``cfg`` on ``env`` (``env`` already validated), largest first."""
     t, m, mem = cfg.train, cfg.model, cfg.algo.memory
     T = env.max_steps
@@ -127,14 +130,9 @@ def cpu_count() -> int:
         return os.cpu_count() or 1
 
 
-def resource_errors(cfg: DictConfig, env: EnvConfig) -> list[str]:
-    """Problems of ``cfg`` against this machine: threads, and a memory estimate above what it has."""
+def resource_errors(cfg: Config, env: EnvConfig) -> list[str]:
+    """Problems of ``cfg`` against this machine: a memory estimate above what it has."""
     errors: list[str] = []
-    cores = cpu_count()
-    if cfg.threads > cores:
-        errors.append(
-            f"threads={cfg.threads}: this machine has {cores} CPU cores: use 0 (torch's default) to {cores}"
-        )
     _, problem = network_bytes(cfg, env)
     if problem:
         errors.append(

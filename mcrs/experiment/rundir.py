@@ -35,11 +35,14 @@ class RunDirError(RuntimeError):
 
 def register_resolvers() -> None:
     """``${mcrs.pid:}``: this process's id, cached like Hydra's ``${now:}`` so that every job of a sweep
-    (which copies the launcher's resolver cache) sees the launcher's value."""
+    (which copies the launcher's resolver cache) sees the launcher's value; ``${mcrs.num:x}``: a number as
+    directory names write it (5.0 -> 5, 0.13 -> 0.13, inf -> inf)."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("mcrs.pid"):
         OmegaConf.register_new_resolver("mcrs.pid", lambda: str(os.getpid()), use_cache=True)
+    if not OmegaConf.has_resolver("mcrs.num"):  # ``rc${mcrs.num:${env.comm_range}}``: rc5, not rc5.0
+        OmegaConf.register_new_resolver("mcrs.num", lambda value: f"{float(value):g}")
 
 
 class RunLock:

@@ -1,14 +1,18 @@
-"""Training a value-factorisation learner on MCRS-LCR, top to bottom.
+"""An experiment: a value-factorisation learner trained on MCRS-LCR, top to bottom.
 
     collector (TorchRL, masked epsilon-greedy)  ->  whole episodes  ->  replay buffer (TorchRL)
         ->  ValueFactorisationLoss (TorchRL LossModule, TorchRL mixers)  ->  optimiser, HardUpdate
-    with an episodic memory (algo.memory.enabled): the episodes also go into D_E (Algorithm 1), phi is
-        retrained every t_emb env steps, and the replay's EpisodicLookup transform attaches H(phi(s'))
-        to every sampled batch (mcrs.experiment.episodic); EMC's curiosity runs inside Learner.update
+    what an algorithm adds comes in through callbacks (mcrs.experiment.callbacks): the episodic memory
+        (Algorithm 1 on every collected batch, phi every t_emb env steps, H(phi(s')) on every sampled
+        batch) and EMC's curiosity (an intrinsic reward on every sampled batch)
     every eval_interval env steps: greedy evaluation on fixed-seed environments
     every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
         checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
-        only the blocks with episodes added since the previous one (mcrs.experiment.replay_store)
+        only the blocks with episodes added since the previous one (mcrs.experiment.replay_store); the
+        newest keep_checkpoints weight files model_<steps>.pt are kept
+
+    experiment = Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run")
+    experiment.run()
 
 Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments
 from ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in
@@ -18,25 +22,25 @@ every checkpoint. So a run resumed from a checkpoint repeats the straight run ex
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch import nn
 from torchrl.envs import TransformedEnv
-from torchrl.objectives import HardUpdate
 
-from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS, N_ACTIONS
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.callbacks import Callback, CuriosityCallback, append_scalar, check_names
 from mcrs.experiment.collection import TrainingCollector
-from mcrs.experiment.config import to_container, validate
-from mcrs.experiment.episodic import EpisodicSide
+from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
+from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.evaluation import evaluate, make_eval_env
-from mcrs.experiment.logging import log_scalars, make_logger
+from mcrs.experiment.learner import Learner
+from mcrs.experiment.logging import log_scalars, make_logger, progress_bar
 from mcrs.experiment.replay import (
     episodes_from_rollout,
     load_replay_state_dict,
@@ -49,17 +53,14 @@ from mcrs.experiment.rundir import (
     RunLock,
     describe_os_error,
     fingerprint,
-    first_difference,
     io_errors,
     prepare_fresh,
     truncate_csv_logs,
 )
 from mcrs.models.acting import make_acting_policy, recurrent_primer
-from mcrs.models.agent import RecurrentAgent
-from mcrs.models.mixers import make_mixer
-from mcrs.objectives import ValueFactorisationLoss
-from mcrs.objectives.curiosity import EMCCuriosity
-from mcrs.objectives.gradient import TrainingDiverged, gradient_step
+from mcrs.objectives.gradient import TrainingDiverged
+
+__all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", "batch_seed"]
 
 
 @dataclass
@@ -75,7 +76,6 @@ class Counters:
     next_eval: int = 0
     next_checkpoint: int = 0
     next_log: int = 0
-    next_embedding: int = 0  # env step of the next training of the memory's embedding
 
 
 def batch_seed(seed: int, iteration: int) -> int:
@@ -83,146 +83,78 @@ def batch_seed(seed: int, iteration: int) -> int:
     return (seed * 1_000_003 + iteration) % (2**63)
 
 
-def build_agent(cfg: DictConfig, env_config: EnvConfig) -> RecurrentAgent:
-    m = cfg.model
-    return RecurrentAgent(
-        env_config.obs_dim, N_ACTIONS, env_config.n_uavs, m.hidden_dim, m.agent_id, m.last_action
-    )
+def algorithm_callbacks(
+    config: Config, env_config: EnvConfig, learner: Learner, device: torch.device
+) -> list[Callback]:
+    """The callbacks ``config.algo`` asks for: EMC's curiosity, the episodic memory (in that order).
+
+    Built right after the learner: EMC's networks draw their initial weights from torch's generator, so a
+    run's random stream does not depend on what else the experiment builds.
+    """
+    callbacks: list[Callback] = []
+    if config.algo.curiosity_scale > 0:
+        callbacks.append(CuriosityCallback(config, learner.agent))
+    if config.algo.memory.enabled:
+        callbacks.append(EpisodicMemoryCallback(config, env_config, device))
+    return callbacks
 
 
-def build_mixer(cfg: DictConfig, env_config: EnvConfig) -> nn.Module:
-    a = cfg.algo
-    return make_mixer(
-        a.mixer,
-        env_config.n_uavs,
-        (env_config.state_dim,),
-        N_ACTIONS,
-        mixing_embed_dim=a.mixing_embed_dim,
-        hypernet_embed=a.hypernet_embed,
-        hypernet_layers=a.hypernet_layers,
-        n_kernels=a.qplex_kernels,
-        adv_hypernet_layers=a.qplex_adv_layers,
-    )
-
-
-def make_optimizer(params: list[nn.Parameter], t: DictConfig) -> torch.optim.Optimizer:
-    """The ``train.optimizer`` of the config over ``params`` (the learner's and EMC's curiosity nets)."""
-    if t.optimizer == "adam":
-        return torch.optim.Adam(params, lr=t.lr, eps=t.optim_eps)
-    return torch.optim.RMSprop(params, lr=t.lr, alpha=t.rmsprop_alpha, eps=t.optim_eps)
-
-
-class Learner:
-    """Networks, loss, optimiser and target updates: one :meth:`update` per sampled batch of episodes."""
-
-    def __init__(self, cfg: DictConfig, env_config: EnvConfig, device: torch.device) -> None:
-        t = cfg.train
-        self.agent = build_agent(cfg, env_config).to(device)
-        self.mixer = build_mixer(cfg, env_config).to(device)
-        a = cfg.algo
-        self.loss = ValueFactorisationLoss(
-            self.agent,
-            self.mixer,
-            gamma=a.gamma,
-            td_lambda=a.td_lambda,
-            double_q=a.double_q,
-            memory_weight=a.memory_weight,
-            incentive=a.incentive,
-        )
-        self.params = [*self.agent.parameters(), *self.mixer.parameters()]
-        self.curiosity = (
-            EMCCuriosity(
-                self.agent,
-                gamma=a.gamma,
-                scale=a.curiosity_scale,
-                decay_rate=a.curiosity_decay_rate,
-                decay_cycle=a.curiosity_decay_cycle,
-                tau=a.curiosity_tau,
-                grad_clip=t.grad_clip,
-                make_optimizer=lambda params: make_optimizer(params, t),
-            )
-            if a.curiosity_scale > 0
-            else None
-        )
-        self.optimizer = make_optimizer(self.params, t)
-        # interval 0: every step() copies; the trainer calls it every target_update_episodes episodes.
-        self.target_updater = HardUpdate(self.loss, value_network_update_interval=0)
-        self.grad_clip = t.grad_clip
-
-    def update(self, batch, step: int) -> dict[str, torch.Tensor]:
-        """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
-        extra: dict[str, torch.Tensor] = {}
-        if self.curiosity is not None:  # EMC: the intrinsic reward enters the TD target
-            self.curiosity.set_env_steps(step)
-            intrinsic, extra = self.curiosity.update(batch, step)
-            batch.set("intrinsic_reward", intrinsic)
-        out = self.loss(batch)
-        term = "loss"
-        if not torch.isfinite(out["loss"]):  # name the term that broke (the memory term is weighted inside)
-            term = next((k for k in ("loss_td", "loss_memory") if not torch.isfinite(out[k])), term)
-        grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step, term)
-        stats = {k: v.detach() for k, v in out.items() if k != "loss"}
-        return {**stats, **extra, "grad_norm": grad_norm.detach()}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            "agent": self.agent.state_dict(),
-            "mixer": self.mixer.state_dict(),
-            "target_agent": self.loss.target_agent_network_params.state_dict(),
-            "target_mixer": self.loss.target_mixer_params.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            **({"curiosity": self.curiosity.state_dict_all()} if self.curiosity is not None else {}),
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.agent.load_state_dict(state["agent"])
-        self.mixer.load_state_dict(state["mixer"])
-        self.loss.target_agent_network_params.load_state_dict(state["target_agent"])
-        self.loss.target_mixer_params.load_state_dict(state["target_mixer"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        if self.curiosity is not None:
-            self.curiosity.load_state_dict_all(state["curiosity"])
-
-
-class Trainer:
-    """Everything a run needs, built from a validated config; :meth:`train` runs it.
+class Experiment:
+    """A training run built from a config; :meth:`run` trains it, :meth:`evaluate` evaluates the greedy
+    policy, :meth:`state_dict` is everything a checkpoint holds.
 
     Args:
-        cfg: the composed config (``conf/config.yaml``).
+        config: the typed :class:`~mcrs.experiment.config.Config` (or the Hydra ``DictConfig`` it is
+            composed into; :func:`mcrs.experiment.config.compose` builds one from overrides).
         run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
         resume: continue from ``run_dir/checkpoints/last.pt``.
+        callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.callbacks`).
     """
 
-    def __init__(self, cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> None:
-        validate(cfg)
-        self.cfg, self.run_dir = cfg, Path(run_dir)
+    def __init__(
+        self,
+        config: Config | DictConfig,
+        run_dir: str | Path,
+        resume: bool = False,
+        callbacks: list[Callback] | None = None,
+    ) -> None:
+        self.config = as_typed(config)
+        self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
+        self.run_dir = Path(run_dir)
         # One writer per run directory: a second run there, or a resume of a live run, stops here.
         self._lock: RunLock | None = RunLock(self.run_dir)
         try:
-            self._build(cfg, resume)
+            self._build(resume, list(callbacks or []))
         except BaseException:
             self.close()
             raise
 
+    @property
+    def cfg(self) -> Config:
+        """The typed config (the name the builders' docstrings use)."""
+        return self.config
+
     def close(self) -> None:
-        """Release the run directory (done by :meth:`train`; the process's exit does it too)."""
+        """Release the run directory (done by :meth:`run`; the process's exit does it too)."""
         if self._lock is not None:
             self._lock.release()
             self._lock = None
 
-    def _build(self, cfg: DictConfig, resume: bool) -> None:
+    def _build(self, resume: bool, extra_callbacks: list[Callback]) -> None:
+        cfg, t = self.config, self.config.train
         if not resume:  # a fresh run never mixes its files with another run's
-            prepare_fresh(self.run_dir, bool(cfg.get("overwrite", False)))
+            prepare_fresh(self.run_dir, cfg.overwrite)
         self._log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
-        self._saved_steps: int | None = None  # env steps of the last checkpoint this session wrote
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
-        self.device = torch.device(cfg.device)
+        self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
-        t = cfg.train
-        self.env_config = from_mapping(cfg.env).replace(num_envs=t.num_envs, device=str(self.device))
         self.T = self.env_config.max_steps
-        self.learner = Learner(cfg, self.env_config, self.device)
+        self.learner = Learner(cfg.algo, cfg.model, t, self.env_config, self.device)
+        self.callbacks = (
+            algorithm_callbacks(cfg, self.env_config, self.learner, self.device) + extra_callbacks
+        )
+        check_names(self.callbacks)
         self.greedy, self.exploring, self.epsilon = make_acting_policy(
             self.learner.agent,
             N_ACTIONS,
@@ -230,37 +162,37 @@ class Trainer:
             eps_end=t.eps_end,
             eps_anneal_steps=t.eps_anneal_steps,
         )
+        hidden = cfg.model.hidden_dim
         self.env = TransformedEnv(
             MCRSEnv(self.env_config),
-            recurrent_primer(t.num_envs, self.env_config.n_uavs, cfg.model.hidden_dim, device=self.device),
+            recurrent_primer(t.num_envs, self.env_config.n_uavs, hidden, device=self.device),
         )
-        self.eval_env = make_eval_env(self.env_config, t.eval_episodes, cfg.model.hidden_dim, self.device)
+        self.eval_env = make_eval_env(self.env_config, t.eval_episodes, hidden, self.device)
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
         self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
-        self.episodic = EpisodicSide(cfg, self.env_config, self.device) if cfg.algo.memory.enabled else None
-        if self.episodic is not None:  # every sampled batch carries the memory's H(phi(s_{t+1}))
-            self.replay.append_transform(self.episodic.lookup_transform())
         self.counters = Counters(
-            next_checkpoint=t.checkpoint_interval,
-            next_embedding=cfg.algo.memory.embedding_interval,
-            next_target_update=t.target_update_episodes,
+            next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes
         )
         self.last_eval: dict[str, float] = {}
+        self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
+        for callback in self.callbacks:
+            callback.on_setup(self)
         if resume:
             self._load(ckpt.checkpoint_path(self.run_dir))
         else:
             with io_errors(f"write {self.run_dir / 'config.yaml'}"):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
-                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(as_dictconfig(cfg), resolve=True))
+        lg = cfg.logger
         self.logger = make_logger(
-            cfg.logger.backend, self.run_dir, to_container(cfg), cfg.logger.project, cfg.logger.wandb_mode
+            str(lg.backend), self.run_dir, to_container(cfg), lg.project, str(lg.wandb_mode)
         )
         self.collector = TrainingCollector(  # whole episodes: every batch row is one episode
-            t.collector,
+            str(t.collector),
             self.env,
             self.exploring,
             self.env_config,
-            cfg.model.hidden_dim,
+            hidden,
             t.collector_workers,
             self.device,
         )
@@ -271,89 +203,49 @@ class Trainer:
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
 
+    def callback(self, name: str) -> Callback:
+        """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
+        for callback in self.callbacks:
+            if callback.name == name:
+                return callback
+        raise KeyError(f"no callback {name!r}; this experiment has {[c.name for c in self.callbacks]}")
+
     # ------------------------------------------------------------------ the loop
-    def train(self) -> dict[str, float]:
-        """Run until ``train.total_env_steps``; returns the last evaluation's metrics."""
-        t, c = self.cfg.train, self.counters
+    def run(self) -> dict[str, float]:
+        """Train until ``train.total_env_steps``; returns the last evaluation's metrics."""
+        t, c = self.config.train, self.counters
         self._session_start_steps = c.env_steps
-        progress = self._progress_bar()
-        train_stats: dict[str, list[torch.Tensor]] = {}
-        timer = {"collect": 0.0, "memory": 0.0, "update": 0.0, "eval": 0.0}
+        progress = progress_bar(
+            self.config.train.total_env_steps,
+            c.env_steps,
+            self.config.logger.progress_bar,
+            f"{self.config.algo.name} {self.env_config.name}",
+        )
+        stats: dict[str, list[torch.Tensor]] = {}
+        self._timer = dict.fromkeys(self._timer, 0.0)  # this session's clock
         collector_iter = iter(self.collector)
         self._last_save = time.monotonic()
         try:
             while c.env_steps < t.total_env_steps:
                 if c.env_steps >= c.next_eval:
-                    self._evaluate(timer)
+                    self.evaluate()
                     c.next_eval += t.eval_interval
 
-                # Collect num_envs whole episodes with the exploring policy.
-                start = time.perf_counter()
-                self.epsilon.set_env_steps(c.env_steps)
-                self.collector.sync_weights()
-                self.collector.start_batch(batch_seed(int(self.cfg.seed), c.iteration))
-                batch = self.collector.next_batch(collector_iter)
-                self._check_finite(batch)
-                episodes = episodes_from_rollout(batch)
-                episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
-                episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
-                self.replay_store.mark_written(self.replay.extend(episodes))
-                for name in METRICS:
-                    train_stats.setdefault(f"train/{name}", []).append(
-                        batch.get(("next", "metrics", name))[:, -1].mean()
-                    )
-                c.iteration += 1
-                c.episodes += t.num_envs
-                c.env_steps += batch.numel()
-                timer["collect"] += time.perf_counter() - start
-
-                if self.episodic is not None:  # Algorithm 1 on the new episodes; phi every t_emb steps
-                    start = time.perf_counter()
-                    last_reward = self.last_eval.get("episode_reward")
-                    for key, value in self.episodic.insert(batch, episode_ids, last_reward).items():
-                        train_stats.setdefault(key, []).append(torch.tensor(value))
-                    if c.env_steps >= c.next_embedding:
-                        for key, value in self.episodic.train_embedding().items():
-                            train_stats.setdefault(key, []).append(torch.tensor(value))
-                        c.next_embedding += self.cfg.algo.memory.embedding_interval
-                    timer["memory"] += time.perf_counter() - start
-
-                # Learn: updates_per_episode updates per collected episode, once a batch can be sampled.
-                start = time.perf_counter()
-                if len(self.replay) >= t.batch_episodes:
-                    c.update_credit += t.num_envs * t.updates_per_episode
-                    while c.update_credit >= 1.0:
-                        stats = self._update()
-                        for key, value in stats.items():
-                            train_stats.setdefault(f"train/{key}", []).append(value)
-                        c.update_credit -= 1.0
-                if c.episodes >= c.next_target_update:  # once per target_update_episodes episodes
-                    self.learner.target_updater.step()
-                    c.next_target_update += t.target_update_episodes * (
-                        1 + (c.episodes - c.next_target_update) // t.target_update_episodes
-                    )
-                timer["update"] += time.perf_counter() - start
+                batch = self._collect(collector_iter, stats)  # num_envs whole episodes, into the replay
+                self._learn(stats)  # updates_per_episode updates per collected episode
 
                 if c.env_steps >= c.next_log:
-                    self._log_train(train_stats, timer)
-                    train_stats = {}
-                    c.next_log = c.env_steps + self.cfg.logger.log_interval
-                due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
-                due_by_time = (
-                    t.checkpoint_minutes > 0
-                    and time.monotonic() - self._last_save >= 60 * t.checkpoint_minutes
-                )
-                if due_by_steps:
-                    c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
-                if due_by_steps or due_by_time:
-                    self.save()
+                    self._log_train(stats)
+                    stats = {}
+                    c.next_log = c.env_steps + self.config.logger.log_interval
+                self._checkpoint_if_due()
                 progress.update(batch.numel())
                 progress.set_postfix(self._postfix(), refresh=False)
-            self._evaluate(timer)
+            self.evaluate()
             if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
                 c.next_eval += t.eval_interval
-            if train_stats:  # batches since the last row (none: that row is already at this step)
-                self._log_train(train_stats, timer)
+            if stats:  # batches since the last row (none: that row is already at this step)
+                self._log_train(stats)
             self.save()
         except OSError as error:  # a full disk or a vanished directory while logging: one line, not a trace
             raise RunDirError(
@@ -364,6 +256,82 @@ class Trainer:
             self.collector.shutdown()
             self.close()
         return dict(self.last_eval)
+
+    def _collect(self, collector_iter, stats: dict[str, list[torch.Tensor]]):
+        """Collect num_envs whole episodes with the exploring policy; they go into the replay, then to the
+        callbacks."""
+        t, c = self.config.train, self.counters
+        start = time.perf_counter()
+        self.epsilon.set_env_steps(c.env_steps)
+        self.collector.sync_weights()
+        self.collector.start_batch(batch_seed(int(self.config.seed), c.iteration))
+        batch = self.collector.next_batch(collector_iter)
+        self._check_finite(batch)
+        episodes = episodes_from_rollout(batch)
+        episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
+        episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
+        self.replay_store.mark_written(self.replay.extend(episodes))
+        for name in METRICS:
+            append_scalar(stats, f"train/{name}", batch.get(("next", "metrics", name))[:, -1].mean())
+        c.iteration += 1
+        c.episodes += t.num_envs
+        c.env_steps += batch.numel()
+        self._timer["collect"] += time.perf_counter() - start
+        for callback in self.callbacks:
+            start = time.perf_counter()
+            for key, value in callback.on_batch_collected(batch, episode_ids).items():
+                append_scalar(stats, key, value)
+            self._timer[callback.name] += time.perf_counter() - start
+        return batch
+
+    def _learn(self, stats: dict[str, list[torch.Tensor]]) -> None:
+        """The updates owed for the episodes collected so far, then the target networks' copy when due."""
+        t, c = self.config.train, self.counters
+        start = time.perf_counter()
+        if len(self.replay) >= t.batch_episodes:
+            c.update_credit += t.num_envs * t.updates_per_episode
+            while c.update_credit >= 1.0:
+                for key, value in self._update().items():
+                    append_scalar(stats, key, value)
+                c.update_credit -= 1.0
+        if c.episodes >= c.next_target_update:  # once per target_update_episodes episodes
+            self.learner.target_updater.step()
+            c.next_target_update += t.target_update_episodes * (
+                1 + (c.episodes - c.next_target_update) // t.target_update_episodes
+            )
+        self._timer["update"] += time.perf_counter() - start
+
+    def _update(self) -> dict[str, torch.Tensor]:
+        """One learner update on a sampled batch, after the callbacks have added their keys to it."""
+        c = self.counters
+        try:
+            batch = self.replay.sample()
+            out: dict[str, torch.Tensor] = {}
+            for callback in self.callbacks:
+                start = time.perf_counter()
+                out.update(callback.on_train_batch(batch, c.env_steps))
+                spent = time.perf_counter() - start
+                self._timer[callback.name] += spent
+                self._timer["update"] -= spent  # _learn's clock runs around this: count it once
+            stats = self.learner.update(batch, c.env_steps)
+        except TrainingDiverged as error:
+            path = self.save(name="last_good.pt")
+            raise TrainingDiverged(
+                f"{error} (update {c.updates + 1}); the last good state is saved in {path}"
+            ) from None
+        c.updates += 1
+        return {**{f"train/{k}": v for k, v in stats.items()}, **out}
+
+    def _checkpoint_if_due(self) -> None:
+        t, c = self.config.train, self.counters
+        due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
+        due_by_time = (
+            t.checkpoint_minutes > 0 and time.monotonic() - self._last_save >= 60 * t.checkpoint_minutes
+        )
+        if due_by_steps:
+            c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
+        if due_by_steps or due_by_time:
+            self.save()
 
     #: What a collected batch must hold finite, and how an error names it.
     FINITE_KEYS = (("state", "belief maps / state"), (("next", "reward"), "reward"),
@@ -379,36 +347,28 @@ class Trainer:
                     f"the last good state is saved in {path}"
                 )
 
-    def _update(self) -> dict[str, torch.Tensor]:
-        c = self.counters
-        try:
-            stats = self.learner.update(self.replay.sample(), c.env_steps)
-        except TrainingDiverged as error:
-            path = self.save(name="last_good.pt")
-            raise TrainingDiverged(
-                f"{error} (update {c.updates + 1}); the last good state is saved in {path}"
-            ) from None
-        c.updates += 1
-        return stats
-
     # ------------------------------------------------------------------ evaluation and logging
-    def _evaluate(self, timer: dict[str, float]) -> None:
+    def evaluate(self) -> dict[str, float]:
+        """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
         start = time.perf_counter()
-        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.cfg.train.eval_seed))
-        timer["eval"] += time.perf_counter() - start
+        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed))
+        self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
+        for callback in self.callbacks:
+            callback.on_evaluation_end(self.last_eval)
+        return dict(self.last_eval)
 
-    def _log_train(self, stats: dict[str, list[torch.Tensor]], timer: dict[str, float]) -> None:
+    def _log_train(self, stats: dict[str, list[torch.Tensor]]) -> None:
         c = self.counters
         values = {name: torch.stack(v).float().mean().item() for name, v in stats.items() if v}
         values["train/epsilon"] = float(self.epsilon.eps)
         values["train/episodes"] = c.episodes
         values["train/updates"] = c.updates
         values["train/replay_episodes"] = len(self.replay)
-        if self.episodic is not None:
-            values.update(self.episodic.statistics())
-        elapsed = sum(timer.values())
-        values.update({f"time/{k}_s": v for k, v in timer.items()})
+        for callback in self.callbacks:
+            values.update({k: float(v) for k, v in callback.statistics().items()})
+        elapsed = sum(self._timer.values())
+        values.update({f"time/{k}_s": v for k, v in self._timer.items()})
         if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
             values["time/env_steps_per_s"] = (c.env_steps - self._session_start_steps) / elapsed
         self._log(values, c.env_steps)
@@ -418,20 +378,6 @@ class Trainer:
         log_scalars(self.logger, values, step)
         for name in values:
             self._log_rows[name] = self._log_rows.get(name, 0) + 1
-
-    def _progress_bar(self):
-        from tqdm.auto import tqdm
-
-        return tqdm(
-            total=self.cfg.train.total_env_steps,
-            initial=self.counters.env_steps,
-            unit="step",
-            unit_scale=True,
-            dynamic_ncols=True,
-            mininterval=1.0,
-            disable=not self.cfg.logger.progress_bar,
-            desc=f"{self.cfg.algo.name} {self.env_config.name}",
-        )
 
     def _postfix(self) -> dict[str, str]:
         post = {"eps": f"{float(self.epsilon.eps):.3f}"}
@@ -444,23 +390,22 @@ class Trainer:
         """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
         block files that :meth:`save` writes for ``last.pt``."""
         state = {
-            "config": to_container(self.cfg),
+            "config": to_container(self.config),
             "fingerprint": self.fingerprint(),
             "logs": {"rows": dict(self._log_rows)},
             "counters": asdict(self.counters),
             "learner": self.learner.state_dict(),
+            "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
             "last_eval": dict(self.last_eval),
             "rng": {"torch": torch.get_rng_state()},
         }
         if torch.cuda.is_available():
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
-        if self.cfg.train.save_replay:
+        if self.config.train.save_replay:
             if replay_inline:
                 state["replay"] = replay_state_dict(self.replay)
             else:
                 state["replay_blocks"] = self.replay_store.save(self.replay)
-        if self.episodic is not None:
-            state["episodic"] = self.episodic.state_dict()
         return state
 
     def fingerprint(
@@ -468,11 +413,10 @@ class Trainer:
     ) -> dict:
         """What a checkpoint must share with this run (:func:`mcrs.experiment.rundir.fingerprint`): of this
         run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
-        from mcrs.train import RESUME_MUTABLE
+        from mcrs.experiment.config import RESUME_MUTABLE
 
-        if learner is None:
-            learner = {"agent": self.learner.agent.state_dict(), "mixer": self.learner.mixer.state_dict()}
-        config = to_container(self.cfg) if config is None else config
+        learner = self.learner.weights() if learner is None else learner
+        config = to_container(self.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
         return fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)
 
@@ -487,8 +431,6 @@ class Trainer:
         target = ckpt.checkpoint_path(self.run_dir, name)
         with io_errors(f"write checkpoint {target}", self._intact()):
             path = self._save(name)
-        if name == ckpt.LAST:
-            self._saved_steps = self.counters.env_steps
         return path
 
     def _intact(self) -> str:
@@ -507,56 +449,46 @@ class Trainer:
             self.replay_store.commit()
             self._last_save = time.monotonic()
             weights = {
-                "config": to_container(self.cfg),
+                "config": to_container(self.config),
                 "fingerprint": self.fingerprint(),
                 "counters": asdict(self.counters),
-                "learner": {
-                    "agent": self.learner.agent.state_dict(),
-                    "mixer": self.learner.mixer.state_dict(),
-                },
+                "learner": self.learner.weights(),
             }
-            ckpt.save_atomic(
-                weights, ckpt.checkpoint_path(self.run_dir, f"model_{self.counters.env_steps:09d}.pt")
-            )
+            ckpt.save_atomic(weights, ckpt.weights_path(self.run_dir, self.counters.env_steps))
+            ckpt.prune_weights(self.run_dir, self.config.train.keep_checkpoints)
         return path
 
-    def _load(self, path: Path) -> None:
-        state = ckpt.load(path, map_location=self.device)
-        saved = state.get("fingerprint")
-        if saved is None:  # written before fingerprints: derived from the config and weights it holds
-            saved = self.fingerprint(state.get("config", {}), state.get("learner", {}))
-        difference = first_difference(saved, self.fingerprint())
-        if difference is not None:
-            raise ckpt.CheckpointError(f"{path} does not belong to this run: {difference}")
-        if "replay" not in state and "replay_blocks" not in state:
-            raise ckpt.CheckpointError(
-                f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"
-            )
-        self._resume_rng = state["rng"]  # restored last, once everything is built (not the whole state:
-        # it holds a copy of the replay buffer)
-        try:
-            self.learner.load_state_dict(state["learner"])
-            if "replay_blocks" in state:
-                self.replay_store.load(self.replay, state["replay_blocks"])
-            else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
-                load_replay_state_dict(self.replay, state["replay"])
-            if self.episodic is not None:
-                if "episodic" not in state:
-                    raise ckpt.CheckpointError(f"{path} has no episodic memory, but this run's algo uses one")
-                self.episodic.load_state_dict(state["episodic"])
-            self.counters = Counters(**state["counters"])
-        except (
-            KeyError,
-            TypeError,
-            ValueError,
-            RuntimeError,
-        ) as error:  # a fingerprint cannot see everything
-            if isinstance(error, ckpt.CheckpointError):
-                raise
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
-            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
+        restored by the caller once everything is built."""
+        state = ckpt.current_layout(state)
+        self.learner.load_state_dict(state["learner"])
+        if "replay_blocks" in state:
+            self.replay_store.load(self.replay, state["replay_blocks"])
+        else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
+            load_replay_state_dict(self.replay, state["replay"])
+        saved = state.get("callbacks", {})
+        for callback in self.callbacks:
+            if callback.name not in saved:
+                raise ckpt.CheckpointError(
+                    f"the checkpoint has no state for this run's {callback.name!r} callback"
+                )
+            callback.load_state_dict(saved[callback.name])
+        known = {f.name for f in fields(Counters)}
+        self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
         self.epsilon.set_env_steps(self.counters.env_steps)
+
+    def _load(self, path: Path) -> None:
+        state = ckpt.load_resumable(path, self.fingerprint(), self.fingerprint, self.device)
+        self._resume_rng = state["rng"]  # restored last, once everything is built
+        try:
+            self.load_state_dict(state)
+        except ckpt.CheckpointError as error:
+            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {error}") from None
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:  # what a fingerprint cannot see
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
         rows = state.get("logs", {}).get("rows")
         with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
             self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)

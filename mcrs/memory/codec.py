@@ -1,12 +1,13 @@
 """Compact, bit-exact storage of the env's global state for the episodic buffer D_E.
 
 A map20 state is 880 float32 values (3.5 kB); a million of them would not fit the memory budget. The state
-is a function of small integers (see ``mcrs/env/core.py``, ``MCRSCore._result``):
+is a function of small integers (see ``mcrs/env/core.py``, ``MCRSCore._result``; where each part lies is
+:class:`~mcrs.env.layout.StateLayout`'s business, read from it here):
 
-- the maps m(U), m(F) (``2 * cells`` values, x-major) are ``belief_masses`` of the global detection counts
-  ``state_counts [cells, 2]`` (positive, negative) of each cell;
-- the positions (UAVs, no-fly zones, targets: ``P = N + Z + K`` cells) are ``p.to(float32) / pos_scale``
-  with ``pos_scale = (width - 1, height - 1)`` clamped to >= 1.
+- the maps m(U), m(F) (``StateLayout.unknown``, ``.full``: cells x-major) are ``belief_masses`` of the
+  global detection counts ``state_counts [cells, 2]`` (positive, negative) of each cell;
+- the positions (``StateLayout.positions``: UAVs, no-fly zones, targets, ``P = N + Z + K`` cells) are
+  ``p.to(float32) / pos_scale`` with ``StateLayout.pos_scale = (width - 1, height - 1)`` clamped to >= 1.
 
 So an entry stores the counts (``uint8`` while every count is <= 255, else ``int16``: 800 B for map20) and
 the integer positions (``uint8`` [P, 2]: 80 B), and :meth:`StateCodec.decode` rebuilds the float32 state
@@ -25,6 +26,7 @@ import torch
 
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
+from mcrs.env.layout import StateLayout
 
 MAX_COUNT = 2**15 - 1  # the widest code, int16
 U8_MAX = 255
@@ -44,14 +46,17 @@ class StateCodec:
 
     def __init__(self, config: EnvConfig) -> None:
         self.config = config
+        self.layout = layout = StateLayout.from_config(config)
+        if layout.positions != slice(layout.map_dim, layout.state_dim):
+            raise AssertionError(f"the codec expects the maps, then every position: got {layout}")
         self.n_cells = config.n_cells
-        self.map_dim = 2 * config.n_cells
-        self.n_positions = config.n_uavs + config.n_no_fly + config.n_targets
-        self.state_dim = config.state_dim
-        self.grid_max = (config.width - 1, config.height - 1)
+        self.map_dim = layout.map_dim
+        self.n_positions = layout.n_positions
+        self.state_dim = layout.state_dim
+        self.grid_max = (layout.width - 1, layout.height - 1)  # the largest cell coordinates
         self.position_dtype = torch.uint8 if max(self.grid_max) <= U8_MAX else torch.int16
         # The env's float32 scale, so that decode repeats its division exactly.
-        self._pos_scale = torch.tensor(self.grid_max, dtype=torch.int64).clamp(min=1).to(torch.float32)
+        self._pos_scale = torch.tensor(layout.pos_scale, dtype=torch.float32)
         self._grid_max = torch.tensor(self.grid_max, dtype=torch.float32)
         self._tables: dict[tuple, torch.Tensor] = {}
         self._index: torch.Tensor | None = None
@@ -109,7 +114,7 @@ class StateCodec:
 
         scale = self._pos_scale.to(state.device)
         # Contiguous first: elementwise ops on the strided slice take the slow scalar path.
-        scaled = state[:, self.map_dim :].contiguous().view(B, self.n_positions, 2)
+        scaled = state[:, self.layout.positions].contiguous().view(B, self.n_positions, 2)
         cells = (scaled * scale).round_()
         low, high = torch.aminmax(cells.view(-1, 2), dim=0)
         grid_max = self._grid_max.to(state.device)
@@ -120,7 +125,7 @@ class StateCodec:
             )
         if check_maps:
             rows = torch.linspace(0, B - 1, min(B, MAP_CHECKS), device=state.device).round().long()
-            if not torch.equal(self.decode_map(codes[rows]), state[rows, : self.map_dim]):
+            if not torch.equal(self.decode_map(codes[rows]), state[rows, : self.map_dim]):  # the maps
                 raise ValueError(
                     "state maps are not the beliefs of counts (m(U), m(F) of each cell): are counts "
                     "and state from the same step and this map's sensor model (m_f, m_e)?"
@@ -146,18 +151,20 @@ class StateCodec:
             self.decode_map(codes, out=out[:, : self.map_dim])
             scale = self._pos_scale.to(codes.device)
             torch.div(
-                positions.to(torch.float32), scale, out=out[:, self.map_dim :].view(B, self.n_positions, 2)
+                positions.to(torch.float32),
+                scale,
+                out=out[:, self.layout.positions].view(B, self.n_positions, 2),
             )
             return out
         if B == 0:
             return out
         table, offsets = self._state_table(codes.device)
-        C, M = self.n_cells, self.map_dim
+        unknown, full, where = self.layout.unknown, self.layout.full, self.layout.positions
         index = self._index_buffer(B, codes.device)
         # The byte pair (positive, negative) read as one uint16: positive + 256 * negative.
-        index[:, :C].copy_(codes.view(torch.uint16).squeeze(-1))
-        torch.add(index[:, :C], (U8_MAX + 1) ** 2, out=index[:, C:M])  # the m(F) half of the table
-        torch.add(positions.view(B, -1), offsets, out=index[:, M:])
+        index[:, unknown].copy_(codes.view(torch.uint16).squeeze(-1))
+        torch.add(index[:, unknown], (U8_MAX + 1) ** 2, out=index[:, full])  # the m(F) half of the table
+        torch.add(positions.view(B, -1), offsets, out=index[:, where])
         torch.index_select(table, 0, index.view(-1), out=out.view(-1))
         return out
 
@@ -188,7 +195,7 @@ class StateCodec:
         return buffer[:rows]
 
     def decode_map(self, codes: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-        """The maps ``[B, 2 * cells]`` = [m(U) (cells), m(F) (cells)] of ``codes [B, cells, 2]``."""
+        """The maps ``[B, 2 * cells]`` (``StateLayout.unknown``, ``.full``) of ``codes [B, cells, 2]``."""
         B, C = codes.shape[0], self.n_cells
         if codes.shape[1:] != (C, 2):
             raise ValueError(f"codes must have shape [B, {C}, 2], got {tuple(codes.shape)}")
@@ -209,14 +216,14 @@ class StateCodec:
             rows, cols = (max(U8_MAX + 1, 1 << int(t.max()).bit_length()) for t in (positive, negative))
             if rows * cols > MAX_TABLE_ENTRIES:
                 _, full, unknown = belief_masses(positive, negative, self.config.m_f, self.config.m_e)
-                out[:, :C] = unknown
-                out[:, C:] = full
+                out[:, self.layout.unknown] = unknown
+                out[:, self.layout.full] = full
                 return out
             table = self._table(codes.device, rows, cols)
             index = positive.add_(negative.mul_(rows))
         index = index.view(-1)
-        out[:, :C] = torch.index_select(table[0], 0, index).view(B, C)
-        out[:, C:] = torch.index_select(table[1], 0, index).view(B, C)
+        out[:, self.layout.unknown] = torch.index_select(table[0], 0, index).view(B, C)
+        out[:, self.layout.full] = torch.index_select(table[1], 0, index).view(B, C)
         return out
 
     def _table(self, device: torch.device, rows: int, cols: int) -> torch.Tensor:

@@ -11,25 +11,9 @@ box (every ``|z_i - z'_i| <= delta``) on standardised keys (``shape``); "nearest
 squared distance among those, the lowest slot on ties. What delta the paper means is
 :mod:`mcrs.memory.delta`'s business: this class takes the tolerance itself.
 
-**Insertion (Algorithm 1).** The transitions of a batch ``[E, T]`` are taken in the order episode
-0..E-1, each walked backwards t = T-1..0, with ``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``. For each: the
-nearest key within delta (standardised, strict ``<``) -> if ``H < R``: ``H <- R`` and the entry's key,
-state and step are replaced (memory shift), else nothing; no key within delta -> a new entry
-``(x, R, s, t)``. The result is *exactly* that of this sequential loop, computed in batch: a transition
-that has no other batch key within delta and shares no stored neighbour (within delta) with another
-transition cannot see or be seen by the rest of the batch, so it is resolved from one batched look-up;
-only the others (rare) are walked in order, in plain Python over precomputed candidate lists.
-
-**EMU (``track_desirability``).** Each entry also counts N_call (hits) and N_xi (hits from desirable
-transitions) and carries xi (reached by a desirable transition). A transition is desirable when its
-episode is, or - EMU's optimality propagation - when a later transition of its episode (walked earlier,
-backwards in time) hit an entry whose xi is set: desirability spreads backwards from any state known to
-lead to a desirable outcome. On a hit: N_call += 1, N_xi += desirable; the entry shifts when ``H < R``
-*or* when a desirable transition meets an entry with xi False; a shift sets ``H <- R`` (in the second case
-possibly lower: EMU's reference re-anchors the entry on the desirable trajectory) and
-``xi <- xi or desirable``; with ``counter_reset`` (EMU's ``flag_memory_cnt_reset``, off by default there
-and here) that second kind of shift also restarts N_call = N_xi = 1. A new entry starts with N_call = 1,
-N_xi = xi = desirable. Tracking walks every transition in order (the propagation chains them).
+**Insertion (Algorithm 1)** and EMU's desirability (``track_desirability``: N_call, N_xi, xi): what a
+batch does is computed by :mod:`mcrs.memory.resolution` (exactly the sequential loop's result, in batch);
+this class stores the entries and applies that outcome.
 
 **Eviction (FIFO ring, batched).** Before a batch of n transitions is resolved, if ``size + n >
 capacity`` the ``size + n - capacity`` oldest entries (insertion order) are evicted, so the whole batch
@@ -57,12 +41,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.index import MAX_KEY_DIM, GridIndex
+from mcrs.memory.resolution import Stored, apply_outcome, in_order, resolve
 
 STATE_VERSION = 2  # 2: the writing episode of every entry
 MAX_STEPS_LIMIT = 2**15  # steps are stored as int16
@@ -78,22 +62,6 @@ class InsertStats:
     hits: int  # transitions that found a key within delta (shifts included)
     shifted: int  # memory shifts (key, state and return replaced)
     evicted: int  # oldest entries evicted before the batch
-
-
-def discounted_returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
-    """``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``, over the last dimension, in float32.
-
-    One loop over T in numpy (float32 multiply, then add: no fused multiply-add, so every element is
-    rounded the same way): a hundred small torch ops would cost ten times more.
-    """
-    r = reward.detach().to("cpu", torch.float32).numpy()
-    returns = np.empty_like(r)
-    running = np.zeros(r.shape[:-1], dtype=np.float32)
-    g = np.float32(gamma)
-    for t in range(r.shape[-1] - 1, -1, -1):
-        running = r[..., t] + g * running
-        returns[..., t] = running
-    return torch.from_numpy(returns).to(reward.device)
 
 
 def _check_int(name: str, value: Any, low: int, high: int | None = None) -> int:
@@ -190,11 +158,17 @@ class EpisodicMemory:
     def __len__(self) -> int:
         return self.size
 
+    def _columns(self) -> dict[str, torch.Tensor]:
+        """Every per-entry array that an entry's data lives in (``[capacity, ...]``; ``live`` aside)."""
+        columns = {"keys": self.keys, "returns": self.returns, "step": self.step, "codes": self.codes}
+        columns.update(positions=self.positions, episode=self.episode)
+        if self.track_desirability:
+            columns.update(n_call=self.n_call, n_xi=self.n_xi, xi=self.xi)
+        return columns
+
     def nbytes(self) -> int:
         """Bytes held by the buffer: storage, index records and decode tables."""
-        tensors = [self.keys, self.returns, self.step, self.codes, self.positions, self.live, self.episode]
-        if self.track_desirability:
-            tensors += [self.n_call, self.n_xi, self.xi]
+        tensors = [*self._columns().values(), self.live]
         return sum(t.numel() * t.element_size() for t in tensors) + self.index.nbytes() + self.codec.nbytes()
 
     def live_slots(self) -> torch.Tensor:
@@ -207,6 +181,12 @@ class EpisodicMemory:
         yield self.start, min(end, self.capacity)
         if end > self.capacity:
             yield 0, end - self.capacity
+
+    def _stored(self) -> Stored:
+        """The arrays Algorithm 1's resolution reads (views, not copies)."""
+        if not self.track_desirability:
+            return Stored(self.keys, self.live, self.returns)
+        return Stored(self.keys, self.live, self.returns, self.n_call, self.n_xi, self.xi)
 
     def statistics(self) -> dict[str, float]:
         """Scalars for logging."""
@@ -343,19 +323,13 @@ class EpisodicMemory:
         state, counts, reward = state.to(dev), counts.to(dev), reward.to(dev)
 
         # Transition j = e * T + (T - 1 - t): episode by episode, backwards in time.
-        flat = (
-            torch.arange(E, device=dev).unsqueeze(1) * T + torch.arange(T - 1, -1, -1, device=dev)
-        ).reshape(-1)
-        returns = discounted_returns(reward, self.gamma).reshape(-1)[flat]
+        flat, returns, step, wanted = in_order(
+            reward, self.gamma, desirable if self.track_desirability else None
+        )
         time = self.normalised_time(torch.arange(T, device=dev))
         x = self._embed(state, time.expand(E, T)).reshape(n, self.key_dim)[flat]
         if not torch.isfinite(x).all():
             raise ValueError("the embedding produced non-finite keys")
-        step = (T - 1 - torch.arange(T, device=dev, dtype=torch.int16)).repeat(E)
-        if self.track_desirability:
-            wanted = desirable.to(dev, torch.bool).repeat_interleave(T)
-        else:
-            wanted = torch.zeros(n, dtype=torch.bool, device=dev)
         if episode is None:
             episode = torch.full((E,), UNKNOWN_EPISODE, dtype=torch.int64)
         written = episode.to(dev, torch.int64).repeat_interleave(T)
@@ -373,46 +347,31 @@ class EpisodicMemory:
             self.stats_size = n
         z = self.index.standardise(x)
         write = (self.start + self.size) % C  # slot of the first new entry
-        outcome = _resolve(self, z, returns, wanted, write, T)
+        outcome = resolve(self.index, self._stored(), z, returns, wanted, write, T, self.counter_reset)
 
-        # Apply: new entries (consecutive ring slots: slice copies), then the shifts (row copies; a new
-        # entry may be shifted later in the same batch, so this second write must come after).
-        nu = outcome.new_from.numel()
-        new_slots = (write + torch.arange(nu, device=dev)) % C
+        # Apply: the shifted old slots' cubes first (their keys are about to change), then the writes.
         old_slots = outcome.shift_slots[~outcome.shift_is_new]
-        old_cubes = self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots)))
-        batch = {"keys": x, "returns": returns, "step": step, "episode": written}
-        rows = {"codes": codes.view(n, -1), "positions": positions.view(n, -1)}
-        first = min(nu, C - write)
-        for slot, lo, hi in ((write, 0, first), (0, first, nu)):
-            if hi > lo:
-                source = outcome.new_from[lo:hi]
-                for name, values in batch.items():
-                    getattr(self, name)[slot : slot + hi - lo] = values.index_select(0, source)
-                for name, values in rows.items():
-                    getattr(self, name).view(C, -1)[slot : slot + hi - lo] = values.index_select(
-                        0, flat[source]
-                    )
-                self.live[slot : slot + hi - lo] = True
-        if outcome.shift_slots.numel():
-            source = outcome.shift_from
-            for name, values in batch.items():
-                getattr(self, name).index_copy_(0, outcome.shift_slots, values.index_select(0, source))
-            for name, values in rows.items():
-                _row_view(getattr(self, name)).index_copy_(
-                    0, outcome.shift_slots, _row_view(values.index_select(0, flat[source]))
-                )
+        new_slots = apply_outcome(
+            outcome,
+            write,
+            flat,
+            self.live,
+            by_transition=[
+                (self.keys, x),
+                (self.returns, returns),
+                (self.step, step),
+                (self.episode, written),
+            ],
+            by_row=[(self.codes, codes.view(n, -1)), (self.positions, positions.view(n, -1))],
+        )
         if self.track_desirability:  # every changed slot (new ones included) is in count_slots
             self.n_call[outcome.count_slots] = outcome.n_call
             self.n_xi[outcome.count_slots] = outcome.n_xi
             self.xi[outcome.count_slots] = outcome.xi
-        self.size += nu
+        self.size += new_slots.numel()
 
-        # Index: every new slot, and the shifted old slots whose cube changed.
-        changed = (
-            self.index.cube_hash(self.index.standardise(self.keys.index_select(0, old_slots))) != old_cubes
-        )
-        fresh = torch.cat([new_slots, old_slots[changed]])
+        # Index: every slot whose key was written (new ones and shifted old ones).
+        fresh = torch.cat([new_slots, old_slots])
         self.index.add(self.keys.index_select(0, fresh), fresh)
         self._maintain()
         return InsertStats(
@@ -485,17 +444,8 @@ class EpisodicMemory:
             "mean": self.index.mean.cpu(),
             "std": self.index.std.cpu(),
             "track_desirability": self.track_desirability,
-            "keys": self.keys[slots].cpu(),
-            "returns": self.returns[slots].cpu(),
-            "step": self.step[slots].cpu(),
-            "codes": self.codes[slots].cpu(),
-            "positions": self.positions[slots].cpu(),
-            "episode": self.episode[slots].cpu(),
         }
-        if self.track_desirability:
-            state.update(
-                n_call=self.n_call[slots].cpu(), n_xi=self.n_xi[slots].cpu(), xi=self.xi[slots].cpu()
-            )
+        state.update({name: values[slots].cpu() for name, values in self._columns().items()})
         return state
 
     @torch.inference_mode(False)
@@ -529,243 +479,10 @@ class EpisodicMemory:
         self.start, self.size = start, size
         slots = self.live_slots()
         self.codes = torch.empty(self.capacity, *self.codes.shape[1:], dtype=state["codes"].dtype, device=dev)
-        self.keys[slots] = state["keys"].to(dev)
-        self.returns[slots] = state["returns"].to(dev)
-        self.step[slots] = state["step"].to(dev)
-        self.codes[slots] = state["codes"].to(dev)
-        self.positions[slots] = state["positions"].to(dev, self.positions.dtype)
+        for name, values in self._columns().items():
+            values[slots] = state[name].to(dev, values.dtype)
         self.live[slots] = True
-        self.episode[slots] = state["episode"].to(dev)
-        if self.track_desirability:
-            self.n_call[slots] = state["n_call"].to(dev)
-            self.n_xi[slots] = state["n_xi"].to(dev)
-            self.xi[slots] = state["xi"].to(dev)
         self.index.mean = state["mean"].to(dev, torch.float32)
         self.index.std = state["std"].to(dev, torch.float32)
         self.stats_size = int(state["stats_size"])
         self.rebuild_index(refresh=False)
-
-
-def _row_view(t: torch.Tensor) -> torch.Tensor:
-    """``t [N, ...]`` (contiguous) as ``[N, m]`` of the widest integer type dividing a row's bytes: row
-    copies (``index_copy_``) of narrow types are several times slower than of int64."""
-    t = t.view(t.shape[0], -1)
-    row_bytes = t.shape[1] * t.element_size()
-    for dtype in (torch.int64, torch.int32, torch.int16):
-        if row_bytes % dtype.itemsize == 0:
-            return t.view(torch.uint8).view(dtype)
-    return t
-
-
-# ---------------------------------------------------------------------------------------- resolution
-@dataclass
-class _Outcome:
-    """The net effect of a batch on the memory (slots and the transitions whose data they take)."""
-
-    new_from: torch.Tensor  # [nu] transitions that create an entry, in order (they take the next slots)
-    shift_slots: torch.Tensor  # existing or new slots whose key/state/H end up from another transition
-    shift_from: torch.Tensor  # that transition
-    shift_is_new: torch.Tensor  # whether the shifted slot was created by this batch
-    count_slots: torch.Tensor  # slots whose EMU counters changed (hits on existing entries)
-    n_call: torch.Tensor
-    n_xi: torch.Tensor
-    xi: torch.Tensor
-    hits: int
-    shifts: int
-
-
-def _resolve(
-    memory: EpisodicMemory, z: torch.Tensor, R: torch.Tensor, wanted: torch.Tensor, write: int, T: int
-) -> _Outcome:
-    """Algorithm 1 for the transitions ``z [n, d]`` (standardised keys, in order; ``T`` per episode)
-    against ``memory``.
-
-    Independent transitions (no batch key within delta, no stored neighbour within delta shared with
-    another transition) are resolved from the batched look-up; the interacting ones sequentially. With
-    EMU's desirability every transition is walked in order: the propagation within an episode chains them.
-    """
-    index, dev = memory.index, memory.device
-    n = z.shape[0]
-    cubes = index.query_cubes(z)
-    query, slot, d2 = index.within(
-        z, memory.keys, memory.live, cubes
-    )  # stored neighbours, by query then slot
-    bi, bj, bd2 = index.pairs(z, cubes)  # batch neighbours
-
-    interacting = torch.zeros(n, dtype=torch.bool, device=dev)
-    interacting[bi] = True
-    if memory.track_desirability:
-        interacting[:] = True
-    elif slot.numel():
-        _, inverse, shared = torch.unique(slot, return_inverse=True, return_counts=True)
-        interacting[query[shared[inverse] > 1]] = True
-
-    # Nearest stored neighbour (lowest slot on ties) of every transition.
-    nearest = torch.full((n,), -1, dtype=torch.int64, device=dev)
-    if slot.numel():
-        best = torch.full((n,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
-        best.scatter_reduce_(0, query, (d2.view(torch.int32).to(torch.int64) << 32) | slot, "amin")
-        nearest = torch.where(best != torch.iinfo(torch.int64).max, best & 0xFFFFFFFF, -1)
-
-    free = ~interacting
-    hit_j = (free & (nearest >= 0)).nonzero().squeeze(1)
-    new_free = free & (nearest < 0)
-    target = nearest[hit_j]
-    shift = memory.returns[target] < R[hit_j]
-    shift_slots, shift_from = target[shift], hit_j[shift]
-    hits, shifts = int(hit_j.numel()), int(shift.sum())
-    new_mask = new_free
-    empty = torch.zeros(0, dtype=torch.int64, device=dev)
-    count_slots, n_call, n_xi, xi = empty, empty.int(), empty.int(), empty.bool()
-
-    group = interacting.nonzero().squeeze(1)
-    shift_is_new = torch.zeros(shift_slots.numel(), dtype=torch.bool, device=dev)
-    if group.numel():
-        seq = _sequential(memory, group, query, slot, d2, bi, bj, bd2, R, wanted, new_free, write, T)
-        new_mask = new_free.clone()
-        new_mask[seq["new"]] = True
-        shift_slots = torch.cat([shift_slots, seq["owner_slots"]])
-        shift_from = torch.cat([shift_from, seq["owner_from"]])
-        shift_is_new = torch.cat([shift_is_new, seq["owner_is_new"]])
-        hits, shifts = hits + seq["hits"], shifts + seq["shifts"]
-        if memory.track_desirability:
-            count_slots, n_call, n_xi, xi = seq["count_slots"], seq["n_call"], seq["n_xi"], seq["xi"]
-    return _Outcome(
-        new_from=new_mask.nonzero().squeeze(1),
-        shift_slots=shift_slots,
-        shift_from=shift_from,
-        shift_is_new=shift_is_new,
-        count_slots=count_slots,
-        n_call=n_call,
-        n_xi=n_xi,
-        xi=xi,
-        hits=hits,
-        shifts=shifts,
-    )
-
-
-def _by_distance(
-    owner: torch.Tensor, item: torch.Tensor, d2: torch.Tensor, n: int
-) -> tuple[list[int], list[int], list[float]]:
-    """Candidate lists in CSR form: ``(start [n + 1], item, d2)`` with the candidates of ``owner`` j at
-    ``start[j]:start[j + 1]``, sorted by distance, ties in the given order (the inputs come sorted by
-    owner then item, and the sort is stable)."""
-    order = torch.sort((owner << 32) | d2.view(torch.int32).to(torch.int64), stable=True).indices
-    counts = torch.bincount(owner, minlength=n)
-    start = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-    return start.tolist(), item[order].tolist(), d2[order].tolist()
-
-
-def _sequential(
-    memory: EpisodicMemory,
-    group: torch.Tensor,
-    query: torch.Tensor,
-    slot: torch.Tensor,
-    d2: torch.Tensor,
-    bi: torch.Tensor,
-    bj: torch.Tensor,
-    bd2: torch.Tensor,
-    R: torch.Tensor,
-    wanted: torch.Tensor,
-    new_free: torch.Tensor,
-    write: int,
-    T: int,
-) -> dict[str, Any]:
-    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending); with desirability
-    tracking ``group`` is every transition, and ``wanted`` spreads backwards within an episode
-    (transitions ``e*T .. e*T + T-1`` walk it from s_{T-1} down) from any hit on an entry with xi set.
-
-    Their candidates are precomputed, each transition's sorted by distance (then slot, or then position
-    in the batch): stored neighbours within delta (valid while the entry still holds its old key: the
-    first valid one is the best) and earlier batch keys within delta (valid while some entry holds that
-    key: scanned until the distance exceeds the best found, as ties compare slots). Independent
-    transitions touch none of these, except that their new entries take slots: a new entry of transition
-    j takes slot ``write + (new entries before j)``.
-    """
-    dev, C, track = memory.device, memory.capacity, memory.track_desirability
-    in_group = torch.zeros_like(new_free)
-    in_group[group] = True
-    n = new_free.numel()
-    sel = in_group[query]
-    s_start, g_slot, g_d2 = _by_distance(query[sel], slot[sel], d2[sel], n)
-    sel = bj < bi  # neighbours earlier in the order
-    e_start, e_from, e_d2 = _by_distance(bi[sel], bj[sel], bd2[sel], n)
-    touched = sorted(set(g_slot))
-    touched_t = torch.tensor(touched, dtype=torch.int64, device=dev)
-    H = dict(zip(touched, memory.returns[touched_t].tolist(), strict=True))
-    if track:
-        n_call = dict(zip(touched, memory.n_call[touched_t].tolist(), strict=True))
-        n_xi = dict(zip(touched, memory.n_xi[touched_t].tolist(), strict=True))
-        xi = dict(zip(touched, memory.xi[touched_t].tolist(), strict=True))
-    members = group.tolist()
-    new_before = (torch.cumsum(new_free.to(torch.int64), 0) - new_free.to(torch.int64))[group].tolist()
-    R_g, want_g = R[group].tolist(), wanted[group].tolist()
-    reset = memory.counter_reset
-    propagated_episode = -1  # the episode whose later transitions hit a desirable entry
-
-    owner: dict[int, int] = {}  # slot -> transition whose key/state it holds now (changed in this batch)
-    holder: dict[int, int] = {}  # transition -> slot holding its key
-    created: set[int] = set()
-    counted: set[int] = set()
-    new: list[int] = []
-    hits = shifts = 0
-    for j, before, r, want in zip(members, new_before, R_g, want_g, strict=True):
-        want = want or (track and j // T == propagated_episode)
-        best: tuple[float, int] | None = None
-        for k in range(s_start[j], s_start[j + 1]):
-            if g_slot[k] not in owner:
-                best = (g_d2[k], g_slot[k])
-                break
-        for k in range(e_start[j], e_start[j + 1]):
-            d = e_d2[k]
-            if best is not None and d > best[0]:
-                break
-            s = holder.get(e_from[k])
-            if s is not None and (best is None or (d, s) < best):
-                best = (d, s)
-        if best is None:  # a new entry
-            s = (write + before + len(new)) % C
-            new.append(j)
-            created.add(s)
-            owner[s], holder[j], H[s] = j, s, r
-            if track:
-                n_call[s], n_xi[s], xi[s] = 1, int(want), bool(want)
-            continue
-        s = best[1]
-        hits += 1
-        if track:
-            n_call[s] += 1
-            n_xi[s] += int(want)
-            counted.add(s)
-        desirability_shift = track and want and not xi[s]
-        if H[s] < r or desirability_shift:
-            shifts += 1
-            if s in owner:
-                del holder[owner[s]]
-            owner[s], holder[j], H[s] = j, s, r
-            if track:
-                xi[s] = xi[s] or bool(want)
-                if desirability_shift and reset:
-                    n_call[s], n_xi[s] = 1, 1
-        if track and xi[s]:  # EMU's optimality propagation: earlier states of this episode are desirable
-            propagated_episode = j // T
-
-    owner_slots = sorted(owner)
-    result: dict[str, Any] = {
-        "new": torch.tensor(new, dtype=torch.int64, device=dev),
-        "owner_slots": torch.tensor(owner_slots, dtype=torch.int64, device=dev),
-        "owner_from": torch.tensor([owner[s] for s in owner_slots], dtype=torch.int64, device=dev),
-        "owner_is_new": torch.tensor([s in created for s in owner_slots], dtype=torch.bool, device=dev),
-        "hits": hits,
-        "shifts": shifts,
-    }
-    if track:
-        # Counters of every slot this group changed (new entries included: their start values).
-        slots = sorted(counted | created)
-        result.update(
-            count_slots=torch.tensor(slots, dtype=torch.int64, device=dev),
-            n_call=torch.tensor([n_call[s] for s in slots], dtype=torch.int32, device=dev),
-            n_xi=torch.tensor([n_xi[s] for s in slots], dtype=torch.int32, device=dev),
-            xi=torch.tensor([xi[s] for s in slots], dtype=torch.bool, device=dev),
-        )
-    return result

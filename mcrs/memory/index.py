@@ -1,9 +1,9 @@
 """Exact nearest-neighbour-within-delta look-ups over the keys of D_E, batched and always current.
 
 Why not a KD-tree: the reference code (EMC/EMU) queries a scipy tree one transition at a time and rebuilds
-it every 200 episodes, so entries added in between are invisible. Only neighbours closer than ``delta``
-matter, and delta is tiny (1.3e-3 in standardised units), so a grid hash answers exactly with a handful of
-sorted-array searches per query, for a whole batch at once, and new entries are visible immediately.
+it every 200 episodes, so entries added in between are invisible. Only neighbours within the tolerance
+``delta`` matter, so a sorted grid answers exactly, for a whole batch at once, and new entries are visible
+immediately (an insertion merges a few thousand records into the sorted arrays: no rebuild).
 
 **Geometry.** Distances are taken on *standardised* keys ``z = (x - mean) / std`` (float32, per dimension,
 statistics over the buffer; see "Statistics" below). "Within delta" means, exactly and everywhere (index,
@@ -18,45 +18,54 @@ with :func:`squared_distance` summing the float32 squared differences dimension 
 
 In both shapes the nearest candidate is the one of smallest squared distance (lowest slot on ties).
 
-**Grid.** Space is cut into cubes of side ``2 delta (1 + 2^-10)``; a key lives in the cube
-``floor(z / side)`` (computed in float64 from the float32 z). A point within delta of a query differs from
-it by less than ``delta (1 + 2^-11)`` in every dimension (in either shape) (float32 subtraction is correctly rounded, so the
-computed distance bounds the true difference up to a relative 2^-22), so it lies in one of the cubes met by
-``[z - reach, z + reach]`` per dimension, ``reach = delta (1 + 2^-11)``: since ``2 reach < side``, at most
-two per dimension, ``2^d`` cubes in all (d = 4: 16). The float64 cube arithmetic is exact enough for
-``|z| / delta < 1e10``.
+**Layout (why it is fast at a large delta).** At eq. 35's tolerance a query's neighbourhood holds up to
+tens of entries, so the cost is the candidates. A record is a *sort key*, the slot and a copy of the slot's
+standardised key, in three arrays sorted by the sort key (CSR: candidates are read from consecutive
+memory, not gathered from random slots). The sort key is ``(prefix << 32) + order(z[d-1])``: ``prefix``
+packs the cell ``floor(z[i] / side)`` of the first d - 1 dimensions (each modulo ``2^b``,
+``b = 31 // (d - 1)``; cells sharing a prefix only add candidates), ``order`` maps the last coordinate's
+float32 to an order-preserving integer. So for each of the at most ``2^(d-1)`` cells met by
+``[z - reach, z + reach]`` a query reads exactly the records whose last coordinate lies in
+``[z[d-1] - reach, z[d-1] + reach]`` (two ``searchsorted`` on sorted values: cache-friendly), then tests
+them dimension by dimension, dropping a pair as soon as a coordinate leaves the box (or the ball's
+partial sum, which can only grow, reaches delta^2). Added records go to a small sorted *recent* array,
+merged into the main one past a sixteenth of it (a full copy, amortised over many insertions).
 
-**Records.** Each record is one int64: ``(cube hash << slot_bits) | slot``, in one sorted array; a cube's
-records are one contiguous range found with two ``searchsorted``. The cube hash packs each cube coordinate
-modulo ``2^b`` (``b = (62 - slot_bits) // d``); distinct cubes that share a hash only add candidates.
-Every candidate is verified against the *current* key of its slot and the slot's liveness, so records left
-behind by a memory shift (the slot moved to another cube) or an eviction (the slot is dead or reused) are
-harmless: they cost a little time until the next rebuild purges them. New records are merged into the
-sorted array in O(records) (a memcpy-like merge, not a sort). Most of a query's 2^d cubes are empty, so
-an occupancy table (one byte per bucket of a mixed cube hash, about 16 buckets per slot) is checked first:
-only cubes whose bucket is occupied are searched. It is a superset filter (set for every record, cleared
-only at a rebuild), so it never hides a record.
+**Exactness.** Cells have side ``2 delta (1 + 2^-10)``, computed in float64 from the float32 z. A point
+within delta of a query differs from it by less than ``reach = delta (1 + 2^-11)`` in every dimension (in
+either shape; float32 subtraction is correctly rounded), so it lies in a cell met by
+``[z - reach, z + reach]``: at most two per dimension since ``2 reach < side``. The last coordinate's
+bounds are rounded outwards to float32 (``nextafter``). Exact for ``|z| / delta < 1e10``.
 
-**Statistics.** ``mean`` and ``std`` change only when the index is rebuilt (:meth:`GridIndex.rebuild` with
-``refresh=True``) or set explicitly (:meth:`GridIndex.set_statistics`); the owner
-(:class:`~mcrs.memory.episodic.EpisodicMemory`) documents when that happens. Between two refreshes every
-key is hashed with the same statistics, so a look-up always equals the brute-force nearest neighbour over
-the current live keys standardised with the current statistics (ties: lowest slot).
+**Records and staleness.** The owner adds a record for every slot whose key it writes (new or shifted;
+:meth:`GridIndex.add`). Records left behind (a shifted slot's old key, an evicted slot) stay: a candidate
+counts only if its slot is live and its copy equals the slot's current standardised key, so a stale record
+only costs a little time until the next rebuild purges it.
+
+**Statistics.** ``mean`` and ``std`` change only at :meth:`GridIndex.rebuild` with ``refresh=True`` or
+through :meth:`GridIndex.set_statistics` (on an empty index or before a rebuild); the owner
+(:class:`~mcrs.memory.episodic.EpisodicMemory`) documents when. Between two refreshes a look-up always
+equals the brute-force nearest neighbour over the current live keys standardised with the current
+statistics (ties: lowest slot).
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-MAX_KEY_DIM = 8  # 2^d cubes per query
+MAX_KEY_DIM = 8  # 2^(d-1) cells per query
 STD_FLOOR = 1e-6  # a dimension where every key is equal is not magnified beyond this
 SIDE_MARGIN = 2.0**-10  # side = 2 delta (1 + SIDE_MARGIN)
 REACH_MARGIN = 2.0**-11  # reach = delta (1 + REACH_MARGIN): 2 reach < side
 MAX_CANDIDATES = 1 << 22  # candidates verified per chunk (bounds the temporary memory)
-MAX_OCCUPANCY_BITS = 26  # at most 64 MiB of occupancy table
+RECENT_SHARE = 16  # recent records are merged into the main ones beyond 1/16 of them ...
+RECENT_MIN = 4096  # ... and this many (each merge copies every record: amortised over many insertions)
+PREFIX_BITS = 31  # the prefix field of a sort key: (prefix << 32) + order < 2^63
 NO_MATCH = torch.iinfo(torch.int64).max
 SHAPES = ("ball", "box")  # Euclidean ball of radius delta | EMU's per-dimension box of half-side delta
 
@@ -80,57 +89,96 @@ def slot_bits_for(capacity: int) -> int:
     return max(1, (capacity - 1).bit_length())
 
 
-def occupancy_bits_for(capacity: int) -> int:
-    """Buckets (log2) of the occupancy table: about 16 per slot, so that few empty cubes look occupied."""
-    return min(MAX_OCCUPANCY_BITS, max(10, (16 * capacity - 1).bit_length()))
+def float_order(x: torch.Tensor) -> torch.Tensor:
+    """An int64 in ``[0, 2^32)`` per float32 of ``x`` that orders like the floats (-0.0 counts as 0.0)."""
+    bits = (x.to(torch.float32) + 0.0).view(torch.int32).to(torch.int64)  # + 0.0: -0.0 becomes 0.0
+    return torch.where(bits >= 0, bits + 2**31, 2**31 - 1 - (bits & 0x7FFFFFFF))
 
 
-def bucket(hashes: torch.Tensor, bits: int) -> torch.Tensor:
-    """Mix cube hashes (< 2^62) into ``[0, 2^bits)``; every step stays below 2^63 (no overflow)."""
-    folded = (hashes ^ (hashes >> 21) ^ (hashes >> 42)) & 0x7FFFFFFF
-    return ((folded * 0x5BD1E995) & 0x7FFFFFFF) >> (31 - bits)
+def flatnonzero(mask: torch.Tensor) -> torch.Tensor:
+    """Indices ``[k]`` of the True elements of a 1-D ``mask`` (numpy's on the CPU: about 10x torch's)."""
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return mask.nonzero().squeeze(1)
 
 
-def occupancy(hashes: torch.Tensor, bits: int) -> torch.Tensor:
-    """A table ``[2^bits]`` bool marking the buckets of ``hashes``."""
-    table = torch.zeros(1 << bits, dtype=torch.bool, device=hashes.device)
-    table[bucket(hashes, bits)] = True
-    return table
+def repeat(values: torch.Tensor, counts: torch.Tensor, total: int) -> torch.Tensor:
+    """``values[i]`` repeated ``counts[i]`` times (``total`` in all; numpy's on the CPU: about 2x torch's)."""
+    if values.device.type == "cpu":
+        return torch.from_numpy(np.repeat(values.numpy(), counts.numpy()))
+    return torch.repeat_interleave(values, counts, output_size=total)
 
 
-def merge_sorted(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-    """Merge two sorted int64 arrays in O(len(a) + len(b)) (``a`` large, ``b`` small): a copy, not a sort.
+def search_sorted(sequence: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``torch.searchsorted(sequence, values)`` (left); numpy's on the CPU, faster for sorted values."""
+    if sequence.device.type == "cpu":
+        return torch.from_numpy(np.searchsorted(sequence.numpy(), values.numpy()))
+    return torch.searchsorted(sequence, values)
 
-    ``out`` (at least ``len(a) + len(b)`` long, not overlapping ``a``) may provide the memory; the result
-    is its prefix.
+
+class Records(NamedTuple):
+    """Index records sorted by ``order`` (int64 sort keys), with their ``slot`` (int32) and the copy of the
+    slot's standardised key they were made from (``coords [d, n]`` float32, one row per dimension)."""
+
+    order: torch.Tensor
+    slot: torch.Tensor
+    coords: torch.Tensor
+
+    def prefix(self, n: int) -> Records:
+        return Records(self.order[:n], self.slot[:n], self.coords[:, :n])
+
+
+class QueryPlan(NamedTuple):
+    """For each (query, cell) pair its ``query [R]``; the sort-key bounds (R starts, R exclusive stops)
+    ascending (``sorted [2R]``) with the permutation that sorted them (``order``)."""
+
+    query: torch.Tensor
+    sorted: torch.Tensor
+    order: torch.Tensor
+
+
+def merge_records(a: Records, b: Records, out: Records | None = None) -> Records:
+    """Merge sorted records ``b`` (few) into sorted records ``a`` (many): one masked copy per array.
+
+    ``out`` (capacity at least the sum, not overlapping ``a``) may provide the memory.
     """
-    if b.numel() == 0:
-        return a
-    total = a.numel() + b.numel()
-    out = torch.empty(total, dtype=a.dtype, device=a.device) if out is None else out[:total]
-    keep = torch.ones(total, dtype=torch.bool, device=a.device)
-    if a.device.type == "cpu":
-        # numpy's boolean-mask copy is one pass; torch's CPU masked copies are ~20x slower.
-        a_np, b_np, out_np, keep_np = a.numpy(), b.numpy(), out.numpy(), keep.numpy()
-        position = np.searchsorted(a_np, b_np, side="right") + np.arange(b_np.size)
-        keep_np[position] = False
-        out_np[keep_np] = a_np
-        out_np[position] = b_np
-        return out
-    position = torch.searchsorted(a, b, right=True) + torch.arange(b.numel(), device=a.device)
+    total = a.order.numel() + b.order.numel()
+    if out is None:
+        out = Records(
+            a.order.new_empty(total), a.slot.new_empty(total), a.coords.new_empty((len(a.coords), total))
+        )
+    out = out.prefix(total)
+    # Where b's records go (after a's records of equal key), and the mask of a's.
+    position = torch.searchsorted(a.order, b.order, right=True) + torch.arange(
+        b.order.numel(), device=a.order.device
+    )
+    keep = torch.ones(total, dtype=torch.bool, device=a.order.device)
     keep[position] = False
-    out[keep] = a
-    out[position] = b
+    for source, extra, target in zip(a, b, out, strict=True):
+        _merge_into(source, extra, target, keep, position)
     return out
 
 
+def _merge_into(
+    a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, keep: torch.Tensor, position: torch.Tensor
+) -> None:
+    """``out[..., keep] = a`` and ``out[..., position] = b`` (along the last dimension)."""
+    if a.device.type == "cpu":  # numpy's boolean-mask copy is one pass; torch's CPU one is ~20x slower
+        target = out.numpy()
+        target[..., keep.numpy()] = a.numpy()
+        target[..., position.numpy()] = b.numpy()
+        return
+    out[..., keep] = a
+    out[..., position] = b
+
+
 class GridIndex:
-    """The grid hash over the slots of a key storage ``[capacity, key_dim]`` owned by the caller.
+    """The sorted grid over the slots of a key storage ``[capacity, key_dim]`` owned by the caller.
 
     Args:
-        key_dim: dimension d of the keys (1..8; a query checks 2^d cubes).
+        key_dim: dimension d of the keys (1..8; a query searches up to 2^(d-1) cells).
         delta: the match tolerance on standardised keys (> 0): the ball's radius or the box's half-side.
-        capacity: number of slots (record values carry the slot number).
+        capacity: number of slots (records carry the slot number).
         device: where the records live (the keys' device).
         shape: ``"ball"`` or ``"box"`` (see the module docstring).
     """
@@ -145,7 +193,7 @@ class GridIndex:
     ) -> None:
         if isinstance(key_dim, bool) or not isinstance(key_dim, int) or not 1 <= key_dim <= MAX_KEY_DIM:
             raise ValueError(
-                f"key_dim must be an int in [1, {MAX_KEY_DIM}] (2^key_dim cubes per query), got {key_dim!r}"
+                f"key_dim must be an int in [1, {MAX_KEY_DIM}] (2^(key_dim-1) cells per query), got {key_dim!r}"
             )
         if not (isinstance(delta, (int, float)) and 0 < delta < float("inf")):
             raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
@@ -160,17 +208,21 @@ class GridIndex:
         self.delta_sq = torch.tensor(self.delta * self.delta, dtype=torch.float32, device=self.device)
         self.delta_f32 = torch.tensor(self.delta, dtype=torch.float32, device=self.device)
         self.slot_bits = slot_bits_for(capacity)
-        # (hash + 1) << slot_bits must stay below 2^63: the hash has at most 62 - slot_bits bits.
-        self.hash_bits = (62 - self.slot_bits) // key_dim
-        if self.hash_bits < 1:
-            raise ValueError(f"capacity {capacity} leaves no hash bits for key_dim {key_dim}")
+        self.prefix_bits = PREFIX_BITS // max(1, key_dim - 1)
+        self._shifts = torch.arange(key_dim - 1, device=self.device, dtype=torch.int64) * self.prefix_bits
         self.mean = torch.zeros(key_dim, dtype=torch.float32, device=self.device)
         self.std = torch.ones(key_dim, dtype=torch.float32, device=self.device)
-        self.records = torch.zeros(0, dtype=torch.int64, device=self.device)
-        self._buffers: list[torch.Tensor | None] = [None, None]  # merge outputs, reused
-        self.occupancy_bits = occupancy_bits_for(capacity)
-        self.occupied = torch.zeros(1 << self.occupancy_bits, dtype=torch.bool, device=self.device)
-        self._shifts = torch.arange(key_dim, device=self.device, dtype=torch.int64) * self.hash_bits
+        self.records = self._empty(0)  # the main records
+        self.recent = self._empty(0)  # records added since the last merge into the main ones
+        self._buffers: list[Records | None] = [None, None]  # merge outputs, reused
+
+    def _empty(self, n: int) -> Records:
+        dev = self.device
+        return Records(
+            torch.empty(n, dtype=torch.int64, device=dev),
+            torch.empty(n, dtype=torch.int32, device=dev),
+            torch.empty(self.key_dim, n, device=dev),
+        )
 
     # ------------------------------------------------------------------------------------ geometry
     def standardise(self, keys: torch.Tensor) -> torch.Tensor:
@@ -185,34 +237,58 @@ class GridIndex:
         self.mean = wide.mean(0).to(torch.float32)
         self.std = wide.std(0, correction=0).clamp(min=STD_FLOOR).to(torch.float32)
 
-    def cube_hash(self, z: torch.Tensor) -> torch.Tensor:
-        """Hash ``[...]`` of the cube holding each standardised key ``z [..., d]``."""
-        return self._pack(torch.floor(z.to(torch.float64) / self.side).to(torch.int64))
+    def sort_key(self, z: torch.Tensor) -> torch.Tensor:
+        """The sort key ``[n]`` of standardised keys ``z [n, d]``: their cell's prefix, then the last coordinate."""
+        cells = torch.floor(z[:, :-1].to(torch.float64) / self.side).to(torch.int64)
+        return (self._pack(cells) << 32) + float_order(z[:, -1])
 
-    def _pack(self, cube: torch.Tensor) -> torch.Tensor:
-        mask = (1 << self.hash_bits) - 1
-        return ((cube & mask) << self._shifts).sum(-1)
+    def _pack(self, cells: torch.Tensor) -> torch.Tensor:
+        mask = (1 << self.prefix_bits) - 1
+        return ((cells & mask) << self._shifts).sum(-1)
 
-    def query_cubes(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Hashes ``[M, 2^d]`` of the cubes met by ``[z - reach, z + reach]``, and which of them are distinct.
+    def query_cubes(self, z: torch.Tensor) -> QueryPlan:
+        """The :class:`QueryPlan` of standardised queries ``z [M, d]`` (reusable against any records).
 
-        Cube c (bit i of c: the lower or the upper cube along dimension i) is built dimension by
-        dimension: the hash is a sum of per-dimension bit fields.
+        The cells met by ``[z - reach, z + reach]`` in the first d - 1 dimensions are built dimension by
+        dimension (bit i of a cell's number: the lower or the upper cell along dimension i).
         """
+        M, d = z.shape
         wide = z.to(torch.float64)
-        low = torch.floor((wide - self.reach) / self.side).to(torch.int64)
-        two = torch.floor((wide + self.reach) / self.side).to(torch.int64) > low  # [M, d]
-        mask = (1 << self.hash_bits) - 1
-        lower = (low & mask) << self._shifts
-        upper = ((low + 1) & mask) << self._shifts
-        hashes = torch.zeros(z.shape[0], 1, dtype=torch.int64, device=z.device)
-        valid = torch.ones(z.shape[0], 1, dtype=torch.bool, device=z.device)
-        for i in range(self.key_dim):
-            hashes = torch.cat([hashes + lower[:, i : i + 1], hashes + upper[:, i : i + 1]], 1)
-            valid = torch.cat([valid, valid & two[:, i : i + 1]], 1)
-        return hashes, valid
+        last = wide[:, -1]
+        inf = torch.tensor(float("inf"), dtype=torch.float32, device=z.device)
+        low_last = torch.nextafter((last - self.reach).to(torch.float32), -inf)  # rounded outwards
+        high_last = torch.nextafter((last + self.reach).to(torch.float32), inf)
+        prefix = torch.zeros(M, 1, dtype=torch.int64, device=z.device)
+        valid = torch.ones(M, 1, dtype=torch.bool, device=z.device)
+        if d > 1:
+            low = torch.floor((wide[:, :-1] - self.reach) / self.side).to(torch.int64)
+            two = torch.floor((wide[:, :-1] + self.reach) / self.side).to(torch.int64) > low  # [M, d-1]
+            mask = (1 << self.prefix_bits) - 1
+            lower = (low & mask) << self._shifts
+            upper = ((low + 1) & mask) << self._shifts
+            for i in range(d - 1):
+                prefix = torch.cat([prefix + lower[:, i : i + 1], prefix + upper[:, i : i + 1]], 1)
+                valid = torch.cat([valid, valid & two[:, i : i + 1]], 1)
+        pair = flatnonzero(valid.view(-1))
+        query = pair // prefix.shape[1]
+        base = prefix.view(-1).index_select(0, pair) << 32
+        bounds = torch.cat(
+            [
+                base + float_order(low_last).index_select(0, query),
+                base + float_order(high_last).index_select(0, query) + 1,  # exclusive
+            ]
+        )
+        ordered, order = torch.sort(bounds)
+        return QueryPlan(query, ordered, order)
 
     # ------------------------------------------------------------------------------------ records
+    def _records_of(self, z: torch.Tensor, slots: torch.Tensor, out: Records | None = None) -> Records:
+        """Sorted records of standardised keys ``z [n, d]`` held by ``slots [n]``."""
+        order, perm = torch.sort(self.sort_key(z))
+        return Records(
+            order, slots.to(torch.int32).index_select(0, perm), z.index_select(0, perm).t().contiguous()
+        )
+
     def rebuild(self, keys: torch.Tensor, slots: torch.Tensor, refresh: bool = True) -> None:
         """Index exactly ``slots`` (their keys ``keys[slots]``), dropping every old record.
 
@@ -221,48 +297,48 @@ class GridIndex:
         current = keys[slots]
         if refresh:
             self.set_statistics(current)
-        cubes = self.cube_hash(self.standardise(current))
-        self.records = torch.sort((cubes << self.slot_bits) | slots.to(torch.int64)).values
-        self.occupied.zero_()
-        self.occupied[bucket(cubes, self.occupancy_bits)] = True
+        self.records = self._records_of(self.standardise(current), slots)
+        self.recent = self.recent.prefix(0)
+        self._buffers = [None, None]
 
     def clear(self) -> None:
         """Drop every record (the statistics stay)."""
-        self.records = self.records[:0]
-        self.occupied.zero_()
+        self.records, self.recent = self.records.prefix(0), self.recent.prefix(0)
 
     def add(self, keys: torch.Tensor, slots: torch.Tensor) -> None:
-        """Add records for ``slots`` whose keys are ``keys [n, d]`` (raw, not standardised)."""
-        if slots.numel():
-            cubes = self.cube_hash(self.standardise(keys))
-            new = torch.sort((cubes << self.slot_bits) | slots.to(torch.int64)).values
-            self.records = merge_sorted(self.records, new, out=self._spare(len(self) + new.numel()))
-            self.occupied[bucket(cubes, self.occupancy_bits)] = True
+        """Add records for ``slots`` whose keys are ``keys [n, d]`` (raw, not standardised); the caller adds
+        one for every slot whose key it wrote (new or changed)."""
+        if slots.numel() == 0:
+            return
+        self.recent = merge_records(self.recent, self._records_of(self.standardise(keys), slots))
+        if self.recent.order.numel() > max(RECENT_MIN, self.records.order.numel() // RECENT_SHARE):
+            self.flush()
 
-    def _spare(self, size: int) -> torch.Tensor:
+    def flush(self) -> None:
+        """Merge the recent records into the main ones now (:meth:`add` does it past a share of them)."""
+        if self.recent.order.numel():
+            total = len(self)
+            self.records = merge_records(self.records, self.recent, self._spare(total))
+            self.recent = self.recent.prefix(0)
+
+    def _spare(self, size: int) -> Records:
         """The merge buffer (of two, reused: no fresh pages per insert) not holding the current records."""
-        holding = self.records.untyped_storage().data_ptr()
+        holding = self.records.order.untyped_storage().data_ptr()
         for i, buffer in enumerate(self._buffers):
-            if buffer is not None and buffer.untyped_storage().data_ptr() == holding:
+            if buffer is not None and buffer.order.untyped_storage().data_ptr() == holding:
                 continue
-            if buffer is None or buffer.numel() < size:
-                buffer = self._buffers[i] = torch.empty(
-                    size + size // 2 + 1024, dtype=torch.int64, device=self.device
-                )
+            if buffer is None or buffer.order.numel() < size:
+                buffer = self._buffers[i] = self._empty(size + size // 2 + 1024)
             return buffer
         raise AssertionError("unreachable: at most one buffer holds the records")
 
     def __len__(self) -> int:
-        return self.records.numel()
+        return self.records.order.numel() + self.recent.order.numel()
 
     def nbytes(self) -> int:
-        held = {
-            b.untyped_storage().data_ptr(): b.untyped_storage().nbytes()
-            for b in self._buffers
-            if b is not None
-        }
-        held[self.records.untyped_storage().data_ptr()] = self.records.untyped_storage().nbytes()
-        return sum(held.values()) + self.occupied.numel()
+        """Bytes held by the records and the merge buffers."""
+        arrays = [t for r in (*self._buffers, self.records, self.recent) if r is not None for t in r]
+        return sum({t.untyped_storage().data_ptr(): t.untyped_storage().nbytes() for t in arrays}.values())
 
     # ------------------------------------------------------------------------------------ queries
     def nearest(
@@ -270,7 +346,7 @@ class GridIndex:
         z: torch.Tensor,
         keys: torch.Tensor,
         live: torch.Tensor,
-        cubes: tuple[torch.Tensor, torch.Tensor] | None = None,
+        cubes: QueryPlan | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """For standardised queries ``z [M, d]``: ``(slot [M] int64, squared distance [M] float32)`` of the
         nearest live slot within delta (lowest slot on ties), or ``(-1, inf)``.
@@ -280,9 +356,8 @@ class GridIndex:
         """
         M = z.shape[0]
         best = torch.full((M,), NO_MATCH, dtype=torch.int64, device=z.device)
-        for query, slot, d2 in self._verified(
-            z, self.records, self.slot_bits, self.occupied, keys, live, cubes
-        ):
+        cubes = self.query_cubes(z) if cubes is None else cubes
+        for query, slot, d2 in self._candidates(z, cubes, keys, live):
             # Non-negative float32 bits order like the floats: (distance, slot) as one int64 to minimise.
             combined = (d2.view(torch.int32).to(torch.int64) << 32) | slot
             best.scatter_reduce_(0, query, combined, "amin")
@@ -296,78 +371,61 @@ class GridIndex:
         z: torch.Tensor,
         keys: torch.Tensor,
         live: torch.Tensor,
-        cubes: tuple[torch.Tensor, torch.Tensor] | None = None,
+        cubes: QueryPlan | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every (query, live slot) pair within delta, each once: ``(query [P], slot [P], d2 [P])``,
         sorted by query then slot."""
-        parts = list(self._verified(z, self.records, self.slot_bits, self.occupied, keys, live, cubes))
-        if not parts:
-            empty = torch.zeros(0, dtype=torch.int64, device=z.device)
-            return empty, empty, torch.zeros(0, dtype=torch.float32, device=z.device)
-        query, slot, d2 = (torch.cat(x) for x in zip(*parts, strict=True))
-        # A slot can be found twice (a stale record and a current one): keep one of each pair.
-        pair, order = torch.sort((query << self.slot_bits) | slot)
-        first = torch.ones_like(pair, dtype=torch.bool)
-        first[1:] = pair[1:] != pair[:-1]
-        order = order[first]
-        return query[order], slot[order], d2[order]
+        cubes = self.query_cubes(z) if cubes is None else cubes
+        parts = list(self._candidates(z, cubes, keys, live))
+        return _unique_pairs(parts, self.slot_bits, z.device)
 
     def pairs(
-        self, z: torch.Tensor, cubes: tuple[torch.Tensor, torch.Tensor] | None = None
+        self, z: torch.Tensor, cubes: QueryPlan | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every ordered pair ``(i, j)``, ``i != j``, of the points ``z [n, d]`` within delta of each other:
         ``(i [P], j [P], d2 [P])`` sorted by i then j (used to find interacting transitions in a batch)."""
         n = z.shape[0]
-        bits = slot_bits_for(max(n, 2))
-        own = self.cube_hash(z)
-        records = torch.sort((own << bits) | torch.arange(n, device=z.device)).values
-        occupied = occupancy(own, occupancy_bits_for(n))
-        live = torch.ones(n, dtype=torch.bool, device=z.device)
+        records = self._records_of(z, torch.arange(n, device=z.device))
         parts = []
-        for i, j, d2 in self._verified(z, records, bits, occupied, z, live, cubes, standardised=True):
+        for i, j, d2 in self._verified(z, records, cubes):
             other = i != j
             parts.append((i[other], j[other], d2[other]))
-        if not parts:
-            empty = torch.zeros(0, dtype=torch.int64, device=z.device)
-            return empty, empty, torch.zeros(0, dtype=torch.float32, device=z.device)
-        i, j, d2 = (torch.cat(x) for x in zip(*parts, strict=True))
-        pair, order = torch.sort((i << bits) | j)
-        first = torch.ones_like(pair, dtype=torch.bool)
-        first[1:] = pair[1:] != pair[:-1]
-        order = order[first]
-        return i[order], j[order], d2[order]
+        return _unique_pairs(parts, slot_bits_for(max(n, 2)), z.device)
+
+    def _candidates(
+        self, z: torch.Tensor, cubes: QueryPlan, keys: torch.Tensor, live: torch.Tensor
+    ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """:meth:`_verified` over the main and the recent records."""
+        for records in (self.records, self.recent):
+            yield from self._verified(z, records, cubes, keys, live)
 
     def _verified(
         self,
         z: torch.Tensor,
-        records: torch.Tensor,
-        slot_bits: int,
-        occupied: torch.Tensor,
-        keys: torch.Tensor,
-        live: torch.Tensor,
-        cubes: tuple[torch.Tensor, torch.Tensor] | None = None,
-        standardised: bool = False,
-    ):
-        """Yield, chunk by chunk of queries, the candidates ``(query, slot, d2)`` that are live and within
-        delta (candidates = the records of the query's occupied cubes; duplicates possible)."""
-        M = z.shape[0]
-        if M == 0 or records.numel() == 0:
+        records: Records,
+        cubes: QueryPlan | None = None,
+        keys: torch.Tensor | None = None,
+        live: torch.Tensor | None = None,
+    ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """Yield, chunk by chunk, the candidates ``(query, slot, d2)`` within delta (duplicates possible).
+
+        With ``keys`` and ``live`` a candidate also needs a live slot whose current standardised key is the
+        record's copy (stale records drop out); without them every record is current (``pairs``).
+        """
+        if z.shape[0] == 0 or records.order.numel() == 0:
             return
-        hashes, valid = self.query_cubes(z) if cubes is None else cubes  # [M, 2^d]
-        flat = hashes.view(-1)
-        valid = valid.view(-1) & occupied.index_select(0, bucket(flat, occupied.numel().bit_length() - 1))
-        searched = valid.nonzero().squeeze(1)  # (query, cube) pairs worth a search
-        if searched.numel() == 0:
-            return
-        wanted = flat.index_select(0, searched)
-        low = torch.searchsorted(records, wanted << slot_bits)
-        counts = torch.searchsorted(records, (wanted + 1) << slot_bits) - low
-        nonempty = counts.nonzero().squeeze(1)
+        plan = self.query_cubes(z) if cubes is None else cubes
+        found = search_sorted(records.order, plan.sorted)
+        position = torch.empty_like(found)
+        position[plan.order] = found
+        R = plan.query.numel()
+        low, counts = position[:R], position[R:] - position[:R]
+        nonempty = flatnonzero(counts > 0)
         if nonempty.numel() == 0:
             return
         counts, low = counts.index_select(0, nonempty), low.index_select(0, nonempty)
-        owner = searched.index_select(0, nonempty) // hashes.shape[1]  # the query of each searched cube
-        # Chunks of cubes holding at most MAX_CANDIDATES candidates (one cube may exceed it).
+        owner = plan.query.index_select(0, nonempty)
+        # Chunks of ranges holding at most MAX_CANDIDATES candidates (one range may exceed it).
         cumulative = counts.cumsum(0)
         total = int(cumulative[-1])
         bounds = [0, counts.numel()]
@@ -378,27 +436,44 @@ class GridIndex:
             bounds = sorted(
                 {0, counts.numel(), *(int(c) + 1 for c in cuts.tolist() if int(c) + 1 < counts.numel())}
             )
-        mask = (1 << slot_bits) - 1
+        columns = z.t().contiguous()  # [d, M]
         for start, stop in itertools.pairwise(bounds):
             c = counts[start:stop]
             n = int(c.sum())
-            if c.numel() == n:  # the common case: one record per cube
-                index, query = low[start:stop], owner[start:stop]
-            else:
-                run_start = torch.repeat_interleave(c.cumsum(0) - c, c, output_size=n)
-                index = torch.repeat_interleave(low[start:stop], c, output_size=n)
-                index += torch.arange(n, device=z.device) - run_start
-                query = torch.repeat_interleave(owner[start:stop], c, output_size=n)
-            slot = records.index_select(0, index) & mask
-            ok = live.index_select(0, slot)
-            query, slot = query[ok], slot[ok]
-            candidate = keys.index_select(0, slot)
-            if not standardised:
-                candidate = self.standardise(candidate)
-            mine = z.index_select(0, query)
-            d2 = squared_distance(mine, candidate)
-            close = self.matches(mine, candidate, d2)
-            yield query[close], slot[close], d2[close]
+            index = repeat(low[start:stop] - (c.cumsum(0) - c), c, n)
+            index += torch.arange(n, device=z.device)  # consecutive records of each range
+            query = repeat(owner[start:stop], c, n)
+            query, index, d2 = self._inside(columns, query, records.coords, index)
+            slot = records.slot.index_select(0, index)
+            if keys is not None and live is not None:
+                current = flatnonzero(live.index_select(0, slot))
+                query, index, slot, d2 = (x.index_select(0, current) for x in (query, index, slot, d2))
+                now = self.standardise(keys.index_select(0, slot)).t()
+                same = flatnonzero((now == records.coords.index_select(1, index)).all(0))
+                query, slot, d2 = (x.index_select(0, same) for x in (query, slot, d2))
+            yield query, slot.to(torch.int64), d2
+
+    def _inside(
+        self, columns: torch.Tensor, query: torch.Tensor, coords: torch.Tensor, index: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The candidate pairs (query, record index) within delta and their squared distance, tested one
+        dimension at a time in order (the float32 sum of :func:`squared_distance`): a pair leaves as soon as
+        a coordinate falls outside the box, or the ball's partial sum (which can only grow) reaches delta^2."""
+        d2 = None
+        for i in range(columns.shape[0]):
+            diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
+            if self.shape == "box":  # the distance only for the pairs that pass (below)
+                keep = flatnonzero(diff.abs() <= self.delta_f32)
+                query, index = query.index_select(0, keep), index.index_select(0, keep)
+                continue
+            d2 = diff * diff if d2 is None else d2 + diff * diff
+            keep = flatnonzero(d2 < self.delta_sq)
+            query, index, d2 = (x.index_select(0, keep) for x in (query, index, d2))
+        if d2 is None:
+            for i in range(columns.shape[0]):
+                diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
+                d2 = diff * diff if d2 is None else d2 + diff * diff
+        return query, index, d2
 
     def matches(self, a: torch.Tensor, b: torch.Tensor, d2: torch.Tensor | None = None) -> torch.Tensor:
         """Whether standardised keys ``a`` and ``b`` ``[..., d]`` are within delta (this index's shape);
@@ -406,3 +481,19 @@ class GridIndex:
         if self.shape == "box":
             return (a - b).abs().amax(-1) <= self.delta_f32
         return (squared_distance(a, b) if d2 is None else d2) < self.delta_sq
+
+
+def _unique_pairs(
+    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], bits: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Concatenate (query, slot, d2) parts, sorted by query then slot, each pair once (a slot can be found
+    twice: a stale record and a current one with the same key)."""
+    if not parts:
+        empty = torch.zeros(0, dtype=torch.int64, device=device)
+        return empty, empty, torch.zeros(0, dtype=torch.float32, device=device)
+    query, slot, d2 = (torch.cat(x) for x in zip(*parts, strict=True))
+    pair, order = torch.sort((query << bits) | slot)
+    first = torch.ones_like(pair, dtype=torch.bool)
+    first[1:] = pair[1:] != pair[:-1]
+    order = order[first]
+    return query[order], slot[order], d2[order]

@@ -12,6 +12,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from mcrs.models.gru import gru_sequence
+
 
 class RecurrentAgent(nn.Module):
     """Per-agent Q network with parameter sharing.
@@ -46,6 +48,9 @@ class RecurrentAgent(nn.Module):
         self.fc1 = nn.Linear(self.input_dim, hidden_dim)
         self.rnn = nn.GRU(hidden_dim, hidden_dim, batch_first=True)
         self.fc2 = nn.Linear(hidden_dim, n_actions)
+        #: Unroll with :func:`mcrs.models.gru.gru_sequence` on the CPU (the same values to float rounding,
+        #: less CPU time; EMC's curiosity networks switch it on); False keeps ``nn.GRU``.
+        self.fused_cpu_gru = False
 
     def build_inputs(self, observation: torch.Tensor, last_action: torch.Tensor | None) -> torch.Tensor:
         """Concatenate ``observation [..., N, obs]`` with the optional one-hot inputs.
@@ -75,6 +80,9 @@ class RecurrentAgent(nn.Module):
     def unroll(self, inputs: torch.Tensor) -> torch.Tensor:
         """Whole episodes from a zero hidden state: ``inputs [B, T, N, in]`` -> ``q [B, T, N, A]``."""
         B, T, N, _ = inputs.shape
+        if self.fused_cpu_gru and inputs.device.type == "cpu":  # time-major: each step's rows are contiguous
+            x = self.fc1(inputs).transpose(0, 1).reshape(T, B * N, self.hidden_dim).relu_()
+            return self.fc2(gru_sequence(x, self.rnn)).view(T, B, N, self.n_actions).transpose(0, 1)
         x = F.relu(self.fc1(inputs))  # [B, T, N, H]
         x = x.permute(0, 2, 1, 3).reshape(B * N, T, self.hidden_dim)  # agents folded into the batch
         out, _ = self.rnn(x)

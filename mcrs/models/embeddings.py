@@ -11,9 +11,9 @@ Every embedding maps ``state [*B, D]`` (float32) and ``time [*B]`` (t/T in [0, 1
 The trainable ones also have a decoder, ``reconstruct(keys, time) -> (state_hat [*B, D], return_hat [*B])``,
 trained by :class:`EmbeddingTrainer` on :func:`embedding_loss` (eq. 31).
 
-The state layout is the env's (``mcrs/env/core.py``): the first ``2 * width * height`` values are the maps
-m(U) and m(F), each x-major (index ``x * height + y``), so ``state[..., :2 * cells].view(*B, 2, width,
-height)`` is the map image (the env's ``state_map``); the remaining values are the scaled positions.
+The state layout is the env's, read from :class:`mcrs.env.layout.MapImage`: the maps m(U) and m(F) come
+first, as an image ``[2, width, height]`` (the env's ``state_map``); the remaining values are the scaled
+positions. The CNN needs only the map's size, not the numbers of UAVs, zones and targets behind it.
 
 Parameters are initialised from ``seed`` inside :func:`torch.random.fork_rng`: two embeddings built with one
 seed are identical, and building one leaves the global RNG where it was.
@@ -28,6 +28,8 @@ from typing import Any
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from mcrs.env.layout import MapImage
 
 EMBEDDINGS = ("random", "fc", "cnn")
 
@@ -220,8 +222,8 @@ class FCEmbedding(_EncoderDecoder):
 class CNNEmbedding(_EncoderDecoder):
     """CNN-SEMU's encoder (paper figure 3d, 3f): a CNN on the map, a fully connected layer on the rest.
 
-    The first ``2 * width * height`` state values are the map image ``[2, width, height]`` (m(U), m(F),
-    x-major: the env's ``state_map``). It goes through ``len(channels)`` convolutions: 3x3 stride 2 padding 1
+    The head of the state is the map image ``[2, width, height]`` (m(U), m(F): the env's ``state_map``,
+    :class:`~mcrs.env.layout.MapImage`). It goes through ``len(channels)`` convolutions: 3x3 stride 2 padding 1
     layers, then a stride-1 unpadded layer whose kernel is the remaining spatial size, so its single output
     position sees the whole map (paper: 20x20 -> 10 -> 5 -> 5x5 kernel), each followed by a ReLU. The rest of
     the state (positions) and t/T go through ``Linear(rest + 1, hidden) -> ReLU``. The two feature vectors are
@@ -250,10 +252,11 @@ class CNNEmbedding(_EncoderDecoder):
                 raise ValueError(
                     f"kernels must give one kernel per conv layer ({len(channels)} channels), got {len(kernel_pairs)}"
                 )
-        self.map_cells = 2 * self.map_shape[0] * self.map_shape[1]
+        self.map_image = MapImage(*self.map_shape)
+        self.map_cells = self.map_image.dim
         self.rest_dim = state_dim - self.map_cells
 
-        convs, size, in_channels = [], self.map_shape, 2
+        convs, size, in_channels = [], self.map_shape, self.map_image.channels
         for i, (out_channels, kernel) in enumerate(zip(channels, kernel_pairs, strict=True)):
             last = i == len(channels) - 1
             stride, padding = (1, 0) if last else (2, 1)
@@ -284,11 +287,11 @@ class CNNEmbedding(_EncoderDecoder):
         return like.new_empty(rows, *self.map_shape, 2)
 
     def map_features(self, state: torch.Tensor, workspace: torch.Tensor | None = None) -> torch.Tensor:
-        """CNN features ``[N, channels[-1]]`` of the map part ``state[:, :2 * cells]`` of a flat batch.
+        """CNN features ``[N, channels[-1]]`` of the map image at the head of a flat batch ``state [N, D]``.
 
         The image is laid out channels-last (NHWC), oneDNN's native layout on the CPU (no reorders).
         """
-        image = state[:, : self.map_cells].unflatten(1, (2, *self.map_shape))
+        image = self.map_image.image(state)
         if workspace is None:
             h = image.contiguous(memory_format=torch.channels_last)
         else:
@@ -306,7 +309,7 @@ class CNNEmbedding(_EncoderDecoder):
     def encode(
         self, state: torch.Tensor, time: torch.Tensor, workspace: torch.Tensor | None = None
     ) -> torch.Tensor:
-        rest = F.relu(_linear_with_time(self.rest, state[:, self.map_cells :], time))
+        rest = F.relu(_linear_with_time(self.rest, self.map_image.rest(state), time))
         return self.output(torch.cat([self.map_features(state, workspace), rest], dim=-1))
 
 
@@ -316,10 +319,11 @@ def _check_map_shape(map_shape: Sequence[int] | None, state_dim: int) -> tuple[i
     shape = tuple(map_shape)
     if len(shape) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v <= 0 for v in shape):
         raise ValueError(f"map_shape must be two positive ints (width, height), got {map_shape!r}")
-    if 2 * shape[0] * shape[1] > state_dim:
+    maps = MapImage(*shape)
+    if maps.dim > state_dim:
         raise ValueError(
-            f"map_shape {shape} does not fit the state: its two maps need 2 * {shape[0]} * {shape[1]} = "
-            f"{2 * shape[0] * shape[1]} values, more than state_dim = {state_dim}"
+            f"map_shape {shape} does not fit the state: its {maps.channels} maps need {maps.dim} values, "
+            f"more than state_dim = {state_dim}"
         )
     return shape  # type: ignore[return-value]
 

@@ -75,6 +75,8 @@ class EMCCuriosity(nn.Module):
         )
         self.soft_update = SoftUpdate(self.vdn_loss, tau=tau)
         self.predictor = _fresh_copy(agent)
+        for network in (vdn_agent, self.predictor):  # nn.GRU's values to float rounding, less CPU time
+            network.fused_cpu_gru = True
         make = make_optimizer or _pymarl_rmsprop
         self.vdn_params = list(vdn_agent.parameters())
         self.predictor_params = list(self.predictor.parameters())
@@ -89,12 +91,14 @@ class EMCCuriosity(nn.Module):
     def update(self, episodes: TensorDictBase, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Train the VDN learner and the predictor on ``episodes`` ``[B, T+1]``; return the intrinsic reward
         ``[B, T+1, 1]`` (row t: transition t -> t+1; the last row is padding) and diagnostics."""
-        vdn = self.vdn_loss(episodes)
+        # The agent inputs, built once for the four unrolls (a shallow copy: the caller's batch stays as it was).
+        inputs = self.vdn_loss.agent_inputs(episodes)
+        shared = episodes.copy().set(self.vdn_loss.tensor_keys.agent_inputs, inputs)
+        vdn = self.vdn_loss(shared)
         gradient_step(vdn["loss"], self.vdn_optimizer, self.vdn_params, self.grad_clip, step, "curiosity_vdn")
         self.soft_update.step()
 
-        inputs = self.vdn_loss.agent_inputs(episodes)
-        target = self.vdn_loss.agent_values(episodes, target=True, inputs=inputs) * PREDICTION_SCALE
+        target = self.vdn_loss.agent_values(shared, target=True, inputs=inputs) * PREDICTION_SCALE
         error = (self.predictor.unroll(inputs) - target).norm(dim=-1)  # [B, T+1, N]
         filled = episodes.get(self.vdn_loss.tensor_keys.filled)[:, :-1]  # transitions t whose s_{t+1} counts
         valid = filled.unsqueeze(-1).to(error.dtype)

@@ -23,6 +23,8 @@ turns any TorchRL collector batch into it, splitting episodes that end early). K
     terminated    [B, T+1, 1]        the transition ends in a terminal state (no bootstrap)
     filled        [B, T+1]           the transition is real (False on padding and on the last row); optional
     action_value  [B, T+1, N, A]     written by a TorchRL agent network (below), not read from the batch
+    agent_inputs  [B, T+1, N, in]    optional: the recurrent agent's inputs, already built by the caller
+                                     (used as they are instead of being built again from the batch)
 
 The agent network is either our :class:`~mcrs.models.agent.RecurrentAgent` (unrolled over whole episodes
 from a zero hidden state; every item must start at a reset) or any TorchRL ``TensorDictModule`` writing
@@ -47,7 +49,8 @@ The episodic-memory terms read, when switched on (row t describes the transition
 
 Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
 ``reward``, ``done``, ``terminated``, ``filled``, ``action_value``, ``memory_return``, ``memory_hit``,
-``memory_ratio``, ``intrinsic_reward``), so the loss plugs into other TorchRL multi-agent tasks.
+``memory_ratio``, ``intrinsic_reward``, ``agent_inputs``), so the loss plugs into other TorchRL multi-agent
+tasks.
 """
 
 from __future__ import annotations
@@ -127,6 +130,7 @@ class ValueFactorisationLoss(LossModule):
         memory_ratio: NestedKey = "memory_ratio"
         intrinsic_reward: NestedKey = "intrinsic_reward"
         action_value: NestedKey = ("agents", "action_value")
+        agent_inputs: NestedKey = "agent_inputs"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -229,6 +233,9 @@ class ValueFactorisationLoss(LossModule):
                     "(keep them with episodes_from_rollout(step_keys=...))"
                 )
             return episodes.select(*in_keys)
+        built = episodes.get(self.tensor_keys.agent_inputs, None)  # already built by a caller (EMC)
+        if built is not None:
+            return built
         actions = self.require(episodes, "action")
         last_action = torch.cat([torch.full_like(actions[:, :1], -1), actions[:, :-1]], dim=1)
         return self.agent_network.build_inputs(self.require(episodes, "observation"), last_action)

@@ -1,0 +1,109 @@
+"""Callbacks: how an algorithm adds to the training loop without branching it (BenchMARL's shape).
+
+The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in order:
+
+    on_setup(experiment)                 once, after everything is built (before a checkpoint is loaded)
+    on_batch_collected(batch, ids)       after each collection: the episodes ``[E, T]`` and their ids ``[E]``
+    on_train_batch(batch, env_steps)     before each learner update: may add keys the loss reads
+    on_evaluation_end(metrics)           after each greedy evaluation
+    statistics()                         at each log row: scalars to log (``memory/...``)
+    state_dict() / load_state_dict()     in every checkpoint, under ``callbacks/<name>``
+
+Hooks return scalars to log (averaged over the log interval); ``name`` keys the checkpoint state and the
+``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
+:class:`~mcrs.experiment.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
+:func:`mcrs.experiment.trainer.algorithm_callbacks` builds the ones an ``algo`` config asks for. A user's own callback (a
+scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+from tensordict import TensorDictBase
+
+from mcrs.experiment.config import Config
+from mcrs.experiment.learner import make_optimizer
+from mcrs.objectives.curiosity import EMCCuriosity
+
+if TYPE_CHECKING:
+    from mcrs.experiment.trainer import Experiment
+
+Scalars = dict[str, float | torch.Tensor]
+
+
+class Callback:
+    """A no-op callback; subclasses override the hooks they need."""
+
+    name: str = "callback"
+
+    def on_setup(self, experiment: Experiment) -> None:
+        """Called once the experiment is built; keep a reference if a hook needs it."""
+        self.experiment = experiment
+
+    def on_batch_collected(self, batch: TensorDictBase, episode_ids: torch.Tensor) -> Scalars:
+        """New whole episodes ``[E, T]`` (the collector's layout) with their ids ``[E]``."""
+        return {}
+
+    def on_train_batch(self, batch: TensorDictBase, env_steps: int) -> Scalars:
+        """A sampled batch of episodes ``[B, T+1]`` before the learner's update; may set keys on it."""
+        return {}
+
+    def on_evaluation_end(self, metrics: dict[str, float]) -> None:
+        """The greedy evaluation's mean metrics (``episode_reward``, ...)."""
+
+    def statistics(self) -> Scalars:
+        """Scalars to log with each train row (state of the callback, not averaged)."""
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s output."""
+
+
+class CuriosityCallback(Callback):
+    """EMC's curiosity: before each update, trains its VDN learner and predictor on the sampled batch and
+    sets ``intrinsic_reward`` on it, which the TD loss adds to its target (its documented key)."""
+
+    name = "curiosity"
+
+    def __init__(self, config: Config, agent: torch.nn.Module) -> None:
+        a, t = config.algo, config.train
+        self.curiosity = EMCCuriosity(
+            agent,
+            gamma=a.gamma,
+            scale=a.curiosity_scale,
+            decay_rate=a.curiosity_decay_rate,
+            decay_cycle=a.curiosity_decay_cycle,
+            tau=a.curiosity_tau,
+            grad_clip=t.grad_clip,
+            make_optimizer=lambda params: make_optimizer(params, t),
+        )
+
+    def on_train_batch(self, batch: TensorDictBase, env_steps: int) -> Scalars:
+        self.curiosity.set_env_steps(env_steps)
+        intrinsic, stats = self.curiosity.update(batch, env_steps)
+        batch.set("intrinsic_reward", intrinsic)
+        return {f"train/{k}": v for k, v in stats.items()}
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.curiosity.state_dict_all()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.curiosity.load_state_dict_all(state)
+
+
+def append_scalar(stats: dict[str, list[torch.Tensor]], key: str, value: float | torch.Tensor) -> None:
+    """Collect a hook's scalar for the next log row (where it is averaged)."""
+    stats.setdefault(key, []).append(value if isinstance(value, torch.Tensor) else torch.tensor(value))
+
+
+def check_names(callbacks: list[Callback]) -> None:
+    """Callbacks key their checkpoint state and timers by name: two with one name would collide."""
+    names = [cb.name for cb in callbacks]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise ValueError(f"callbacks must have distinct names (they key checkpoints), repeated: {duplicates}")

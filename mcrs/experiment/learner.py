@@ -1,0 +1,121 @@
+"""The learner: the agent and mixer networks, their TD loss, optimiser and target networks.
+
+One :meth:`Learner.update` per sampled batch of episodes. Everything an algorithm adds on top (the episodic
+memory's look-ups, EMC's intrinsic reward) arrives as keys of the batch, written before the update by the
+replay buffer's transforms or by the experiment's callbacks (:mod:`mcrs.experiment.callbacks`), so the
+learner is the same for every algorithm.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+from torchrl.objectives import HardUpdate
+
+from mcrs.env.config import EnvConfig
+from mcrs.env.core import N_ACTIONS
+from mcrs.experiment.config import AlgoConfig, ModelConfig, TrainConfig
+from mcrs.models.agent import RecurrentAgent
+from mcrs.models.mixers import make_mixer
+from mcrs.objectives import ValueFactorisationLoss
+from mcrs.objectives.gradient import gradient_step
+
+
+def build_agent(model: ModelConfig, env_config: EnvConfig) -> RecurrentAgent:
+    """The agent network shared by all UAVs."""
+    return RecurrentAgent(
+        env_config.obs_dim,
+        N_ACTIONS,
+        env_config.n_uavs,
+        model.hidden_dim,
+        model.agent_id,
+        model.last_action,
+    )
+
+
+def build_mixer(algo: AlgoConfig, env_config: EnvConfig) -> nn.Module:
+    """The algorithm's mixer (QMIX, VDN or QPLEX) over the map's global state."""
+    return make_mixer(
+        str(algo.mixer),
+        env_config.n_uavs,
+        (env_config.state_dim,),
+        N_ACTIONS,
+        mixing_embed_dim=algo.mixing_embed_dim,
+        hypernet_embed=algo.hypernet_embed,
+        hypernet_layers=algo.hypernet_layers,
+        n_kernels=algo.qplex_kernels,
+        adv_hypernet_layers=algo.qplex_adv_layers,
+    )
+
+
+def make_optimizer(params: list[nn.Parameter], train: TrainConfig) -> torch.optim.Optimizer:
+    """``train.optimizer`` over ``params`` (the learner's, and EMC's curiosity networks')."""
+    if str(train.optimizer) == "adam":
+        return torch.optim.Adam(params, lr=train.lr, eps=train.optim_eps)
+    return torch.optim.RMSprop(params, lr=train.lr, alpha=train.rmsprop_alpha, eps=train.optim_eps)
+
+
+class Learner:
+    """Networks, loss, optimiser and target updates; its state is the loss module's plus the optimiser's.
+
+    Args:
+        algo, model, train: the config nodes it reads (the mixer and TD target; the agent; the optimiser).
+        env_config: the map, which fixes the observation, state and team sizes.
+        device: where the networks live.
+    """
+
+    def __init__(
+        self,
+        algo: AlgoConfig,
+        model: ModelConfig,
+        train: TrainConfig,
+        env_config: EnvConfig,
+        device: torch.device,
+    ) -> None:
+        self.agent = build_agent(model, env_config).to(device)
+        self.mixer = build_mixer(algo, env_config).to(device)
+        self.loss = ValueFactorisationLoss(
+            self.agent,
+            self.mixer,
+            gamma=algo.gamma,
+            td_lambda=algo.td_lambda,
+            double_q=algo.double_q,
+            memory_weight=algo.memory_weight,
+            incentive=str(algo.incentive),
+        )
+        self.params = [*self.agent.parameters(), *self.mixer.parameters()]
+        self.optimizer = make_optimizer(self.params, train)
+        # interval 0: every step() copies; the experiment calls it every target_update_episodes episodes.
+        self.target_updater = HardUpdate(self.loss, value_network_update_interval=0)
+        self.grad_clip = train.grad_clip
+
+    def update(self, batch, step: int) -> dict[str, torch.Tensor]:
+        """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
+        out = self.loss(batch)
+        term = "loss"
+        if not torch.isfinite(out["loss"]):  # name the term that broke (the memory term is weighted inside)
+            term = next((k for k in ("loss_td", "loss_memory") if not torch.isfinite(out[k])), term)
+        grad_norm = gradient_step(out["loss"], self.optimizer, self.params, self.grad_clip, step, term)
+        stats = {k: v.detach() for k, v in out.items() if k != "loss"}
+        return {**stats, "grad_norm": grad_norm.detach()}
+
+    def weights(self) -> dict[str, Any]:
+        """The online agent and mixer: what a policy needs (``model_<steps>.pt``, fingerprints)."""
+        return {"agent": self.agent.state_dict(), "mixer": self.mixer.state_dict()}
+
+    def state_dict(self) -> dict[str, Any]:
+        """The loss module's state (online and target parameters of both networks) and the optimiser's;
+        ``agent`` and ``mixer`` as well, for readers that only want the policy."""
+        return {**self.weights(), "loss": self.loss.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "loss" in state:
+            self.loss.load_state_dict(state["loss"])
+        else:  # checkpoints written before the loss module's state was saved whole
+            self.agent.load_state_dict(state["agent"])
+            self.mixer.load_state_dict(state["mixer"])
+            self.loss.target_agent_network_params.load_state_dict(state["target_agent"])
+            self.loss.target_mixer_params.load_state_dict(state["target_mixer"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,77 @@
+"""Shared drawing helpers: an Agg figure (never the global pyplot backend), the grid, colours.
+
+Grid convention: cell (x, y) is drawn at x horizontally and y vertically, y growing upwards, so that
+the action names of the paper (left, up, ...) match the picture.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from mcrs.env.config import EnvConfig
+
+UNCERTAINTY_CMAP = "coolwarm"  # paper figure 4: red = uncertain, blue = known
+NO_FLY_COLOR = "#b2182b"
+FOUND_COLOR = "#1a9850"
+MISSED_COLOR = "#f46d43"
+
+
+def new_figure(width: float, height: float) -> Figure:
+    """A figure on its own Agg canvas (inches), never registered with pyplot."""
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def setup_grid(ax: Axes, cfg: EnvConfig, cell_lines: bool = True) -> None:
+    """Axes over the map's cells (centres at integers), square cells, optional cell borders."""
+    ax.set_xlim(-0.5, cfg.width - 0.5)
+    ax.set_ylim(-0.5, cfg.height - 0.5)
+    ax.set_aspect("equal")
+    ax.set_xticks(np.arange(0, cfg.width, max(1, cfg.width // 10)))
+    ax.set_yticks(np.arange(0, cfg.height, max(1, cfg.height // 10)))
+    if cell_lines:  # explicit lines: minor ticks would cost a tick-label layout on every animation frame
+        ax.vlines(np.arange(-0.5, cfg.width), -0.5, cfg.height - 0.5, colors="0.85", linewidths=0.5, zorder=1)
+        ax.hlines(np.arange(-0.5, cfg.height), -0.5, cfg.width - 0.5, colors="0.85", linewidths=0.5, zorder=1)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+
+
+def as_image(values: np.ndarray) -> np.ndarray:
+    """``[W, H]`` map indexed [x, y] -> image rows y, columns x (for ``origin="lower"``)."""
+    return values.T
+
+
+def extent(cfg: EnvConfig) -> tuple[float, float, float, float]:
+    """``imshow``'s extent that puts each map value on its cell."""
+    return (-0.5, cfg.width - 0.5, -0.5, cfg.height - 0.5)
+
+
+def draw_no_fly(ax: Axes, no_fly: np.ndarray) -> None:
+    """Hatched squares on the no-fly cells ``[Z, 2]``."""
+    for x, y in no_fly:
+        ax.add_patch(
+            square(x, y, facecolor=NO_FLY_COLOR, alpha=0.35, edgecolor=NO_FLY_COLOR, hatch="xx", zorder=2)
+        )
+
+
+def square(x: float, y: float, **kwargs) -> Rectangle:
+    """The unit square of cell (x, y)."""
+    return Rectangle((x - 0.5, y - 0.5), 1.0, 1.0, **kwargs)
+
+
+def uav_colors(n: int) -> list:
+    """One qualitative colour per UAV (repeating beyond 20)."""
+    cmap = colormaps["tab10" if n <= 10 else "tab20"]
+    return [cmap(i % cmap.N) for i in range(n)]
+
+
+def trail_offsets(n: int) -> np.ndarray:
+    """Small per-UAV shifts so that trails sharing a cell stay distinguishable."""
+    angles = 2 * np.pi * np.arange(n) / max(n, 1)
+    return 0.18 * np.stack([np.cos(angles), np.sin(angles)], -1)

@@ -1,0 +1,220 @@
+"""The package's layers (docs/ARCHITECTURE.md): no package imports one above it, no import cycles between
+packages, no module over 500 lines, and ``import mcrs.env`` loads neither PettingZoo nor anything above.
+
+The imports are read from the source (``ast``), every ``import`` statement counted: at module level,
+inside functions (lazy imports) and under ``if TYPE_CHECKING``. A "package" is a sub-package of
+``mcrs`` (``mcrs/env/``) or a top-level module (``mcrs/train.py``); ``mcrs/__init__.py`` is ``mcrs``.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1] / "mcrs"
+MAX_LINES = 500
+
+#: Bottom to top. A package may import packages of its own layer or below, never above; within a layer
+#: the imports must not form a cycle. A new package must be placed here before the test passes.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("env",),  # the simulator, its adapters and layouts: imports nothing else of mcrs
+    ("models", "memory"),  # networks; the episodic buffer (both read env's layouts)
+    ("objectives",),  # the losses over the models
+    ("experiment", "policies"),  # training, checkpoints; policies (heuristics, trained checkpoints)
+    (  # applications: pictures, analysis, benchmarks, other tasks, the command lines, the package root
+        "viz",
+        "analysis",
+        "campaign",
+        "benchmarks",
+        "tasks",
+        "evaluate",
+        "render_episode",
+        "train",
+        "mcrs",
+    ),
+)
+LAYER = {package: level for level, packages in enumerate(LAYERS) for package in packages}
+
+#: Known imports against the layers, each with the change that removes it (none: the list only shrinks).
+ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
+
+#: Modules allowed over 500 lines (none: the list only shrinks).
+ALLOWED_LONG: dict[str, str] = {}
+
+
+def package_of(module: str) -> str:
+    """``mcrs.env.core`` -> ``env``; ``mcrs.train`` -> ``train``; ``mcrs`` -> ``mcrs``."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "mcrs"
+
+
+def module_name(path: Path, root: Path = ROOT) -> str:
+    relative = path.relative_to(root.parent).with_suffix("")
+    parts = relative.parts[:-1] if relative.name == "__init__" else relative.parts
+    return ".".join(parts)
+
+
+def imported_modules(path: Path, root: Path = ROOT) -> set[str]:
+    """Every ``mcrs`` module that ``path`` imports (absolute or relative, anywhere in the file)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    here = module_name(path, root).split(".")
+    is_package = path.name == "__init__.py"
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: resolve against this module's package
+                base = here if is_package else here[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join([*base, node.module] if node.module else base)
+            else:
+                target = node.module or ""
+            found.add(target)
+            # ``from mcrs import viz`` imports the sub-package mcrs.viz.
+            found.update(f"{target}.{alias.name}" for alias in node.names if target == "mcrs")
+    return {m for m in found if m == "mcrs" or m.startswith("mcrs.")}
+
+
+def import_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
+    """``(file relative to mcrs/, importing package, imported package)`` for every cross-package import."""
+    edges = []
+    for path in sorted(root.rglob("*.py")):
+        source = package_of(module_name(path, root))
+        for module in sorted(imported_modules(path, root)):
+            target = package_of(module)
+            if target != source:
+                edges.append((path.relative_to(root).as_posix(), source, target))
+    return edges
+
+
+def upward(edges: Iterable[tuple[str, str, str]]) -> list[str]:
+    """The imports of a package above the importer's layer (allowed ones aside), one line each."""
+    return [
+        f"{file}: {source} (layer {LAYER[source]}) imports {target} (layer {LAYER[target]})"
+        for file, source, target in edges
+        if LAYER[target] > LAYER[source] and (file, target) not in ALLOWED_UPWARD
+    ]
+
+
+def cycles(edges: Iterable[tuple[str, str, str]]) -> list[list[str]]:
+    """The package cycles (strongly connected components of more than one package; Tarjan)."""
+    graph: dict[str, set[str]] = {}
+    for file, source, target in edges:
+        if (file, target) not in ALLOWED_UPWARD:
+            graph.setdefault(source, set()).add(target)
+            graph.setdefault(target, set())
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for succ in sorted(graph[node]):
+            if succ not in index:
+                visit(succ)
+                low[node] = min(low[node], low[succ])
+            elif succ in stack:
+                low[node] = min(low[node], index[succ])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+# ------------------------------------------------------------------------------------------------ tests
+def test_every_package_has_a_layer() -> None:
+    packages = {package_of(module_name(path)) for path in ROOT.rglob("*.py")}
+    missing = sorted(packages - set(LAYER))
+    assert not missing, f"packages without a layer (add them to LAYERS and docs/ARCHITECTURE.md): {missing}"
+
+
+def test_no_package_imports_one_above_it() -> None:
+    problems = upward(import_edges())
+    assert not problems, "imports against the layers:\n" + "\n".join(problems)
+
+
+def test_no_import_cycles_between_packages() -> None:
+    assert cycles(import_edges()) == []
+
+
+def test_allow_lists_are_current() -> None:
+    """An allowed exception that is gone must leave the list, so that it cannot come back unnoticed."""
+    edges = {(file, target) for file, _, target in import_edges()}
+    stale = [edge for edge in ALLOWED_UPWARD if edge not in edges]
+    stale += [f for f in ALLOWED_LONG if not (ROOT / f).is_file() or _lines(ROOT / f) <= MAX_LINES]
+    assert not stale, f"allow-list entries no longer needed (remove them): {stale}"
+
+
+def _lines(path: Path) -> int:
+    return len(path.read_text().splitlines())
+
+
+def test_no_module_over_500_lines() -> None:
+    long = {
+        path.relative_to(ROOT).as_posix(): _lines(path)
+        for path in sorted(ROOT.rglob("*.py"))
+        if _lines(path) > MAX_LINES
+    }
+    offenders = {f: n for f, n in long.items() if f not in ALLOWED_LONG}
+    assert not offenders, f"modules over {MAX_LINES} lines: {offenders}"
+
+
+def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
+    """The checker itself, on a small tree: a lazy ``import mcrs.policies`` in env/core.py is an upward
+    import, and a relative import of models from env (models imports env) is both upward and a cycle."""
+    tree = tmp_path / "mcrs"
+    for name in ("env", "models"):
+        (tree / name).mkdir(parents=True)
+        (tree / name / "__init__.py").write_text("")
+    (tree / "__init__.py").write_text("")
+    (tree / "env" / "core.py").write_text(
+        "def f():\n    import mcrs.policies\n    from ..models import agent\n"
+    )
+    (tree / "models" / "agent.py").write_text("from mcrs.env.layout import MapImage\n")
+    edges = import_edges(tree)
+    assert ("env/core.py", "env", "policies") in edges and ("env/core.py", "env", "models") in edges
+    assert any("env (layer 0) imports policies (layer 3)" in line for line in upward(edges))
+    assert cycles(edges) == [["env", "models"]]
+
+
+def test_importing_the_low_layers_loads_neither_pettingzoo_nor_anything_above() -> None:
+    """In a fresh interpreter: ``import mcrs.env`` loads only mcrs.env (no PettingZoo: the adapter is a
+    lazy attribute), then mcrs.models and mcrs.memory load nothing above their layer."""
+    code = """
+import json, sys
+loaded = {}
+def snapshot(name):
+    loaded[name] = sorted(m for m in sys.modules if m.startswith(("mcrs", "pettingzoo")))
+import mcrs.env; snapshot("env")
+import mcrs.models; snapshot("models")
+import mcrs.memory; snapshot("memory")
+from mcrs.env import MCRSParallelEnv; snapshot("adapter")
+print(json.dumps(loaded))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    loaded = json.loads(done.stdout)
+    assert [m for m in loaded["env"] if not m.startswith("mcrs.env") and m != "mcrs"] == []  # no pettingzoo
+    for package in ("models", "memory"):
+        above = [
+            m for m in loaded[package] if m.startswith("mcrs.") and LAYER[package_of(m)] > LAYER[package]
+        ]
+        assert above == [] and "pettingzoo" not in loaded[package], package
+    assert "pettingzoo" in loaded["adapter"] and "mcrs.env.pettingzoo_env" in loaded["adapter"]
