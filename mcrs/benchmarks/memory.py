@@ -18,7 +18,10 @@ default sizes (1M map20 entries):
 * the buffer's size (``nbytes``) <= 1.5 GiB, with the process's resident-memory growth next to it.
 
 Times are wall clock with the process CPU time beside them (on a loaded machine the CPU time is the
-better estimate of a quiet machine's wall clock).
+better estimate of a quiet machine's wall clock). The figures are also written as JSON (the shared harness,
+:mod:`mcrs.benchmarks.harness`): ``lookup_ms``, ``insert_ms``, ``reembed_s`` and their ``*_cpu_*`` twins,
+``buffer_gib``, ``ratio`` (judged at the default sizes only), the anchors' ``kdtree_batched.*`` and
+``faiss.*``; every ``*same_entries`` figure must count every key, whatever the sizes.
 
 Two fills (``--fill``). At the default tolerance (eq. 35's volume, a box of half-side 0.095) the key
 density decides the cost: every entry near a query is a candidate to test.
@@ -39,16 +42,15 @@ from __future__ import annotations
 import argparse
 import gc
 import os
-import shlex
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 
 import torch
 
-from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
+from mcrs.benchmarks.common import load_average
 from mcrs.benchmarks.env_throughput import resident_bytes
+from mcrs.benchmarks.harness import Figure, Goal, Report, make_parser, require_at_least, run_benchmark
 from mcrs.benchmarks.memory_anchors import anchors, reference_lookups
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import MCRSCore
@@ -147,7 +149,7 @@ def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, floa
     return statistics.median(wall), statistics.median(cpu)
 
 
-def upkeep(memory: EpisodicMemory, added: int) -> str:
+def upkeep(memory: EpisodicMemory, added: int, report: Report) -> str:
     """The index upkeep that the median insertion does not show, amortised over ``added`` records per batch:
     merging the recent records into the main ones (every ``RECENT_SHARE``-th of the records) and the
     memory's stale-record purge (a rebuild, when stale records pass ``stale_fraction`` of the entries)."""
@@ -160,17 +162,22 @@ def upkeep(memory: EpisodicMemory, added: int) -> str:
     rebuild_s = time.perf_counter() - start
     every_merge = max(RECENT_MIN, len(index) // RECENT_SHARE) / max(added, 1)
     every_rebuild = memory.stale_fraction * len(memory) / max(added, 1)  # stale: evicted + shifted records
+    amortised = report.figure(
+        "upkeep_ms_per_insertion", (merge_s / every_merge + rebuild_s / every_rebuild) * 1e3, "ms"
+    )
+    report.figure("upkeep_merge_ms", merge_s * 1e3, "ms", note=f"every ~{every_merge:.0f} insertions")
+    report.figure("upkeep_rebuild_s", rebuild_s, "s", note=f"every ~{every_rebuild:.0f} insertions")
     return (
         f"index upkeep: merging recent records {merge_s * 1e3:.1f} ms every ~{every_merge:.0f} insertions, "
         f"purging rebuild {rebuild_s:.2f} s every ~{every_rebuild:.0f}: "
-        f"{(merge_s / every_merge + rebuild_s / every_rebuild) * 1e3:.1f} ms per insertion amortised"
+        f"{amortised.value:.1f} ms per insertion amortised"
     )
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="mcrs-bench-memory",
-        description="Insertion, look-up, re-embedding and size of the episodic memory D_E, with goals.",
+def _parser() -> argparse.ArgumentParser:
+    parser = make_parser(
+        "mcrs-bench-memory",
+        "Insertion, look-up, re-embedding and size of the episodic memory D_E, with goals.",
     )
     parser.add_argument(
         "--entries",
@@ -186,7 +193,6 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--lookups", type=int, default=GOAL_LOOKUPS, help="keys per timed look-up")
     parser.add_argument("--repeats", type=int, default=5, help="timed repetitions (median) of insert/look-up")
     parser.add_argument("--chunk", type=int, default=4096, help="states per chunk when re-embedding")
-    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
     defaults = MemoryConfig()
     parser.add_argument("--delta", type=float, default=defaults.delta, help="the paper's delta (table 3)")
     parser.add_argument(
@@ -198,39 +204,32 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--neighbourhood", choices=SHAPES, default=defaults.neighbourhood, help="ball or EMU's box"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _validate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if not args.delta > 0:
         parser.error(f"--delta must be > 0, got {args.delta}")
-    for name in ("entries", "episodes", "lookups", "repeats", "chunk"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if args.threads < 0:
-        parser.error(f"--threads must be >= 0, got {args.threads}")
-    return args
+    require_at_least(parser, args, 1, "entries", "episodes", "lookups", "repeats", "chunk")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the benchmark and print the figures and the goals."""
-    command = shlex.join(["mcrs-bench-memory", *(sys.argv[1:] if argv is None else argv)])
-    args = _parse_args(argv)
-    with benchmark_process(args.threads):
-        _run(args, command)
-    return 0
+    """Run the benchmark, print the figures and the goals, and write them as JSON."""
+    return run_benchmark(_parser(), argv, _run, _validate)
 
 
-def _run(args: argparse.Namespace, command: str) -> None:
+def _run(args: argparse.Namespace, report: Report) -> None:
     from mcrs.models.embeddings import make_embedding
 
     config = scenario(args.map)
     sizes = (args.entries, args.map, args.episodes, args.lookups)
     judged = sizes == (GOAL_ENTRIES, GOAL_MAP, GOAL_EPISODES, GOAL_LOOKUPS) and args.fill == "synthetic"
+    not_judged = "" if judged else "goal sizes only: 1M synthetic map20 entries, 32 episodes, 3,200 keys"
     synthetic = args.fill == "synthetic"
     transitions = args.episodes * config.max_steps
     tolerance = match_tolerance(args.delta, args.delta_rule, args.neighbourhood, 4)
+    report.header("episodic-memory benchmark")
     print(
-        f"MCRS episodic-memory benchmark: device=cpu, torch threads={torch.get_num_threads()}, "
-        f"cpus={os.cpu_count()}, load average {load_average()}\n"
-        f"command: {command}\n"
         f"{args.map}: state {config.state_dim} floats, T={config.max_steps}; "
         f"{args.entries:,} {'entries (synthetic fill)' if synthetic else 'transitions through Algorithm 1'}, "
         f"CNN embedding (key_dim 4), delta {args.delta:g} read as {args.delta_rule} ({args.neighbourhood} of "
@@ -253,11 +252,20 @@ def _run(args: argparse.Namespace, command: str) -> None:
     start = time.perf_counter()
     (fill if synthetic else fill_by_algorithm1)(memory, config, args.entries, seed=1)
     fill_s = time.perf_counter() - start
+    report.figure("fill_s", fill_s, "s")
+    report.figure("entries", len(memory), "entries")
+
+    def judge(name: str, value: float, unit: str, goal: Goal, note: str = "", valid: bool = True) -> Figure:
+        """A figure with a goal, judged at the goal sizes only."""
+        return report.figure(name, value, unit, goal, not_judged=not_judged, valid=valid, note=note)
 
     # Re-embedding: every stored state decoded, embedded, and the index rebuilt.
     start, start_cpu = time.perf_counter(), time.process_time()
     memory.refresh_keys(chunk=args.chunk)
     reembed_s, reembed_cpu = time.perf_counter() - start, time.process_time() - start_cpu
+    reembed = judge("reembed_s", reembed_s, "s", Goal("<=", GOAL_REEMBED_S), "wall clock")
+    reembed_c = judge("reembed_cpu_s", reembed_cpu, "s", Goal("<=", GOAL_REEMBED_S), "process CPU time")
+    report.figure("reembed_us_per_state", reembed_s / len(memory) * 1e6, "us")
     print(
         f"\nfill ({'synthetic states written to the storage' if synthetic else 'Algorithm 1'}): "
         f"{fill_s:.2f} s, {len(memory):,} entries\n"
@@ -275,13 +283,18 @@ def _run(args: argparse.Namespace, command: str) -> None:
     with torch.no_grad():
         embed_s, _ = median_seconds(lambda: embedding(state, time_in), args.repeats)
     stats = memory.insert(*rollout(config, args.episodes, seed=99))
+    insert = judge("insert_ms", insert_s * 1e3, "ms", Goal("<=", GOAL_INSERT_MS), "wall clock")
+    insert_c = judge("insert_cpu_ms", insert_cpu * 1e3, "ms", Goal("<=", GOAL_INSERT_MS), "process CPU time")
+    report.figure("insert_embed_ms", embed_s * 1e3, "ms", note="of which the CNN keys")
+    for name in ("new", "hits", "shifted", "evicted"):
+        report.figure(f"last_batch.{name}", int(getattr(stats, name)), "transitions")
     print(
         f"insert {transitions:,} transitions: {insert_s * 1e3:.2f} ms (of which the CNN keys "
         f"{embed_s * 1e3:.2f} ms; cpu {insert_cpu * 1e3:.2f} ms); last batch: {stats.new} new, "
         f"{stats.hits} hits, {stats.shifted} shifts, {stats.evicted} evicted",
         flush=True,
     )
-    print(upkeep(memory, stats.new + stats.shifted), flush=True)
+    print(upkeep(memory, stats.new + stats.shifted, report), flush=True)
 
     # Look-ups: half keys of stored entries (nudged: hits), half keys of a fresh batch (mostly misses).
     generator = torch.Generator().manual_seed(7)
@@ -297,25 +310,39 @@ def _run(args: argparse.Namespace, command: str) -> None:
     _, hit, found = memory.lookup_keys(keys)
     query, _, _ = memory.index.within(memory.index.standardise(keys), memory.keys, memory.live)
     near = torch.bincount(query, minlength=len(keys))[hit].to(torch.float32)
+    near_mean = float(near.mean()) if near.numel() else 0.0
+    near_median = float(near.median()) if near.numel() else 0.0
     label, build_s, loop_s, ref_found = reference_lookups(memory, keys)
     agree = int((ref_found == found).sum())
-    ratio = loop_s / lookup_s
+    n = len(keys)
+    lookup = judge("lookup_ms", lookup_s * 1e3, "ms", Goal("<=", GOAL_LOOKUP_MS), "wall clock")
+    lookup_c = judge("lookup_cpu_ms", lookup_cpu * 1e3, "ms", Goal("<=", GOAL_LOOKUP_MS), "process CPU time")
+    report.figure("lookup_hits", int(hit.sum()), "keys", note=f"of {n}")
+    report.figure("near_mean", near_mean, "entries", note="within the tolerance of a key that hits")
+    report.figure("near_median", near_median, "entries", note="within the tolerance of a key that hits")
+    report.figure("reference_build_s", build_s, "s", note=label)
+    report.figure("reference_ms", loop_s * 1e3, "ms", note=label)
+    report.figure("reference_same_entries", agree, "keys", Goal(">=", n))
+    ratio = judge("ratio", loop_s / lookup_s, "x", Goal(">=", GOAL_RATIO), f"{label} / ours", agree == n)
     print(
-        f"look-up {len(keys):,} keys: {lookup_s * 1e3:.2f} ms ({int(hit.sum()):,} hits; cpu "
+        f"look-up {n:,} keys: {lookup_s * 1e3:.2f} ms ({int(hit.sum()):,} hits; cpu "
         f"{lookup_cpu * 1e3:.2f} ms); entries within the tolerance of a key that hits: mean "
-        f"{float(near.mean()) if near.numel() else 0.0:.1f}, median {float(near.median()) if near.numel() else 0.0:.0f}\n"
+        f"{near_mean:.1f}, median {near_median:.0f}\n"
         f"reference ({label}): build {build_s:.2f} s, "
-        f"queries {loop_s * 1e3:.1f} ms; ratio reference / ours = {ratio:.1f}x; "
-        f"same entries found: {agree:,} of {len(keys):,}",
+        f"queries {loop_s * 1e3:.1f} ms; ratio reference / ours = {ratio.value:.1f}x; "
+        f"same entries found: {agree:,} of {n:,}",
         flush=True,
     )
-    anchors(memory, keys, found, lookup_s)
+    anchors(memory, keys, found, lookup_s, report)
 
     gc.collect()
     rss_after = resident_bytes()
-    rss = "n/a" if rss_before is None or rss_after is None else f"{(rss_after - rss_before) / GIB:.3f} GiB"
+    rss_gib = None if rss_before is None or rss_after is None else (rss_after - rss_before) / GIB
+    report.figure("rss_growth_gib", rss_gib, "GiB", note="process resident memory growth")
     nbytes = memory.nbytes()
-    print(f"buffer: {nbytes / GIB:.3f} GiB held (nbytes); process resident memory growth {rss}", flush=True)
+    size = judge("buffer_gib", nbytes / GIB, "GiB", Goal("<=", GOAL_GIB), "nbytes")
+    rss = "n/a" if rss_gib is None else f"{rss_gib:.3f} GiB"
+    print(f"buffer: {size.value:.3f} GiB held (nbytes); process resident memory growth {rss}", flush=True)
 
     if not judged:
         print(
@@ -324,18 +351,14 @@ def _run(args: argparse.Namespace, command: str) -> None:
         )
         return
     lines = [
-        f"look-up of {GOAL_LOOKUPS:,} keys at 1M entries <= {GOAL_LOOKUP_MS:g} ms: {lookup_s * 1e3:.2f} ms "
-        f"{pass_fail(lookup_s * 1e3 <= GOAL_LOOKUP_MS)} (cpu {lookup_cpu * 1e3:.2f} ms "
-        f"{pass_fail(lookup_cpu * 1e3 <= GOAL_LOOKUP_MS)})",
-        f"insertion of {transitions:,} transitions <= {GOAL_INSERT_MS:g} ms: {insert_s * 1e3:.2f} ms "
-        f"{pass_fail(insert_s * 1e3 <= GOAL_INSERT_MS)} (cpu {insert_cpu * 1e3:.2f} ms "
-        f"{pass_fail(insert_cpu * 1e3 <= GOAL_INSERT_MS)})",
-        f"re-embedding 1M {GOAL_MAP} states (CNN) <= {GOAL_REEMBED_S:g} s: {reembed_s:.2f} s "
-        f"{pass_fail(reembed_s <= GOAL_REEMBED_S)} (cpu {reembed_cpu:.2f} s "
-        f"{pass_fail(reembed_cpu <= GOAL_REEMBED_S)})",
-        f"buffer <= {GOAL_GIB:g} GiB: {nbytes / GIB:.3f} GiB {pass_fail(nbytes <= GOAL_GIB * GIB)}",
-        f"look-up >= {GOAL_RATIO:g}x the per-transition reference: {ratio:.1f}x "
-        f"{pass_fail(ratio >= GOAL_RATIO and agree == len(keys))}",
+        f"look-up of {GOAL_LOOKUPS:,} keys at 1M entries <= {GOAL_LOOKUP_MS:g} ms: {lookup.value:.2f} ms "
+        f"{lookup.verdict} (cpu {lookup_c.value:.2f} ms {lookup_c.verdict})",
+        f"insertion of {transitions:,} transitions <= {GOAL_INSERT_MS:g} ms: {insert.value:.2f} ms "
+        f"{insert.verdict} (cpu {insert_c.value:.2f} ms {insert_c.verdict})",
+        f"re-embedding 1M {GOAL_MAP} states (CNN) <= {GOAL_REEMBED_S:g} s: {reembed.value:.2f} s "
+        f"{reembed.verdict} (cpu {reembed_c.value:.2f} s {reembed_c.verdict})",
+        f"buffer <= {GOAL_GIB:g} GiB: {size.value:.3f} GiB {size.verdict}",
+        f"look-up >= {GOAL_RATIO:g}x the per-transition reference: {ratio.value:.1f}x {ratio.verdict}",
     ]
     print(
         f"\ngoals (wall clock; in brackets the process CPU time, what a quiet machine's wall clock comes "

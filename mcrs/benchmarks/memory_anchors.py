@@ -3,8 +3,8 @@
 Why: a speed claim needs a fair comparison. EMC/EMU query a cKDTree one transition at a time (the
 reference kept from the first version of the benchmark), but scipy can query a whole batch at once, and
 faiss is the usual library for nearest neighbours. Each anchor must find exactly the entries our index
-finds (the same float32 test decides), and its time is printed beside ours as a ratio. scipy and faiss
-are optional: without them the anchor says so.
+finds (the same float32 test decides), and its time is printed beside ours as a ratio and recorded in
+the benchmark's report. scipy and faiss are optional: without them the anchor says so.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import time
 import numpy as np
 import torch
 
+from mcrs.benchmarks.harness import Goal, Report
 from mcrs.memory.episodic import EpisodicMemory
 from mcrs.memory.index import squared_distance
 
@@ -150,33 +151,50 @@ def faiss_flat(memory: EpisodicMemory, keys: torch.Tensor) -> dict[str, float | 
     return {"query_s": query, "found": found}
 
 
-def anchors(memory: EpisodicMemory, keys: torch.Tensor, found: torch.Tensor, lookup_s: float) -> None:
-    """Print the fair anchors (batched cKDTree, faiss) beside our look-up, as ratios anchor / ours."""
+def anchors(
+    memory: EpisodicMemory, keys: torch.Tensor, found: torch.Tensor, lookup_s: float, report: Report
+) -> None:
+    """Print the fair anchors (batched cKDTree, faiss) beside our look-up, as ratios anchor / ours, and record
+    them in ``report`` (``kdtree_batched.*``, ``faiss.*``). No goal on the ratios, but an anchor that finds
+    other entries than ours FAILs (``.same_entries``, goal: every key; its ratio is then void)."""
     n = len(keys)
     try:
         tree = kdtree_batched(memory, keys, workers=torch.get_num_threads())
     except ImportError:
+        report.figure("kdtree_batched.ratio", None, "x", note="scipy not installed")
         print("anchor scipy cKDTree, batched: scipy not installed", flush=True)
     else:
         same = int((tree["found"] == found).sum())
+        report.figure("kdtree_batched.build_s", tree["build_s"], "s", note="what an insertion would rebuild")
+        report.figure("kdtree_batched.query_ms", tree["query_s"] * 1e3, "ms")
+        report.figure("kdtree_batched.select_ms", tree["select_s"] * 1e3, "ms", note="the nearest inside")
+        report.figure("kdtree_batched.same_entries", same, "keys", Goal(">=", n))
+        ratio = report.figure(
+            "kdtree_batched.ratio", tree["query_s"] / lookup_s, "x", valid=same == n, note="query / ours"
+        )
         print(
             f"anchor scipy cKDTree, batched ({'query_ball_point p=inf' if memory.shape == 'box' else 'query k=1'}, "
             f"{torch.get_num_threads()} worker): build {tree['build_s']:.2f} s (what an insertion would "
             f"rebuild), query {tree['query_s'] * 1e3:.1f} ms (+ {tree['select_s'] * 1e3:.1f} ms to pick the "
-            f"nearest inside); ratio query / ours = {tree['query_s'] / lookup_s:.1f}x; same entries found: "
+            f"nearest inside); ratio query / ours = {ratio.value:.1f}x; same entries found: "
             f"{same:,} of {n:,}",
             flush=True,
         )
     few = min(n, FAISS_KEYS)
     flat = faiss_flat(memory, keys[:few])
     if flat is None:
+        report.figure("faiss.ratio", None, "x", note="faiss not installed")
         print("anchor faiss: not installed", flush=True)
         return
     same = int((flat["found"] == found[:few]).sum())
     scaled = flat["query_s"] * n / few
+    report.figure("faiss.query_ms", flat["query_s"] * 1e3, "ms", note=f"IndexFlat range_search, {few} keys")
+    report.figure("faiss.scaled_ms", scaled * 1e3, "ms", note=f"scaled to {n} keys")
+    report.figure("faiss.same_entries", same, "keys", Goal(">=", few))
+    ratio = report.figure("faiss.ratio", scaled / lookup_s, "x", valid=same == few, note="scaled / ours")
     print(
         f"anchor faiss IndexFlat range_search (exact, brute force), {few:,} of the keys: "
         f"{flat['query_s'] * 1e3:.1f} ms, {scaled * 1e3:.0f} ms scaled to {n:,}; ratio / ours = "
-        f"{scaled / lookup_s:.1f}x; same entries found: {same:,} of {few:,}",
+        f"{ratio.value:.1f}x; same entries found: {same:,} of {few:,}",
         flush=True,
     )
