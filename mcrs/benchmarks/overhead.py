@@ -60,7 +60,7 @@ def reembed_and_insert_cost(
     memory.refresh_keys()
     per_state = (time.perf_counter() - start) / entries
     batches = [rollout(env_config, int(cfg.train.num_envs), seed=100 + i) for i in range(4)]
-    insert_s = median_seconds(lambda: memory.insert(*batches.pop()), 3)
+    insert_s, _ = median_seconds(lambda: memory.insert(*batches.pop()), 3)  # (wall, CPU): the wall clock
     return per_state, insert_s, int(mem.embedding_interval), int(mem.capacity)
 
 
