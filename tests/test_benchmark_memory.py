@@ -35,7 +35,6 @@ GOALS = {
     "reembed_s": "<= 10",
     "reembed_cpu_s": "<= 10",
     "buffer_gib": "<= 1.5",
-    "ratio": ">= 20",
 }
 
 
@@ -157,10 +156,7 @@ def test_goal_lines_at_the_goal_sizes(
         line = re.search(rf"^  {re.escape(label)} .* (PASS|FAIL) \(cpu .* (PASS|FAIL)\)$", goals, re.M)
         assert line is not None, goals
         assert line.groups() == (verdict[figures[wall]["passed"]], verdict[figures[cpu]["passed"]])
-    for label, name in (
-        ("buffer <= 1.5 GiB:", "buffer_gib"),
-        ("look-up >= 20x the per-transition reference:", "ratio"),
-    ):
+    for label, name in (("buffer <= 1.5 GiB:", "buffer_gib"),):
         line = re.search(rf"^  {re.escape(label)} .* (PASS|FAIL)$", goals, re.M)
         assert line is not None, goals
         assert line.group(1) == verdict[figures[name]["passed"]]
@@ -179,7 +175,6 @@ def test_a_reference_that_finds_other_entries_fails(
         ("GOAL_LOOKUPS", 200),
     ):
         monkeypatch.setattr(bench, name, value)
-    monkeypatch.setattr(bench, "GOAL_RATIO", 0.0)  # the ratio alone would pass
     real = bench.reference_lookups
 
     def wrong(memory: Any, keys: torch.Tensor) -> tuple[str, float, float, torch.Tensor]:
@@ -196,9 +191,9 @@ def test_a_reference_that_finds_other_entries_fails(
         "value": 199,
         "passed": False,
     }
-    assert figures["ratio"]["valid"] is False and figures["ratio"]["passed"] is False
+    assert figures["ratio"]["valid"] is False and figures["ratio"]["goal"] is None  # a ratio, not a goal
     assert report["passed"] is False
-    assert re.search(r"^  look-up >= 0x the per-transition reference: .* FAIL$", out, re.M), out
+    assert "same entries found: 199 of 200" in out, out
 
 
 def test_without_scipy_the_reference_is_our_index_one_key_at_a_time(

@@ -7,9 +7,10 @@ default sizes (1M map20 entries):
 
 * insertion of 32 episodes x 100 steps (Algorithm 1 with the CNN embedding; median of ``--repeats``
   fresh batches into the full buffer, which evicts): <= 50 ms;
-* look-up of 3,200 keys: <= 20 ms, and >= 20x the reference approach of EMC/EMU (one scipy
+* look-up of 3,200 keys: <= 20 ms; beside it the ratio to the reference approach of EMC/EMU (one scipy
   ``cKDTree.query`` per transition in a Python loop, tree built once beforehand - its build time is
-  printed separately and not charged to it); the two must find the same entries. scipy is not a
+  printed separately and not charged to it; no goal: a Python loop is not a fair anchor, the batched
+  query below is); the two must find the same entries. scipy is not a
   dependency of the package: without it the stand-in reference is our index queried one key at a time.
   Beside it the fair anchors (:mod:`mcrs.benchmarks.memory_anchors`): one batched cKDTree query of all
   keys, and faiss's exact index, as ratios to ours (no goal);
@@ -20,7 +21,7 @@ default sizes (1M map20 entries):
 Times are wall clock with the process CPU time beside them (on a loaded machine the CPU time is the
 better estimate of a quiet machine's wall clock). The figures are also written as JSON (the shared harness,
 :mod:`mcrs.benchmarks.harness`): ``lookup_ms``, ``insert_ms``, ``reembed_s`` and their ``*_cpu_*`` twins,
-``buffer_gib``, ``ratio`` (judged at the default sizes only), the anchors' ``kdtree_batched.*`` and
+``buffer_gib`` (judged at the default sizes only), ``ratio``, the anchors' ``kdtree_batched.*`` and
 ``faiss.*``; every ``*same_entries`` figure must count every key, whatever the sizes.
 
 Two fills (``--fill``). At the default tolerance (eq. 35's volume, a box of half-side 0.095) the key
@@ -68,7 +69,6 @@ GOAL_LOOKUP_MS = 20.0
 GOAL_INSERT_MS = 50.0
 GOAL_REEMBED_S = 10.0
 GOAL_GIB = 1.5
-GOAL_RATIO = 20.0
 GIB = 2**30
 EXTRA_READS = 8  # readings added to random cells of each synthetic state
 FILLS = ("synthetic", "algorithm1")
@@ -323,7 +323,7 @@ def _run(args: argparse.Namespace, report: Report) -> None:
     report.figure("reference_build_s", build_s, "s", note=label)
     report.figure("reference_ms", loop_s * 1e3, "ms", note=label)
     report.figure("reference_same_entries", agree, "keys", Goal(">=", n))
-    ratio = judge("ratio", loop_s / lookup_s, "x", Goal(">=", GOAL_RATIO), f"{label} / ours", agree == n)
+    ratio = report.figure("ratio", loop_s / lookup_s, "x", note=f"{label} / ours", valid=agree == n)
     print(
         f"look-up {n:,} keys: {lookup_s * 1e3:.2f} ms ({int(hit.sum()):,} hits; cpu "
         f"{lookup_cpu * 1e3:.2f} ms); entries within the tolerance of a key that hits: mean "
@@ -358,7 +358,6 @@ def _run(args: argparse.Namespace, report: Report) -> None:
         f"re-embedding 1M {GOAL_MAP} states (CNN) <= {GOAL_REEMBED_S:g} s: {reembed.value:.2f} s "
         f"{reembed.verdict} (cpu {reembed_c.value:.2f} s {reembed_c.verdict})",
         f"buffer <= {GOAL_GIB:g} GiB: {size.value:.3f} GiB {size.verdict}",
-        f"look-up >= {GOAL_RATIO:g}x the per-transition reference: {ratio.value:.1f}x {ratio.verdict}",
     ]
     print(
         f"\ngoals (wall clock; in brackets the process CPU time, what a quiet machine's wall clock comes "
