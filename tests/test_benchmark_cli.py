@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -14,12 +13,11 @@ from mcrs.benchmarks import env_throughput
 from mcrs.benchmarks.env_throughput import main
 from mcrs.env import scenario
 from mcrs.policies import RandomPolicy
+from tests.bench_helpers import run_json
 
 
 def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
-    path = tmp_path / "bench.json"
-    assert main([*argv, "--json", str(path)]) == 0
-    return json.loads(path.read_text())
+    return run_json(main, tmp_path / "bench.json", argv)
 
 
 def test_main_records_a_row_per_map_and_batch_size_and_the_ratio(

@@ -3,7 +3,6 @@ bites (no timing assertions)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -15,12 +14,11 @@ from mcrs.benchmarks.common import compose_config, synthetic_episodes
 from mcrs.benchmarks.learner import main
 from mcrs.benchmarks.reference_learner import ReferenceLearner
 from mcrs.env.config import from_mapping
+from tests.bench_helpers import run_json
 
 
 def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
-    path = tmp_path / "learner.json"
-    assert main([*argv, "--json", str(path)]) == 0
-    return json.loads(path.read_text())
+    return run_json(main, tmp_path / "learner.json", argv)
 
 
 def test_quick_run_records_agreement_update_rows_ratio_and_loop(

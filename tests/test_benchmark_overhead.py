@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -10,14 +9,13 @@ import pytest
 
 from mcrs.benchmarks.loop import LoopResult
 from mcrs.benchmarks.overhead import main, project
+from tests.bench_helpers import run_json
 
 QUICK = ["--map", "map10", "--quick", "--loop-steps", "1", "--entries", "500", "--threads", "1"]
 
 
 def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
-    path = tmp_path / "overhead.json"
-    assert main([*argv, "--json", str(path)]) == 0
-    return json.loads(path.read_text())
+    return run_json(main, tmp_path / "overhead.json", argv)
 
 
 def test_quick_run_records_both_algorithms_and_the_ratio(
