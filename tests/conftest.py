@@ -37,6 +37,7 @@ SLOW_MODULES = {
 }
 #: Slow tests in otherwise fast modules (``module::test``).
 SLOW_TESTS = {
+    "test_env_variants.py::test_variant_matches_the_slow_reference_on_larger_maps",
     "test_evaluate.py::test_cli_runs_and_prints_table",
     "test_evaluate.py::test_cli_unknown_policy_lists_allowed_names",
     "test_evaluate.py::test_cli_bad_env_field_is_one_clear_message_without_traceback",

@@ -10,13 +10,20 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, make_dataclass, replace
 from importlib import resources
-from typing import Any, get_type_hints
+from typing import Any, Optional, get_type_hints
 
 SCENARIOS = ("map10", "map15", "map20")
+#: Beyond the paper (its section 7's future work): map20 with a communication delay, with a bandwidth
+#: limit, and with moving targets and forgetting beliefs. ``scenario(name)`` reads them like the maps.
+VARIANT_PRESETS = ("map20_delay", "map20_bandwidth", "map20_dynamic")
+PRESETS = SCENARIOS + VARIANT_PRESETS
 #: Fields of how the env runs, not of the scenario: set by the command that runs it (``train.num_envs``,
 #: ``mcrs-eval``'s ``episodes``, ``device``), never by the scenario presets.
 RUNTIME_FIELDS = ("num_envs", "device")
 INVALID_ACTION_MODES = ("raise", "clip")
+TARGET_MOTIONS = ("static", "random_walk")
+#: evidence_decay's bound: counts are kept in units of (1 - decay)^-s (float64), which must stay finite.
+MAX_DECAY_EXPONENT = 600.0
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,12 @@ class EnvConfig:
     invalid_action: str = "raise"
     expose_beliefs: bool = False
     no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
+    # Beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets"); defaults = the paper.
+    comm_delay: int = 0  # steps between sending and receiving a message
+    comm_budget: Optional[int] = None  # noqa: UP045 (OmegaConf needs Optional) detections per link and step; None: unlimited
+    target_motion: str = "static"  # static | random_walk
+    target_move_prob: float = 0.0  # random_walk: probability that a target tries a move in a step
+    evidence_decay: float = 0.0  # every count is multiplied by (1 - evidence_decay) per step
     num_envs: int = 1
     device: str = "cpu"
 
@@ -74,6 +87,11 @@ class EnvConfig:
         if self.comm_rounds == "flood":
             return max(self.n_uavs - 1, 1)
         return int(self.comm_rounds)
+
+    @property
+    def dynamic(self) -> bool:
+        """Targets move or evidence fades: discoveries are then judged at the targets' current cells."""
+        return self.target_motion != "static" or self.evidence_decay > 0
 
     @classmethod
     def from_scenario(cls, scenario: Any, *, num_envs: int = 1, device: str = "cpu") -> EnvConfig:
@@ -181,6 +199,7 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
     for name in ("expose_beliefs", "no_fly_shield"):
         if not isinstance(getattr(cfg, name), bool):
             errors.append(f"{name}={getattr(cfg, name)!r}: must be true or false")
+    errors += _variant_errors(cfg)
     problem = device_problem(cfg.device)
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
@@ -196,6 +215,42 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
                 f"n_uavs={cfg.n_uavs} > {cells - cfg.n_no_fly} free cells (cells - n_no_fly): "
                 "UAVs start on distinct cells outside no-fly zones"
             )
+    return errors
+
+
+def _variant_errors(cfg: EnvConfig) -> list[str]:
+    """Problems of the fields beyond the paper (delay, bandwidth, moving targets, evidence decay)."""
+    errors: list[str] = []
+    delay = cfg.comm_delay
+    if not _is_int(delay) or delay < 0:
+        errors.append(f"comm_delay={delay!r}: must be an integer >= 0 (steps; 0: instantaneous, the paper)")
+    elif _is_int(cfg.max_steps) and delay > cfg.max_steps:
+        errors.append(f"comm_delay={delay}: must be <= max_steps={cfg.max_steps} (no message would ever arrive)")
+    budget = cfg.comm_budget
+    if budget is not None and (not _is_int(budget) or budget < 1):
+        errors.append(
+            f"comm_budget={budget!r}: must be an integer >= 1 (detections per link and step) or null for "
+            "unlimited (the paper); use comm_range=0 for no communication"
+        )
+    if cfg.target_motion not in TARGET_MOTIONS:
+        errors.append(f"target_motion={cfg.target_motion!r}: must be one of {list(TARGET_MOTIONS)}")
+    prob = cfg.target_move_prob
+    if not _is_number(prob) or not 0.0 <= prob <= 1.0:
+        errors.append(f"target_move_prob={prob!r}: must be a probability in [0, 1]")
+    elif prob > 0 and cfg.target_motion == "static":
+        errors.append(
+            f"target_move_prob={prob!r}: has no effect with target_motion='static': set "
+            "target_motion=random_walk, or target_move_prob=0"
+        )
+    decay = cfg.evidence_decay
+    if not _is_number(decay) or not 0.0 <= decay < 1.0:
+        errors.append(f"evidence_decay={decay!r}: must be in [0, 1) (0: counts never fade, the paper)")
+    elif decay > 0 and _is_int(cfg.max_steps) and -math.log1p(-decay) * cfg.max_steps > MAX_DECAY_EXPONENT:
+        largest = -math.expm1(-MAX_DECAY_EXPONENT / cfg.max_steps)
+        errors.append(
+            f"evidence_decay={decay!r}: with max_steps={cfg.max_steps} must be <= {largest:.6g} "
+            f"(max_steps * -ln(1 - evidence_decay) <= {MAX_DECAY_EXPONENT:g}, so that counts stay finite)"
+        )
     return errors
 
 
@@ -225,14 +280,15 @@ def device_problem(device: Any) -> str | None:
 def _preset_values(name: str) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
-    if name not in SCENARIOS:
-        raise ValueError(f"unknown scenario {name!r}; allowed: {list(SCENARIOS)}")
+    if name not in PRESETS:
+        raise ValueError(f"unknown scenario {name!r}; allowed: {list(PRESETS)}")
     text = resources.files("mcrs").joinpath(f"conf/env/{name}.yaml").read_text()
     return OmegaConf.to_container(OmegaConf.create(text))
 
 
 def scenario(name: str = "map10", **overrides: Any) -> EnvConfig:
-    """The validated config of a packaged preset (``map10``, ``map15``, ``map20``) with overrides."""
+    """The validated config of a packaged preset (:data:`PRESETS`: ``map10``, ``map15``, ``map20`` and the
+    variants :data:`VARIANT_PRESETS`) with overrides."""
     return from_mapping({**_preset_values(name), **overrides})
 
 
@@ -240,7 +296,7 @@ def from_mapping(values: Any) -> EnvConfig:
     """Build a validated config from a Hydra/OmegaConf node, a :data:`ScenarioConfig` or a plain mapping."""
     values = asdict(values) if is_dataclass(values) else _plain(values)
     _check_known_fields(values)
-    for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety"):
+    for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety", "target_move_prob", "evidence_decay"):
         if _is_int(values.get(name)):
             values[name] = float(values[name])
     return EnvConfig(**values)

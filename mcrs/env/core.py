@@ -5,9 +5,17 @@ This is the one implementation of the environment's dynamics. :class:`~mcrs.env.
 
 Conventions: cell ``(x, y)`` has flat index ``x * height + y`` (x-major, as in the state); count channel 0
 holds positive readings ("F", target), channel 1 negative readings ("E", empty).
+
+Beyond the paper (each off by default, then the code paths below are the paper's, bit for bit):
+``comm_delay`` holds each step's messages in a ring buffer, ``comm_budget`` limits what a link carries
+(:func:`~mcrs.env.fusion.budgeted_round`), ``target_motion=random_walk`` moves targets, and
+``evidence_decay`` keeps counts as float64 in units of (1 - decay)^-s, so that ageing every count costs
+one multiplication where counts are read, not a pass over every map in every step.
 """
 
 from __future__ import annotations
+
+import math
 
 from dataclasses import dataclass
 
@@ -15,7 +23,13 @@ import torch
 
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
-from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
+from mcrs.env.fusion import (
+    apply_new_detections,
+    budgeted_round,
+    fuse_known,
+    neighbours_within,
+    reachable_within,
+)
 from mcrs.env.shield import safe_move_table, shielded_mask
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
@@ -60,7 +74,7 @@ class StepResult:
     action_mask: torch.Tensor  # [E, N, 8] bool
     state: torch.Tensor  # [E, state_dim]
     state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
-    state_counts: torch.Tensor  # [E, cells, 2] int: global (positive, negative) detection counts per cell
+    state_counts: torch.Tensor  # [E, cells, 2] global (positive, negative) counts per cell: int, float32 if decayed
     position: torch.Tensor  # [E, N, 2] int64
     reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
     reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
@@ -133,6 +147,30 @@ class MCRSCore:
         self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
         self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
+        # Beyond the paper: state that exists only while its variant is on (defaults: the paper, no extra state).
+        # comm_delay: in_flight[e, slot, i, q], the level of q's detections that i receives from the message
+        # sent at a step s with s % delay == slot (delivered at s + delay).
+        self.delay = c.comm_delay
+        self.in_flight = (
+            torch.zeros(E, self.delay, N, N, dtype=known_dtype, device=dev) if self.delay > 0 else None
+        )
+        self.dynamic = c.dynamic
+        # evidence_decay: counts are float64 sums of (1 - decay)^-s over detections of step s; the count
+        # at step t is that times (1 - decay)^t.
+        self._log_keep = math.log1p(-c.evidence_decay) if c.evidence_decay > 0 else 0.0
+        self._step_weight = None
+        if c.evidence_decay > 0:
+            steps = torch.arange(c.max_steps + 1, dtype=torch.float64, device=dev)
+            self._step_weight = torch.exp(-self._log_keep * steps)
+            self.counts = self.counts.to(torch.float64)
+            self.global_counts = self.global_counts.to(torch.float64)
+        # Moving targets: the no-fly cells (targets avoid them); dynamic: targets found at least once.
+        self.is_no_fly = (
+            torch.zeros(E, C, dtype=torch.bool, device=dev) if c.target_motion == "random_walk" else None
+        )
+        self.found_once = torch.zeros(E, c.n_targets, dtype=torch.bool, device=dev) if self.dynamic else None
+        K = c.n_targets
+        self._earlier_target = torch.ones(K, K, dtype=torch.bool, device=dev).tril(-1)  # [k, k']: k' < k
         # no_fly_shield: per env, the moves from each cell that end farther than d1 from every zone.
         self._safe_moves = (
             safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
@@ -205,6 +243,9 @@ class MCRSCore:
                 f"environment(s) {finished.nonzero().squeeze(-1).tolist()[:10]} reached the time limit "
                 f"max_steps={c.max_steps}: reset them before stepping (TorchRL: step_and_maybe_reset)"
             )
+        # 0. Targets move (random_walk only; its draws come first, then the readings').
+        if self.is_no_fly is not None:
+            self._move_targets()
         # 1. Move.
         target = self.uav_pos + self._moves[action]
         if c.invalid_action == "clip":
@@ -222,11 +263,17 @@ class MCRSCore:
         self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
         geometry = self._geometry()
         neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
-        self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
-        apply_new_detections(self.counts, known_before, self.known, self.log)
+        if self.in_flight is None and c.comm_budget is None:
+            self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
+        else:
+            self._communicate(neighbours)
+        apply_new_detections(self.counts, known_before, self.known, self.log, self._step_weight)
 
         # 4. Global belief, rewards and metrics.
-        uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
+        if self.dynamic:
+            uncertainty_drop, new_targets = self._update_global_belief_dynamic(flat)
+        else:
+            uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
         r_uncertainty = c.w_uncertainty * uncertainty_drop
         r_discovery = c.w_discovery * new_targets
         no_fly_events, collision_events = self._safety_events(geometry)
@@ -238,14 +285,123 @@ class MCRSCore:
         self.no_fly_violations += no_fly_events
         return self._result(terms, geometry, neighbours)
 
+    def counts_now(self) -> torch.Tensor:
+        """``[E, N, 2 C]``: each UAV's fused counts at the current step (float32 when they decay)."""
+        if self._step_weight is None:
+            return self.counts
+        return (self.counts * self._decay_factor().view(-1, 1, 1)).to(torch.float32)
+
     # ------------------------------------------------------------------ internals
     def _state_tensors(self) -> list[torch.Tensor]:
+        variants = [t for t in (self.in_flight, self.is_no_fly, self.found_once) if t is not None]
         return [
             self.uav_pos, self.no_fly_pos, self.target_pos, self.is_target, self.step_count, self.reading,
             self.log, self.known, self.counts, self.global_counts, self.global_belief, self.discovered,
             self.total_uncertainty, self.cells_sensed, self.targets_found, self.false_discoveries,
             self.episode_reward, self.collisions, self.no_fly_violations,
-        ]  # fmt: skip
+        ] + variants  # fmt: skip
+
+    def _communicate(self, neighbours: torch.Tensor) -> None:
+        """Delay and/or bandwidth (beyond the paper): deliver the messages sent ``comm_delay`` steps ago,
+        then send this step's, which the neighbourhood of this step decides.
+
+        A message to UAV i carries, per source q, a level: "q's first k detections". Under max-plus-sum
+        fusion that is all a count map N^{j,q} says (q's counts as of its k-th detection), and merging is a
+        max of levels, so a late message never undoes newer knowledge.
+        """
+        if self.in_flight is not None:
+            slot = self.step_count % self.delay
+            self.known = torch.maximum(self.known, self.in_flight[self._env_index, slot])
+        sent = self._exchange(self.known, neighbours)
+        if self.in_flight is not None:
+            self.in_flight[self._env_index, slot] = sent
+        else:
+            self.known = sent
+
+    def _exchange(self, known: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+        """The levels each UAV holds after this step's ``comm_rounds`` rounds, starting from ``known``."""
+        budget = self.config.comm_budget
+        if budget is None:
+            return fuse_known(known, reachable_within(neighbours, self.rounds))
+        # The budget is per link direction and per step, shared by the step's rounds.
+        remaining = torch.full(neighbours.shape, float(budget), device=self.device)
+        for _ in range(self.rounds):  # bounded by the config (comm_rounds, or N - 1 for flood)
+            known, remaining = budgeted_round(known, neighbours, remaining)
+        return known
+
+    def _move_targets(self) -> None:
+        """Random walk: each target tries, with ``target_move_prob``, one of the 8 moves (uniform).
+
+        The move happens when the cell is on the grid, not a no-fly cell and held by no target at the start
+        of the step; of several targets choosing one cell, the lowest-indexed moves. Draws: ``rand [E, K]``
+        (does it try), then ``randint(0, 8) [E, K]`` (which move), from the env's generator.
+        """
+        c = self.config
+        E, K = self.num_envs, c.n_targets
+        tries = torch.rand(E, K, generator=self.generator, device=self.device) < c.target_move_prob
+        move = torch.randint(0, N_ACTIONS, (E, K), generator=self.generator, device=self.device)
+        if K == 0:
+            return
+        dest = self.target_pos + self._moves[move]
+        on_grid = ((dest >= 0) & (dest <= self._grid_max)).all(-1)
+        old_cell = self.target_pos[..., 0] * c.height + self.target_pos[..., 1]
+        dest_cell = torch.where(on_grid, dest[..., 0] * c.height + dest[..., 1], old_cell)
+        free = ~(self.is_no_fly.gather(1, dest_cell) | self.is_target.gather(1, dest_cell))
+        candidate = tries & on_grid & free
+        contested = (dest_cell.unsqueeze(-1) == dest_cell.unsqueeze(-2)) & candidate.unsqueeze(-2)
+        moves = candidate & ~(contested & self._earlier_target).any(-1)
+        new_cell = torch.where(moves, dest_cell, old_cell)
+        self.is_target.scatter_(1, old_cell, False)
+        self.is_target.scatter_(1, new_cell, True)
+        self.target_pos = torch.where(moves.unsqueeze(-1), dest, self.target_pos)
+
+    def _decay_factor(self) -> torch.Tensor:
+        """``[E]`` float64: (1 - evidence_decay)^t, what turns stored counts into counts at step t."""
+        return torch.exp(self._log_keep * self.step_count.to(torch.float64))
+
+    def _global_counts_now(self) -> torch.Tensor:
+        """``[E, 2 C]``: the global counts at the current step (float32 when they decay)."""
+        if self._step_weight is None:
+            return self.global_counts
+        return (self.global_counts * self._decay_factor().unsqueeze(-1)).to(torch.float32)
+
+    def _update_global_belief_dynamic(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Moving targets or fading evidence: every cell's belief may change, so the map is recomputed.
+
+        Returns (drop of sum m(U), targets found for the first time in the episode). A target is *found*
+        while the global m(F) of its current cell is >= tau; r2 pays each target once per episode.
+        """
+        c = self.config
+        weight = 1 if self._step_weight is None else self._step_weight[self.step_count].unsqueeze(-1)
+        added = torch.ones_like(flat, dtype=self.global_counts.dtype) * weight
+        self.global_counts.scatter_add_(1, flat, added)
+        self.cells_sensed = (self.global_counts.view(self.num_envs, -1, 2).sum(-1) > 0).sum(-1).to(torch.float32)
+        unknown = self._refresh_global_belief()
+        drop = self.total_uncertainty - unknown.sum(-1)
+        self.total_uncertainty = unknown.sum(-1)
+        found = self._found_targets()
+        new_targets = (found & ~self.found_once).sum(-1).to(torch.float32)
+        self.found_once |= found
+        return drop, new_targets
+
+    def _refresh_global_belief(self) -> torch.Tensor:
+        """Recompute the global m(U), m(F) from the counts now; return m(U) ``[E, C]``."""
+        c = self.config
+        counts = self._global_counts_now()
+        _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
+        self.global_belief[:, 0] = unknown
+        self.global_belief[:, 1] = full
+        return unknown
+
+    def _found_targets(self) -> torch.Tensor:
+        """``[E, K]`` bool: targets whose current cell has global m(F) >= tau; also sets the two metrics."""
+        c = self.config
+        reached = self.global_belief[:, 1] >= c.target_threshold
+        target_cell = self.target_pos[..., 0] * c.height + self.target_pos[..., 1]
+        found = reached.gather(1, target_cell)
+        self.targets_found = found.sum(-1).to(torch.float32)
+        self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
+        return found
 
     def _check_action(self, action: torch.Tensor) -> torch.Tensor:
         if not isinstance(action, torch.Tensor):
@@ -312,6 +468,11 @@ class MCRSCore:
                 self.no_fly_pos[envs], self._moves, self._mask_of_cell, c
             )
         self.target_pos[envs] = self._cell_to_xy(targets)
+        if self.is_no_fly is not None:
+            is_no_fly = torch.zeros(M, C, dtype=torch.bool, device=dev)
+            self.is_no_fly[envs] = is_no_fly.scatter_(1, no_fly, True)
+        if self.in_flight is not None:
+            self.in_flight[envs] = 0
         self.uav_pos[envs] = self._cell_to_xy(starts)
         is_target = torch.zeros(M, C, dtype=torch.bool, device=dev)
         is_target.scatter_(1, targets, True)
@@ -345,6 +506,11 @@ class MCRSCore:
         self.cells_sensed[envs] = (global_counts.view(M, C, 2).sum(-1) > 0).sum(-1).to(torch.float32)
         self.targets_found[envs] = (discovered & is_target).sum(-1).to(torch.float32)
         self.false_discoveries[envs] = (discovered & ~is_target).sum(-1).to(torch.float32)
+        if self.dynamic:
+            # Found at reset (only when tau <= m_f): counted in the metrics, never rewarded.
+            found = discovered.gather(1, targets)
+            self.found_once[envs] = found
+            self.targets_found[envs] = found.sum(-1).to(torch.float32)
 
     def _cell_to_xy(self, cell: torch.Tensor) -> torch.Tensor:
         return torch.stack([cell // self.config.height, cell % self.config.height], dim=-1)
@@ -417,6 +583,8 @@ class MCRSCore:
         c = self.config
         E, N = self.num_envs, self.n_uavs
         around = self.counts.gather(2, self._around_counts[cell]).view(E, N, 2, 8)
+        if self._step_weight is not None:
+            around = (around * self._decay_factor().view(E, 1, 1, 1)).to(torch.float32)
         on_grid = self._around_on_grid[cell]
         _, full, unknown = belief_masses(around[:, :, 0], around[:, :, 1], c.m_f, c.m_e)
 
@@ -475,7 +643,7 @@ class MCRSCore:
             action_mask=self._mask.clone(),
             state=state,
             state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
-            state_counts=self.global_counts.view(E, self.n_cells, 2).clone(),
+            state_counts=self._global_counts_now().view(E, self.n_cells, 2).clone(),
             position=self.uav_pos.clone(),
             reading=self.reading.clone(),
             reward=terms.sum(-1),
@@ -492,5 +660,6 @@ class MCRSCore:
     def belief_maps(self) -> torch.Tensor:
         """``[E, N, 2, width, height]``: each UAV's own fused m(U) and m(F) maps."""
         c = self.config
-        _, full, unknown = belief_masses(self.counts[..., 0::2], self.counts[..., 1::2], c.m_f, c.m_e)
+        counts = self.counts_now()
+        _, full, unknown = belief_masses(counts[..., 0::2], counts[..., 1::2], c.m_f, c.m_e)
         return torch.stack([unknown, full], dim=2).view(self.num_envs, self.n_uavs, 2, c.width, c.height)

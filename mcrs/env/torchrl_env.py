@@ -11,7 +11,8 @@ Keys (``E = num_envs``, ``N = n_uavs``)::
     "state_map"                 [E, 2, L1, L2]   float32, global m(U) and m(F) as an image
     "state_counts"              [E, L1*L2, 2]    int16, global (positive, negative) detection counts per
                                                  cell: the state's maps are a function of them (compact
-                                                 states of the episodic memory)
+                                                 states of the episodic memory); float32 when
+                                                 evidence_decay > 0 (aged counts)
     "step_count"                [E, 1]           int64
     "reward"                    [E, 1]           float32 team reward (r1 + r2 + r3 + r4)
     "reward_terms"              [E, 4]           float32 (r1, r2, r3, r4), for analysis
@@ -82,7 +83,7 @@ class MCRSEnv(EnvBase):
                 0,
                 c.n_uavs * (c.max_steps + 1),
                 shape=(E, c.width * c.height, 2),
-                dtype=self.core.global_counts.dtype,
+                dtype=torch.float32 if c.evidence_decay > 0 else self.core.global_counts.dtype,
                 device=dev,
             ),
             "step_count": Bounded(0, c.max_steps, shape=(E, 1), dtype=torch.int64, device=dev),
