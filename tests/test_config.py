@@ -38,6 +38,11 @@ OVERRIDES = {
     "invalid_action": ("clip", "clip"),
     "expose_beliefs": ("true", True),
     "no_fly_shield": ("true", True),
+    "comm_delay": ("2", 2),
+    "comm_budget": ("6", 6),
+    "target_motion": ("random_walk", "random_walk"),
+    "target_move_prob": ("0", 0.0),  # > 0 needs target_motion=random_walk (one override at a time here)
+    "evidence_decay": ("0.01", 0.01),
 }
 
 

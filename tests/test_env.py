@@ -329,7 +329,10 @@ def test_bad_config_is_refused_naming_the_field(overrides, message):
 
 
 def test_unknown_scenario_and_field_are_refused():
-    with pytest.raises(ValueError, match=r"unknown scenario 'map30'; allowed: \['map10', 'map15', 'map20'\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown scenario 'map30'; allowed: \['map10', 'map15', 'map20', 'map20_delay', 'map20_bandwidth', 'map20_dynamic'\]",
+    ):
         scenario("map30")
     with pytest.raises(ValueError, match="unknown environment field"):
         scenario("map10", comm_radius=3)

@@ -15,8 +15,9 @@ import math
 
 import pytest
 import torch
+from torchrl.envs.utils import check_env_specs
 
-from mcrs.env import MCRSCore, scenario
+from mcrs.env import MCRSCore, MCRSEnv, scenario
 from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import MOVES
@@ -167,9 +168,7 @@ class SlowReference:
                 self.discovered[e] |= above
                 targets_found = len(self.discovered[e] & set(target_cells))
                 false = len(self.discovered[e] - set(target_cells))
-            no_fly = sum(
-                math.dist(u, z) <= cfg.no_fly_safety for u in self.uav[e] for z in self.no_fly[e]
-            )
+            no_fly = sum(math.dist(u, z) <= cfg.no_fly_safety for u in self.uav[e] for z in self.no_fly[e])
             close = sum(
                 math.dist(self.uav[e][i], self.uav[e][j]) <= cfg.uav_safety
                 for i in range(self.N)
@@ -287,7 +286,7 @@ def test_delay_holds_messages_back_and_a_reset_drops_them():
     result = core.step(result.action_mask.float().argmax(-1))
     assert (core.known.sum(-1) > core.known.diagonal(dim1=1, dim2=2)).all()  # step 1's messages arrived
     core.reset(torch.tensor([True, False]))
-    assert not core.in_flight[0].any() and core.in_flight[1].any()
+    assert not core.channel.in_flight[0].any() and core.channel.in_flight[1].any()
 
 
 def test_moving_targets_stay_on_free_cells_and_found_targets_follow_the_current_cell():
@@ -308,3 +307,33 @@ def test_moving_targets_stay_on_free_cells_and_found_targets_follow_the_current_
         found = (result.state_map[:, 1].reshape(16, -1).gather(1, cells) >= cfg.target_threshold).sum(-1)
         assert torch.equal(result.metrics["targets_found"], found.float())
     assert (core.target_pos != start).any()
+
+
+#: What each variant preset changes from map20 (docs/ENVIRONMENT.md lists the same values).
+PRESET_CHANGES = {
+    "map20_delay": {"comm_delay": 3},
+    "map20_bandwidth": {"comm_budget": 4},
+    "map20_dynamic": {"target_motion": "random_walk", "target_move_prob": 0.05, "evidence_decay": 0.02},
+}
+
+
+@pytest.mark.parametrize("preset", sorted(PRESET_CHANGES))
+def test_variant_presets_are_map20_with_the_documented_changes(preset):
+    assert scenario(preset) == scenario("map20").replace(name=preset, **PRESET_CHANGES[preset])
+
+
+@pytest.mark.parametrize("preset", sorted(PRESET_CHANGES))
+def test_torchrl_specs_hold_under_each_variant(preset):
+    env = MCRSEnv(preset, num_envs=3, max_steps=12, expose_beliefs=True)
+    env.set_seed(0)
+    check_env_specs(env)
+    expected = torch.float32 if scenario(preset).evidence_decay > 0 else torch.int16
+    assert env.rollout(5).get(("next", "state_counts")).dtype == expected
+
+
+def test_paper_defaults_hold_no_variant_state():
+    """Defaults are the paper: no channel, walk or decay objects, and the same state bytes as before."""
+    core = MCRSCore(scenario("map20", num_envs=4))
+    assert core.channel is None and core.walk is None and core.decay is None and core.found_once is None
+    variants = MCRSCore(scenario("map20_dynamic", num_envs=4).replace(comm_delay=2, comm_budget=4))
+    assert variants.state_nbytes() > core.state_nbytes()

@@ -170,6 +170,18 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.w_discovery=nan", "w_discovery=nan: must be a finite number"),
     ("env.w_collision=-inf", "w_collision=-inf: must be a finite number"),
     ("env.invalid_action=ignore", "invalid_action='ignore': must be one of ['raise', 'clip']"),
+    ("env.comm_delay=-1", "comm_delay=-1: must be an integer >= 0 (steps; 0: instantaneous, the paper)"),
+    ("env.comm_delay=11", "comm_delay=11: must be <= max_steps=10"),
+    ("env.comm_budget=0", "comm_budget=0: must be an integer >= 1 (detections per link and step) or null"),
+    ("env.comm_budget=-4", "comm_budget=-4: must be an integer >= 1"),
+    ("env.target_motion=teleport", "target_motion='teleport': must be one of ['static', 'random_walk']"),
+    ("env.target_move_prob=1.5", "target_move_prob=1.5: must be a probability in [0, 1]"),
+    ("env.target_move_prob=nan", "target_move_prob=nan: must be a probability in [0, 1]"),
+    ("env.target_move_prob=0.2", "target_move_prob=0.2: has no effect with target_motion='static'"),
+    ("env.evidence_decay=1", "evidence_decay=1.0: must be in [0, 1) (0: counts never fade, the paper)"),
+    ("env.evidence_decay=-0.1", "evidence_decay=-0.1: must be in [0, 1)"),
+    ("env.max_steps=1000|env.evidence_decay=0.9", "evidence_decay=0.9: with max_steps=1000 must be <= 0.451188"),
+    ("algo=cnn_semu|env.evidence_decay=0.01", "env.evidence_decay=0.01: the episodic memory stores integer"),
     # Values that passed the per-field rules and crashed later (issue 14, list 4): refused up front, the
     # sizes by an estimate of the memory the run needs (mcrs/experiment/resources.py).
     ("+env.widht=3", "unknown field(s) env.widht"),  # + forces a key past the schema
@@ -210,6 +222,9 @@ WRONG_TYPES = [
     "env.w_no_fly=abc",
     "env.expose_beliefs=maybe",
     "env.no_fly_shield=maybe",
+    "env.comm_delay=1.5",
+    "env.comm_budget=wide",
+    "env.evidence_decay=slow",
     "algo.mixing_embed_dim=abc",
     "algo.hypernet_layers=1.5",
     "algo.gamma=high",

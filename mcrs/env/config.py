@@ -225,7 +225,9 @@ def _variant_errors(cfg: EnvConfig) -> list[str]:
     if not _is_int(delay) or delay < 0:
         errors.append(f"comm_delay={delay!r}: must be an integer >= 0 (steps; 0: instantaneous, the paper)")
     elif _is_int(cfg.max_steps) and delay > cfg.max_steps:
-        errors.append(f"comm_delay={delay}: must be <= max_steps={cfg.max_steps} (no message would ever arrive)")
+        errors.append(
+            f"comm_delay={delay}: must be <= max_steps={cfg.max_steps} (no message would ever arrive)"
+        )
     budget = cfg.comm_budget
     if budget is not None and (not _is_int(budget) or budget < 1):
         errors.append(
@@ -296,7 +298,14 @@ def from_mapping(values: Any) -> EnvConfig:
     """Build a validated config from a Hydra/OmegaConf node, a :data:`ScenarioConfig` or a plain mapping."""
     values = asdict(values) if is_dataclass(values) else _plain(values)
     _check_known_fields(values)
-    for name in ("comm_range", "sight_range", "no_fly_safety", "uav_safety", "target_move_prob", "evidence_decay"):
+    for name in (
+        "comm_range",
+        "sight_range",
+        "no_fly_safety",
+        "uav_safety",
+        "target_move_prob",
+        "evidence_decay",
+    ):
         if _is_int(values.get(name)):
             values[name] = float(values[name])
     return EnvConfig(**values)

@@ -6,31 +6,27 @@ This is the one implementation of the environment's dynamics. :class:`~mcrs.env.
 Conventions: cell ``(x, y)`` has flat index ``x * height + y`` (x-major, as in the state); count channel 0
 holds positive readings ("F", target), channel 1 negative readings ("E", empty).
 
-Beyond the paper (each off by default, then the code paths below are the paper's, bit for bit):
-``comm_delay`` holds each step's messages in a ring buffer, ``comm_budget`` limits what a link carries
-(:func:`~mcrs.env.fusion.budgeted_round`), ``target_motion=random_walk`` moves targets, and
-``evidence_decay`` keeps counts as float64 in units of (1 - decay)^-s, so that ageing every count costs
-one multiplication where counts are read, not a pass over every map in every step.
+Beyond the paper (each off by default, and then the code paths below are the paper's, bit for bit):
+``comm_delay`` and ``comm_budget`` (:mod:`mcrs.env.messages`), ``target_motion=random_walk``
+(:mod:`mcrs.env.targets`) and ``evidence_decay`` (:mod:`mcrs.env.evidence`). With moving targets or fading
+evidence ("dynamic"), discoveries are judged at the targets' current cells.
 """
 
 from __future__ import annotations
-
-import math
 
 from dataclasses import dataclass
 
 import torch
 
 from mcrs.env.belief import belief_masses
+from mcrs.env.checks import check_action, scene_cells
 from mcrs.env.config import EnvConfig
-from mcrs.env.fusion import (
-    apply_new_detections,
-    budgeted_round,
-    fuse_known,
-    neighbours_within,
-    reachable_within,
-)
+from mcrs.env.evidence import EvidenceDecay
+from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
+from mcrs.env.geometry import Geometry
+from mcrs.env.messages import MessageChannel
 from mcrs.env.shield import safe_move_table, shielded_mask
+from mcrs.env.targets import TargetWalk
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
 # 6 upper-right, 7 upper-left.
@@ -50,23 +46,6 @@ METRICS = (
 
 
 @dataclass
-class Geometry:
-    """Offsets and squared distances from each UAV to the others and to the no-fly zones, once per step.
-
-    Kept as separate x and y planes: elementwise ops over a trailing dimension of 2 are several times
-    slower on the CPU. Squared distances of integer cells are exact, so every range test
-    (``< R_c``, ``<= d1``, ...) is made on them.
-    """
-
-    uav_dx: torch.Tensor  # [E, N, N] float32: x_j - x_i
-    uav_dy: torch.Tensor  # [E, N, N]
-    uav_squared: torch.Tensor  # [E, N, N]
-    no_fly_dx: torch.Tensor  # [E, N, Z]: x of zone k - x_i
-    no_fly_dy: torch.Tensor  # [E, N, Z]
-    no_fly_squared: torch.Tensor  # [E, N, Z]
-
-
-@dataclass
 class StepResult:
     """What one reset or step produces, every entry batched over environments."""
 
@@ -74,7 +53,9 @@ class StepResult:
     action_mask: torch.Tensor  # [E, N, 8] bool
     state: torch.Tensor  # [E, state_dim]
     state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
-    state_counts: torch.Tensor  # [E, cells, 2] global (positive, negative) counts per cell: int, float32 if decayed
+    state_counts: (
+        torch.Tensor
+    )  # [E, cells, 2] global (positive, negative) counts per cell: int, float32 if decayed
     position: torch.Tensor  # [E, N, 2] int64
     reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
     reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
@@ -147,30 +128,18 @@ class MCRSCore:
         self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
         self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
-        # Beyond the paper: state that exists only while its variant is on (defaults: the paper, no extra state).
-        # comm_delay: in_flight[e, slot, i, q], the level of q's detections that i receives from the message
-        # sent at a step s with s % delay == slot (delivered at s + delay).
-        self.delay = c.comm_delay
-        self.in_flight = (
-            torch.zeros(E, self.delay, N, N, dtype=known_dtype, device=dev) if self.delay > 0 else None
-        )
-        self.dynamic = c.dynamic
-        # evidence_decay: counts are float64 sums of (1 - decay)^-s over detections of step s; the count
-        # at step t is that times (1 - decay)^t.
-        self._log_keep = math.log1p(-c.evidence_decay) if c.evidence_decay > 0 else 0.0
-        self._step_weight = None
-        if c.evidence_decay > 0:
-            steps = torch.arange(c.max_steps + 1, dtype=torch.float64, device=dev)
-            self._step_weight = torch.exp(-self._log_keep * steps)
+        # Beyond the paper: objects and state that exist only while their variant is on (the defaults are
+        # the paper: none of them).
+        paper_comms = c.comm_delay == 0 and c.comm_budget is None
+        self.channel = None if paper_comms else MessageChannel(c, known_dtype, dev)
+        self.decay = EvidenceDecay(c, dev) if c.evidence_decay > 0 else None
+        if self.decay is not None:  # counts hold sums of keep^-s (mcrs/env/evidence.py)
             self.counts = self.counts.to(torch.float64)
             self.global_counts = self.global_counts.to(torch.float64)
-        # Moving targets: the no-fly cells (targets avoid them); dynamic: targets found at least once.
-        self.is_no_fly = (
-            torch.zeros(E, C, dtype=torch.bool, device=dev) if c.target_motion == "random_walk" else None
-        )
+        self.walk = TargetWalk(c, self._moves, dev) if c.target_motion == "random_walk" else None
+        self.dynamic = c.dynamic
+        # dynamic: the targets found (current cell's m(F) >= tau) at least once in the episode.
         self.found_once = torch.zeros(E, c.n_targets, dtype=torch.bool, device=dev) if self.dynamic else None
-        K = c.n_targets
-        self._earlier_target = torch.ones(K, K, dtype=torch.bool, device=dev).tril(-1)  # [k, k']: k' < k
         # no_fly_shield: per env, the moves from each cell that end farther than d1 from every zone.
         self._safe_moves = (
             safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
@@ -204,39 +173,17 @@ class MCRSCore:
         Shapes ``[E, N, 2]``, ``[E, n_no_fly, 2]`` and ``[E, n_targets, 2]`` (a leading E may be omitted).
         The scene must obey the reset rules: distinct cells, UAVs not on no-fly cells, targets not on them.
         """
-        c, E = self.config, self.num_envs
-        cells = []
-        for name, value, count in (
-            ("uav_positions", uav_positions, c.n_uavs),
-            ("no_fly_positions", no_fly_positions, c.n_no_fly),
-            ("target_positions", target_positions, c.n_targets),
-        ):
-            value = torch.as_tensor(value, dtype=torch.int64, device=self.device)
-            value = value.expand(E, *value.shape) if value.dim() == 2 else value
-            if value.shape != (E, count, 2):
-                raise ValueError(f"{name} must have shape {[E, count, 2]}, got {list(value.shape)}")
-            if ((value < 0) | (value > self._grid_max)).any():
-                raise ValueError(
-                    f"{name} must lie on the {c.width} x {c.height} grid (x < width, y < height)"
-                )
-            cells.append(value[..., 0] * c.height + value[..., 1])
-        starts, no_fly, targets = cells
-        for name, group in (
-            ("uav_positions", starts),
-            ("no_fly_positions + target_positions", torch.cat([no_fly, targets], 1)),
-        ):
-            ordered = group.sort(dim=1).values
-            if (ordered[:, 1:] == ordered[:, :-1]).any():
-                raise ValueError(f"{name} must be distinct cells")
-        if (starts.unsqueeze(-1) == no_fly.unsqueeze(-2)).any():
-            raise ValueError("uav_positions must not be on no-fly cells")
+        E = self.num_envs
+        starts, no_fly, targets = scene_cells(
+            self.config, E, self.device, uav_positions, no_fly_positions, target_positions
+        )
         self._start_episodes(torch.arange(E, device=self.device), no_fly, targets, starts)
         return self._result(torch.zeros(E, 4, device=self.device))
 
     def step(self, action: torch.Tensor) -> StepResult:
         """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
         c = self.config
-        action = self._check_action(action)
+        action = check_action(action, self.config, self._mask, self.uav_pos)
         finished = self.step_count >= c.max_steps
         if finished.any():
             raise RuntimeError(
@@ -244,8 +191,8 @@ class MCRSCore:
                 f"max_steps={c.max_steps}: reset them before stepping (TorchRL: step_and_maybe_reset)"
             )
         # 0. Targets move (random_walk only; its draws come first, then the readings').
-        if self.is_no_fly is not None:
-            self._move_targets()
+        if self.walk is not None:
+            self.target_pos = self.walk.step(self.target_pos, self.is_target, self.generator)
         # 1. Move.
         target = self.uav_pos + self._moves[action]
         if c.invalid_action == "clip":
@@ -263,11 +210,12 @@ class MCRSCore:
         self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
         geometry = self._geometry()
         neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
-        if self.in_flight is None and c.comm_budget is None:
+        if self.channel is None:
             self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
         else:
-            self._communicate(neighbours)
-        apply_new_detections(self.counts, known_before, self.known, self.log, self._step_weight)
+            self.known = self.channel.communicate(self.known, neighbours, self.step_count)
+        weight = None if self.decay is None else self.decay.step_weight
+        apply_new_detections(self.counts, known_before, self.known, self.log, weight)
 
         # 4. Global belief, rewards and metrics.
         if self.dynamic:
@@ -287,83 +235,25 @@ class MCRSCore:
 
     def counts_now(self) -> torch.Tensor:
         """``[E, N, 2 C]``: each UAV's fused counts at the current step (float32 when they decay)."""
-        if self._step_weight is None:
-            return self.counts
-        return (self.counts * self._decay_factor().view(-1, 1, 1)).to(torch.float32)
+        return self.counts if self.decay is None else self.decay.now(self.counts, self.step_count)
 
     # ------------------------------------------------------------------ internals
     def _state_tensors(self) -> list[torch.Tensor]:
-        variants = [t for t in (self.in_flight, self.is_no_fly, self.found_once) if t is not None]
+        variants = [] if self.channel is None else self.channel.tensors()
+        variants += [] if self.walk is None else self.walk.tensors()
+        variants += [] if self.found_once is None else [self.found_once]
         return [
             self.uav_pos, self.no_fly_pos, self.target_pos, self.is_target, self.step_count, self.reading,
             self.log, self.known, self.counts, self.global_counts, self.global_belief, self.discovered,
             self.total_uncertainty, self.cells_sensed, self.targets_found, self.false_discoveries,
-            self.episode_reward, self.collisions, self.no_fly_violations,
-        ] + variants  # fmt: skip
-
-    def _communicate(self, neighbours: torch.Tensor) -> None:
-        """Delay and/or bandwidth (beyond the paper): deliver the messages sent ``comm_delay`` steps ago,
-        then send this step's, which the neighbourhood of this step decides.
-
-        A message to UAV i carries, per source q, a level: "q's first k detections". Under max-plus-sum
-        fusion that is all a count map N^{j,q} says (q's counts as of its k-th detection), and merging is a
-        max of levels, so a late message never undoes newer knowledge.
-        """
-        if self.in_flight is not None:
-            slot = self.step_count % self.delay
-            self.known = torch.maximum(self.known, self.in_flight[self._env_index, slot])
-        sent = self._exchange(self.known, neighbours)
-        if self.in_flight is not None:
-            self.in_flight[self._env_index, slot] = sent
-        else:
-            self.known = sent
-
-    def _exchange(self, known: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-        """The levels each UAV holds after this step's ``comm_rounds`` rounds, starting from ``known``."""
-        budget = self.config.comm_budget
-        if budget is None:
-            return fuse_known(known, reachable_within(neighbours, self.rounds))
-        # The budget is per link direction and per step, shared by the step's rounds.
-        remaining = torch.full(neighbours.shape, float(budget), device=self.device)
-        for _ in range(self.rounds):  # bounded by the config (comm_rounds, or N - 1 for flood)
-            known, remaining = budgeted_round(known, neighbours, remaining)
-        return known
-
-    def _move_targets(self) -> None:
-        """Random walk: each target tries, with ``target_move_prob``, one of the 8 moves (uniform).
-
-        The move happens when the cell is on the grid, not a no-fly cell and held by no target at the start
-        of the step; of several targets choosing one cell, the lowest-indexed moves. Draws: ``rand [E, K]``
-        (does it try), then ``randint(0, 8) [E, K]`` (which move), from the env's generator.
-        """
-        c = self.config
-        E, K = self.num_envs, c.n_targets
-        tries = torch.rand(E, K, generator=self.generator, device=self.device) < c.target_move_prob
-        move = torch.randint(0, N_ACTIONS, (E, K), generator=self.generator, device=self.device)
-        if K == 0:
-            return
-        dest = self.target_pos + self._moves[move]
-        on_grid = ((dest >= 0) & (dest <= self._grid_max)).all(-1)
-        old_cell = self.target_pos[..., 0] * c.height + self.target_pos[..., 1]
-        dest_cell = torch.where(on_grid, dest[..., 0] * c.height + dest[..., 1], old_cell)
-        free = ~(self.is_no_fly.gather(1, dest_cell) | self.is_target.gather(1, dest_cell))
-        candidate = tries & on_grid & free
-        contested = (dest_cell.unsqueeze(-1) == dest_cell.unsqueeze(-2)) & candidate.unsqueeze(-2)
-        moves = candidate & ~(contested & self._earlier_target).any(-1)
-        new_cell = torch.where(moves, dest_cell, old_cell)
-        self.is_target.scatter_(1, old_cell, False)
-        self.is_target.scatter_(1, new_cell, True)
-        self.target_pos = torch.where(moves.unsqueeze(-1), dest, self.target_pos)
-
-    def _decay_factor(self) -> torch.Tensor:
-        """``[E]`` float64: (1 - evidence_decay)^t, what turns stored counts into counts at step t."""
-        return torch.exp(self._log_keep * self.step_count.to(torch.float64))
+            self.episode_reward, self.collisions, self.no_fly_violations, *variants,
+        ]  # fmt: skip
 
     def _global_counts_now(self) -> torch.Tensor:
         """``[E, 2 C]``: the global counts at the current step (float32 when they decay)."""
-        if self._step_weight is None:
-            return self.global_counts
-        return (self.global_counts * self._decay_factor().unsqueeze(-1)).to(torch.float32)
+        return (
+            self.global_counts if self.decay is None else self.decay.now(self.global_counts, self.step_count)
+        )
 
     def _update_global_belief_dynamic(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Moving targets or fading evidence: every cell's belief may change, so the map is recomputed.
@@ -372,70 +262,24 @@ class MCRSCore:
         while the global m(F) of its current cell is >= tau; r2 pays each target once per episode.
         """
         c = self.config
-        weight = 1 if self._step_weight is None else self._step_weight[self.step_count].unsqueeze(-1)
-        added = torch.ones_like(flat, dtype=self.global_counts.dtype) * weight
-        self.global_counts.scatter_add_(1, flat, added)
-        self.cells_sensed = (self.global_counts.view(self.num_envs, -1, 2).sum(-1) > 0).sum(-1).to(torch.float32)
-        unknown = self._refresh_global_belief()
+        weight = 1 if self.decay is None else self.decay.step_weight[self.step_count].unsqueeze(-1)
+        self.global_counts.scatter_add_(
+            1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype) * weight
+        )
+        sensed = self.global_counts.view(self.num_envs, -1, 2).sum(-1) > 0  # stored counts never fade to 0
+        self.cells_sensed = sensed.sum(-1).to(torch.float32)
+        counts = self._global_counts_now()
+        _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
+        self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
         drop = self.total_uncertainty - unknown.sum(-1)
         self.total_uncertainty = unknown.sum(-1)
-        found = self._found_targets()
+        reached = full >= c.target_threshold
+        found = reached.gather(1, self.target_pos[..., 0] * c.height + self.target_pos[..., 1])
+        self.targets_found = found.sum(-1).to(torch.float32)
+        self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
         new_targets = (found & ~self.found_once).sum(-1).to(torch.float32)
         self.found_once |= found
         return drop, new_targets
-
-    def _refresh_global_belief(self) -> torch.Tensor:
-        """Recompute the global m(U), m(F) from the counts now; return m(U) ``[E, C]``."""
-        c = self.config
-        counts = self._global_counts_now()
-        _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
-        self.global_belief[:, 0] = unknown
-        self.global_belief[:, 1] = full
-        return unknown
-
-    def _found_targets(self) -> torch.Tensor:
-        """``[E, K]`` bool: targets whose current cell has global m(F) >= tau; also sets the two metrics."""
-        c = self.config
-        reached = self.global_belief[:, 1] >= c.target_threshold
-        target_cell = self.target_pos[..., 0] * c.height + self.target_pos[..., 1]
-        found = reached.gather(1, target_cell)
-        self.targets_found = found.sum(-1).to(torch.float32)
-        self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
-        return found
-
-    def _check_action(self, action: torch.Tensor) -> torch.Tensor:
-        if not isinstance(action, torch.Tensor):
-            raise TypeError(
-                f"action must be a torch.Tensor of shape {[self.num_envs, self.n_uavs]}, got {type(action).__name__}"
-            )
-        if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
-            raise TypeError(f"action must have an integer dtype (0..{N_ACTIONS - 1}), got {action.dtype}")
-        if action.shape != (self.num_envs, self.n_uavs):
-            if action.numel() == self.num_envs * self.n_uavs and action.shape[:1] == (self.num_envs,):
-                action = action.reshape(self.num_envs, self.n_uavs)  # e.g. [E, N, 1]
-            else:
-                raise ValueError(
-                    f"action must have shape [num_envs, n_uavs] = {[self.num_envs, self.n_uavs]}, got {list(action.shape)}"
-                )
-        action = action.to(device=self.device, dtype=torch.int64)
-        bad = (action < 0) | (action >= N_ACTIONS)
-        if bad.any():
-            env, uav = bad.nonzero()[0].tolist()
-            raise ValueError(
-                f"action[{env}, {uav}] = {action[env, uav].item()} is out of range: allowed 0..{N_ACTIONS - 1}"
-            )
-        if self.config.invalid_action == "raise":
-            allowed = self._mask.gather(-1, action.unsqueeze(-1)).squeeze(-1)
-            if not allowed.all():
-                env, uav = (~allowed).nonzero()[0].tolist()
-                raise ValueError(
-                    f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid "
-                    f"{'or enter d1 of a no-fly zone (no_fly_shield) ' if self.config.no_fly_shield else ''}from "
-                    f"{self.uav_pos[env, uav].tolist()}; allowed here: "
-                    f"{self._mask[env, uav].nonzero().squeeze(-1).tolist()} "
-                    "(set invalid_action=clip to clip such moves instead)"
-                )
-        return action
 
     def _sense(self, cell: torch.Tensor) -> torch.Tensor:
         """Draw each UAV's reading of its ``cell`` ``[E, N]``; return the flat ``cell * 2 + channel``."""
@@ -468,11 +312,10 @@ class MCRSCore:
                 self.no_fly_pos[envs], self._moves, self._mask_of_cell, c
             )
         self.target_pos[envs] = self._cell_to_xy(targets)
-        if self.is_no_fly is not None:
-            is_no_fly = torch.zeros(M, C, dtype=torch.bool, device=dev)
-            self.is_no_fly[envs] = is_no_fly.scatter_(1, no_fly, True)
-        if self.in_flight is not None:
-            self.in_flight[envs] = 0
+        if self.walk is not None:
+            self.walk.start(envs, no_fly)
+        if self.channel is not None:
+            self.channel.clear(envs)
         self.uav_pos[envs] = self._cell_to_xy(starts)
         is_target = torch.zeros(M, C, dtype=torch.bool, device=dev)
         is_target.scatter_(1, targets, True)
@@ -549,19 +392,7 @@ class MCRSCore:
         return drop, new_targets
 
     def _geometry(self) -> Geometry:
-        # float32 holds these small integer offsets and their squares exactly, and is cheaper than int64.
-        x, y = self.uav_pos.to(torch.float32).unbind(-1)
-        zx, zy = self.no_fly_pos.to(torch.float32).unbind(-1)
-        uav_dx, uav_dy = x.unsqueeze(1) - x.unsqueeze(2), y.unsqueeze(1) - y.unsqueeze(2)
-        no_fly_dx, no_fly_dy = zx.unsqueeze(1) - x.unsqueeze(2), zy.unsqueeze(1) - y.unsqueeze(2)
-        return Geometry(
-            uav_dx,
-            uav_dy,
-            uav_dx * uav_dx + uav_dy * uav_dy,
-            no_fly_dx,
-            no_fly_dy,
-            no_fly_dx * no_fly_dx + no_fly_dy * no_fly_dy,
-        )
+        return Geometry.of(self.uav_pos, self.no_fly_pos)
 
     def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
         """(UAV, no-fly zone) pairs within d1 and UAV pairs i < j within d2, per environment."""
@@ -583,8 +414,8 @@ class MCRSCore:
         c = self.config
         E, N = self.num_envs, self.n_uavs
         around = self.counts.gather(2, self._around_counts[cell]).view(E, N, 2, 8)
-        if self._step_weight is not None:
-            around = (around * self._decay_factor().view(E, 1, 1, 1)).to(torch.float32)
+        if self.decay is not None:
+            around = self.decay.now(around, self.step_count)
         on_grid = self._around_on_grid[cell]
         _, full, unknown = belief_masses(around[:, :, 0], around[:, :, 1], c.m_f, c.m_e)
 

@@ -10,9 +10,8 @@ Two implementations of the same model:
   UAV i's summed count map is updated with exactly the detections it newly learned of
   (:func:`apply_new_detections`), read from the per-step detection log. Memory O(N L1 L2 + T N).
 
-Beyond the paper, a link can carry a limited number of detections per step (:func:`budgeted_round`,
-``comm_budget``). Each source's detections cross oldest first, so what UAV i knows of q is still q's
-first ``known[i, q]`` detections and the fast form stays exact.
+Beyond the paper, delayed and bandwidth-limited messages (:mod:`mcrs.env.messages`) keep this form exact:
+what UAV i knows of q is always q's first ``known[i, q]`` detections.
 """
 
 from __future__ import annotations
@@ -63,46 +62,6 @@ def fuse_known(known: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
     # counts with 0/1 is cheaper than torch.where here.
     spread = reach.unsqueeze(-2).to(known.dtype) * known.transpose(-1, -2).unsqueeze(-3)
     return spread.amax(dim=-1)
-
-
-def budgeted_round(
-    known: torch.Tensor, neighbours: torch.Tensor, remaining: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """One synchronous round in which link j -> i carries at most ``remaining[e, i, j]`` detections.
-
-    The rule (docs/ENVIRONMENT.md): UAV i lacks ``backlog[q] = max(known[j, q] - known[i, q], 0)`` of
-    source q's detections that j holds. The link serves the sources with the largest backlog first (ties:
-    lower index first), each source's detections oldest first, until the budget is spent. What i receives
-    from all its neighbours is merged by max (eq. 11), so ``known[i, q]`` stays a count of q's first
-    detections. Only linked pairs are computed (they are few at R_c = 5).
-
-    Args:
-        known: ``[E, N, N]`` levels before the round (``known[e, i, q]``).
-        neighbours: ``[E, N, N]`` bool, ``[e, i, j]``: i hears j this round.
-        remaining: ``[E, N, N]`` float32, ``[e, i, j]``: what link j -> i may still carry this step.
-
-    Returns:
-        The levels after the round and the budgets left (``remaining`` is updated in place).
-    """
-    n_envs, n_uavs, _ = known.shape
-    env, receiver, sender = neighbours.nonzero().unbind(-1)
-    if env.numel() == 0:
-        return known, remaining
-    levels = known.to(torch.float32)  # small integers: exact
-    mine, theirs = levels[env, receiver], levels[env, sender]  # [P, N] over sources q
-    backlog = (theirs - mine).clamp(min=0)
-    # ahead[p, q]: detections the link sends before source q's = backlog of every source ranked before q.
-    other, this = backlog.unsqueeze(-2), backlog.unsqueeze(-1)  # [P, 1, q'], [P, q, 1]
-    lower = torch.ones(n_uavs, n_uavs, dtype=torch.bool, device=known.device).tril(-1)  # [q, q']: q' < q
-    ranked_before = (other > this) | ((other == this) & lower)
-    ahead = torch.matmul(ranked_before.to(torch.float32), backlog.unsqueeze(-1)).squeeze(-1)
-    budget = remaining[env, receiver, sender].unsqueeze(-1)
-    sent = torch.minimum(backlog, (budget - ahead).clamp(min=0))
-    remaining[env, receiver, sender] = budget.squeeze(-1) - sent.sum(-1)
-    merged = levels.view(n_envs * n_uavs, n_uavs).clone()
-    rows = (env * n_uavs + receiver).unsqueeze(-1).expand(-1, n_uavs)
-    merged.scatter_reduce_(0, rows, mine + sent, "amax", include_self=True)
-    return merged.view_as(known).to(known.dtype), remaining
 
 
 def apply_new_detections(

@@ -368,6 +368,12 @@ def _memory_errors(cfg: Config, env_config: EnvConfig | None) -> list[str]:
         errors.append(
             f"env.max_steps={max_steps}: the episodic memory stores steps as int16: at most {MAX_STEPS_LIMIT - 1}"
         )
+    decay = getattr(cfg.env, "evidence_decay", 0.0)
+    if mem.enabled and isinstance(decay, (int, float)) and decay > 0:
+        errors.append(
+            f"env.evidence_decay={decay}: the episodic memory stores integer detection counts, and decayed "
+            "counts are fractions: set env.evidence_decay=0 or algo.memory.enabled=false"
+        )
     if mem.enabled and mem.key_dim > 8:
         errors.append(
             f"algo.memory.key_dim={mem.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"

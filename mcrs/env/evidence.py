@@ -1,0 +1,35 @@
+"""Evidence that fades (``evidence_decay``, beyond the paper): every detection count is multiplied by
+``keep = 1 - evidence_decay`` per step, so a detection made at step s weighs keep^(t - s) at step t.
+
+Ageing every map in every step would be a pass over N L1 L2 counts per environment. Instead counts are
+stored as float64 sums of keep^-s (a detection of step s adds keep^-s, :attr:`EvidenceDecay.step_weight`),
+and a count is read at step t as stored * keep^t. Max-plus-sum fusion is unchanged: every copy of q's map
+ages alike, so the copy with more of q's detections is still the larger one. Config validation bounds
+``max_steps * -ln(keep)`` so that keep^-s stays finite.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from mcrs.env.config import EnvConfig
+
+
+class EvidenceDecay:
+    """The weights of detections by step, and the factor that turns stored counts into counts now."""
+
+    def __init__(self, config: EnvConfig, device: torch.device) -> None:
+        self.log_keep = math.log1p(-config.evidence_decay)
+        steps = torch.arange(config.max_steps + 1, dtype=torch.float64, device=device)
+        self.step_weight = torch.exp(-self.log_keep * steps)  # [T + 1]: keep^-s
+
+    def factor(self, step: torch.Tensor) -> torch.Tensor:
+        """``[E]`` float64: keep^t at each environment's step ``t``."""
+        return torch.exp(self.log_keep * step.to(torch.float64))
+
+    def now(self, stored: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """Stored counts ``[E, ...]`` read at each environment's step: float32 counts."""
+        factor = self.factor(step).view(-1, *([1] * (stored.dim() - 1)))
+        return (stored * factor).to(torch.float32)
