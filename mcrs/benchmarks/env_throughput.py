@@ -10,6 +10,13 @@ figures, printed here next to the measurements with PASS/FAIL:
 In the JSON (:mod:`mcrs.benchmarks.harness`): figures ``goal_env_steps_per_s``, ``<map>.ratio_to_pettingzoo``,
 ``memory_projected_gib``, ``memory_measured_gib``; every row in the table ``throughput``.
 
+``--env-override KEY=VALUE ...`` (or ``--variants``: delay, bandwidth and moving targets of the presets
+``map20_delay``, ``map20_bandwidth`` and ``map20_dynamic`` at once) times every MCRSEnv row a second
+time with those scenario fields, right after the paper's row, and prints the ratio of the two; the goal
+figure ``goal_variant_env_steps_per_s`` holds the variant's map20 @1024 row (>= 50,000 env-steps/s).
+Each row also gives env-steps per CPU-second of this process (``time.process_time``), a figure that
+other processes on a loaded machine disturb less than the wall clock.
+
 The TorchRL path is timed the way a collector drives it: ``env.step_and_maybe_reset(td)`` in a loop, with
 uniformly random *allowed* actions drawn for all environments at once from ``("agents", "action_mask")``.
 Drawing the actions is inside the timed loop, as a policy would be. The PettingZoo reference steps one
@@ -27,6 +34,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -48,6 +56,14 @@ MEMORY_NUM_ENVS = 10_000
 GOAL_GIB = 2.0
 GIB = 2**30
 REPEATS = 3  # timed runs per row; the fastest is reported
+#: ``--variants``: the three variant presets' fields at once (mcrs/conf/env/map20_*.yaml).
+VARIANTS = {
+    "comm_delay": 3,
+    "comm_budget": 4,
+    "target_motion": "random_walk",
+    "target_move_prob": 0.05,
+    "evidence_decay": 0.02,
+}
 
 
 @dataclass
@@ -60,6 +76,11 @@ class Row:
     steps: int  # environment steps timed (summed over the batch)
     seconds: float
     n_uavs: int
+    cpu_seconds: float | None = None  # CPU time of this process over the same run
+
+    @property
+    def env_steps_per_cpu_s(self) -> float | None:
+        return None if not self.cpu_seconds else self.steps / self.cpu_seconds
 
     @property
     def env_steps(self) -> float:
@@ -77,10 +98,10 @@ def _synchronize(device: torch.device) -> None:
 
 def _calibrated_run(
     run: Callable[[int], None], seconds: float, device: torch.device, episode_steps: int
-) -> tuple[int, float]:
+) -> tuple[int, float, float]:
     """Warm up (which also measures the rate), then time ``REPEATS`` runs of a fixed number of steps that
     together last about ``seconds`` (one run when an episode is longer); return (steps, elapsed) of the
-    fastest run.
+    fastest run, and the CPU time of this process during that run.
 
     The fastest run is the figure least disturbed by other processes on a shared machine (as ``timeit``
     recommends). Each run is a whole number of episodes long, so that every run pays for the same number
@@ -97,18 +118,27 @@ def _calibrated_run(
     # Runs of whole episodes: when one episode alone takes longer than the budget, a single run.
     repeats = REPEATS if episode_seconds <= seconds else 1
     n_steps = episode_steps * max(1, round(seconds / repeats / episode_seconds))
-    best = math.inf
+    best, best_cpu = math.inf, math.inf
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         run(n_steps)
         _synchronize(device)
-        best = min(best, time.perf_counter() - start)
-    return n_steps, best
+        elapsed = time.perf_counter() - start
+        if elapsed < best:
+            best, best_cpu = elapsed, time.process_time() - start_cpu
+    return n_steps, best, best_cpu
 
 
-def measure_torchrl(map_name: str, num_envs: int, seconds: float, device: torch.device) -> Row:
-    """Env-steps/s of ``MCRSEnv`` driven by ``step_and_maybe_reset``, as a TorchRL collector does."""
-    env = MCRSEnv(map_name, device=device, num_envs=num_envs)
+def measure_torchrl(
+    map_name: str,
+    num_envs: int,
+    seconds: float,
+    device: torch.device,
+    overrides: dict[str, Any] | None = None,
+) -> Row:
+    """Env-steps/s of ``MCRSEnv`` driven by ``step_and_maybe_reset``, as a TorchRL collector does;
+    ``overrides`` are scenario fields (e.g. the variants beyond the paper)."""
+    env = MCRSEnv(map_name, device=device, num_envs=num_envs, **(overrides or {}))
     env.set_seed(0)
     policy = RandomPolicy(env.config, seed=0)  # uniform over allowed moves, batched
     td = env.reset()
@@ -118,8 +148,9 @@ def measure_torchrl(map_name: str, num_envs: int, seconds: float, device: torch.
         for _ in range(n):
             _, td = env.step_and_maybe_reset(policy(td))
 
-    n_steps, elapsed = _calibrated_run(run, seconds, device, env.config.max_steps)
-    return Row(map_name, "MCRSEnv", num_envs, n_steps * num_envs, elapsed, env.config.n_uavs)
+    n_steps, elapsed, cpu = _calibrated_run(run, seconds, device, env.config.max_steps)
+    path = "MCRSEnv+var" if overrides else "MCRSEnv"
+    return Row(map_name, path, num_envs, n_steps * num_envs, elapsed, env.config.n_uavs, cpu)
 
 
 def measure_pettingzoo(map_name: str, seconds: float) -> Row:
@@ -146,10 +177,10 @@ def measure_pettingzoo(map_name: str, seconds: float) -> Row:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        n_steps, elapsed = _calibrated_run(run, seconds, torch.device("cpu"), env.config.max_steps)
+        n_steps, elapsed, cpu = _calibrated_run(run, seconds, torch.device("cpu"), env.config.max_steps)
     finally:
         torch.set_num_threads(threads)
-    return Row(map_name, "PettingZoo", 1, n_steps, elapsed, env.config.n_uavs)
+    return Row(map_name, "PettingZoo", 1, n_steps, elapsed, env.config.n_uavs, cpu)
 
 
 def state_bytes_per_env(map_name: str) -> float:
@@ -208,13 +239,45 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--skip-memory", action="store_true", help=f"skip the {MEMORY_NUM_ENVS}-environment memory check"
     )
+    parser.add_argument(
+        "--env-override",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="scenario fields (e.g. comm_delay=2 comm_budget=4): each MCRSEnv row is timed again with them",
+    )
+    parser.add_argument(
+        "--variants",
+        action="store_true",
+        help="time every MCRSEnv row again with delay, bandwidth and moving targets on: "
+        + " ".join(f"{k}={v}" for k, v in VARIANTS.items()),
+    )
     return parser
+
+
+def _overrides(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict[str, Any]:
+    """The scenario fields of ``--variants`` and ``--env-override`` (the latter win), checked on each map."""
+    import yaml
+
+    values: dict[str, Any] = dict(VARIANTS) if args.variants else {}
+    for item in args.env_override:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            parser.error(f"--env-override takes KEY=VALUE items (e.g. comm_delay=2), got {item!r}")
+        values[key] = yaml.safe_load(text)
+    for name in args.maps:
+        try:
+            scenario(name, **values)
+        except ValueError as error:
+            parser.error(f"--env-override on {name}: {' '.join(str(error).split())}")
+    return values
 
 
 def _validate(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     require_at_least(parser, args, 1, "num_envs")
     if args.seconds <= 0:
         parser.error(f"--seconds must be > 0, got {args.seconds}")
+    args.overrides = _overrides(parser, args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -271,12 +334,23 @@ def _run(args: argparse.Namespace, report: Report) -> None:
             f"{projected.verdict}; {measured_text}"
         )
 
-    print(f"\n{'map':<6} {'path':<10} {'num_envs':>8} {'env-steps/s':>13} {'agent-steps/s':>14}", flush=True)
+    overrides = args.overrides
+    if overrides:
+        print("variant rows (MCRSEnv+var): " + " ".join(f"{k}={v}" for k, v in overrides.items()), flush=True)
+    print(
+        f"\n{'map':<6} {'path':<11} {'num_envs':>8} {'env-steps/s':>13} {'agent-steps/s':>14} "
+        f"{'env-steps/cpu-s':>15}",
+        flush=True,
+    )
     rows: dict[tuple[str, str, int], Row] = {}
     for name in args.maps:
         for num_envs in num_envs_list:
             rows[name, "MCRSEnv", num_envs] = row = measure_torchrl(name, num_envs, args.seconds, device)
             _print_row(row, report)
+            if overrides:
+                variant = measure_torchrl(name, num_envs, args.seconds, device, overrides)
+                rows[name, "MCRSEnv+var", num_envs] = variant
+                _print_row(variant, report, baseline=row)
         rows[name, "PettingZoo", 1] = row = measure_pettingzoo(name, max(args.seconds / 2, 0.1))
         _print_row(row, report)
 
@@ -320,20 +394,52 @@ def _run(args: argparse.Namespace, report: Report) -> None:
             f"{GOAL_MAP} @{GOAL_NUM_ENVS} >= {GOAL_ENV_STEPS:,} env-steps/s ({GOAL_AGENT_STEPS:,} agent-steps/s): "
             f"{goal_row.env_steps:,.0f} env-steps/s, {goal_row.agent_steps:,.0f} agent-steps/s {pass_fail(ok)}",
         )
+    if overrides:
+        variant_row = rows.get((GOAL_MAP, "MCRSEnv+var", GOAL_NUM_ENVS))
+        fig = report.figure(
+            "goal_variant_env_steps_per_s", None if variant_row is None else variant_row.env_steps,
+            "env-steps/s", Goal(">=", GOAL_ENV_STEPS), not_judged="" if variant_row is not None else "not measured",
+            note=f"{GOAL_MAP} MCRSEnv@{GOAL_NUM_ENVS} with " + " ".join(f"{k}={v}" for k, v in overrides.items()),
+        )  # fmt: skip
+        if variant_row is not None:
+            paper = rows[GOAL_MAP, "MCRSEnv", GOAL_NUM_ENVS]
+            ratio = variant_row.env_steps / paper.env_steps
+            report.figure("variant_ratio_to_paper", ratio, "x", note="wall clock, same run")
+            goals.append(
+                f"{GOAL_MAP} @{GOAL_NUM_ENVS} with the variants >= {GOAL_ENV_STEPS:,} env-steps/s: "
+                f"{variant_row.env_steps:,.0f} env-steps/s {fig.verdict} ({ratio:.2f}x the paper's row, "
+                f"{paper.env_steps:,.0f})"
+            )
     print("\ngoals:", flush=True)
     for line in goals:
         print(f"  {line}", flush=True)
 
 
-def _print_row(row: Row, report: Report) -> None:
+def _print_row(row: Row, report: Report, baseline: Row | None = None) -> None:
+    """One table row; a variant row also gives its ratio to the paper's row ``baseline`` (wall, CPU)."""
+    ratios: dict[str, float | None] = {}
+    if baseline is not None:
+        cpu = row.env_steps_per_cpu_s, baseline.env_steps_per_cpu_s
+        ratios = {
+            "ratio_to_paper": row.env_steps / baseline.env_steps,
+            "cpu_ratio_to_paper": cpu[0] / cpu[1] if cpu[0] and cpu[1] else None,
+        }
     report.row(
         "throughput", map=row.map_name, path=row.path, num_envs=row.num_envs, steps=row.steps,
         seconds=row.seconds, env_steps_per_s=row.env_steps, agent_steps_per_s=row.agent_steps,
+        cpu_seconds=row.cpu_seconds, env_steps_per_cpu_s=row.env_steps_per_cpu_s, **ratios,
     )  # fmt: skip
-    print(
-        f"{row.map_name:<6} {row.path:<10} {row.num_envs:>8} {row.env_steps:>13,.0f} {row.agent_steps:>14,.0f}",
-        flush=True,
+    per_cpu = row.env_steps_per_cpu_s
+    text = (
+        f"{row.map_name:<6} {row.path:<11} {row.num_envs:>8} {row.env_steps:>13,.0f} {row.agent_steps:>14,.0f} "
+        f"{'n/a' if per_cpu is None else f'{per_cpu:,.0f}':>15}"
     )
+    if baseline is not None:
+        cpu_ratio = ratios["cpu_ratio_to_paper"]
+        text += f"  x{ratios['ratio_to_paper']:.2f} of the paper's row (CPU time: " + (
+            "n/a)" if cpu_ratio is None else f"x{cpu_ratio:.2f})"
+        )
+    print(text, flush=True)
 
 
 if __name__ == "__main__":

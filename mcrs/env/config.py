@@ -22,8 +22,8 @@ PRESETS = SCENARIOS + VARIANT_PRESETS
 RUNTIME_FIELDS = ("num_envs", "device")
 INVALID_ACTION_MODES = ("raise", "clip")
 TARGET_MOTIONS = ("static", "random_walk")
-#: evidence_decay's bound: counts are kept in units of (1 - decay)^-s (float64), which must stay finite.
-MAX_DECAY_EXPONENT = 600.0
+#: evidence_decay's bound on max_steps * -ln(1 - decay): (1 - decay)^max_steps stays a normal float32.
+MAX_DECAY_EXPONENT = 80.0
 
 
 @dataclass(frozen=True)

@@ -133,9 +133,9 @@ class MCRSCore:
         paper_comms = c.comm_delay == 0 and c.comm_budget is None
         self.channel = None if paper_comms else MessageChannel(c, known_dtype, dev)
         self.decay = EvidenceDecay(c, dev) if c.evidence_decay > 0 else None
-        if self.decay is not None:  # counts hold sums of keep^-s (mcrs/env/evidence.py)
+        if self.decay is not None:  # UAV counts hold sums of keep^-s (mcrs/env/evidence.py)
             self.counts = self.counts.to(torch.float64)
-            self.global_counts = self.global_counts.to(torch.float64)
+            self.global_counts = self.global_counts.to(torch.float32)  # the global counts now, aged in place
         self.walk = TargetWalk(c, self._moves, dev) if c.target_motion == "random_walk" else None
         self.dynamic = c.dynamic
         # dynamic: the targets found (current cell's m(F) >= tau) at least once in the episode.
@@ -219,7 +219,7 @@ class MCRSCore:
 
         # 4. Global belief, rewards and metrics.
         if self.dynamic:
-            uncertainty_drop, new_targets = self._update_global_belief_dynamic(flat)
+            uncertainty_drop, new_targets = self._update_global_belief_dynamic(cell, flat)
         else:
             uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
         r_uncertainty = c.w_uncertainty * uncertainty_drop
@@ -249,31 +249,29 @@ class MCRSCore:
             self.episode_reward, self.collisions, self.no_fly_violations, *variants,
         ]  # fmt: skip
 
-    def _global_counts_now(self) -> torch.Tensor:
-        """``[E, 2 C]``: the global counts at the current step (float32 when they decay)."""
-        return (
-            self.global_counts if self.decay is None else self.decay.now(self.global_counts, self.step_count)
-        )
+    def _update_global_belief_dynamic(
+        self, cell: torch.Tensor, flat: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Moving targets or fading evidence; returns (drop of sum m(U), targets found for the first time).
 
-    def _update_global_belief_dynamic(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Moving targets or fading evidence: every cell's belief may change, so the map is recomputed.
-
-        Returns (drop of sum m(U), targets found for the first time in the episode). A target is *found*
-        while the global m(F) of its current cell is >= tau; r2 pays each target once per episode.
+        A target is *found* while the global m(F) of its current cell is >= tau; r2 pays each target once
+        per episode. Without decay only the sensed cells change (the paper's incremental update); with it
+        every cell fades, so the whole map is recomputed.
         """
         c = self.config
-        weight = 1 if self.decay is None else self.decay.step_weight[self.step_count].unsqueeze(-1)
-        self.global_counts.scatter_add_(
-            1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype) * weight
-        )
-        sensed = self.global_counts.view(self.num_envs, -1, 2).sum(-1) > 0  # stored counts never fade to 0
-        self.cells_sensed = sensed.sum(-1).to(torch.float32)
-        counts = self._global_counts_now()
-        _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
-        self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
-        drop = self.total_uncertainty - unknown.sum(-1)
-        self.total_uncertainty = unknown.sum(-1)
-        reached = full >= c.target_threshold
+        if self.decay is None:
+            drop, _ = self._update_global_belief(cell, flat)
+        else:
+            # One global map, read every step: aged in place (float32), cheaper than scaled storage here.
+            counts = self.global_counts.mul_(self.decay.keep)
+            counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=counts.dtype))
+            # Config validation keeps keep^max_steps a normal float32: a sensed cell's count stays > 0.
+            self.cells_sensed = ((counts[:, 0::2] + counts[:, 1::2]) > 0).sum(-1).to(torch.float32)
+            _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
+            self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
+            total = unknown.sum(-1)
+            drop, self.total_uncertainty = self.total_uncertainty - total, total
+        reached = self.global_belief[:, 1] >= c.target_threshold
         found = reached.gather(1, self.target_pos[..., 0] * c.height + self.target_pos[..., 1])
         self.targets_found = found.sum(-1).to(torch.float32)
         self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
@@ -474,7 +472,7 @@ class MCRSCore:
             action_mask=self._mask.clone(),
             state=state,
             state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
-            state_counts=self._global_counts_now().view(E, self.n_cells, 2).clone(),
+            state_counts=self.global_counts.view(E, self.n_cells, 2).clone(),
             position=self.uav_pos.clone(),
             reading=self.reading.clone(),
             reward=terms.sum(-1),

@@ -1,11 +1,13 @@
 """Evidence that fades (``evidence_decay``, beyond the paper): every detection count is multiplied by
 ``keep = 1 - evidence_decay`` per step, so a detection made at step s weighs keep^(t - s) at step t.
 
-Ageing every map in every step would be a pass over N L1 L2 counts per environment. Instead counts are
-stored as float64 sums of keep^-s (a detection of step s adds keep^-s, :attr:`EvidenceDecay.step_weight`),
-and a count is read at step t as stored * keep^t. Max-plus-sum fusion is unchanged: every copy of q's map
-ages alike, so the copy with more of q's detections is still the larger one. Config validation bounds
-``max_steps * -ln(keep)`` so that keep^-s stays finite.
+Ageing every UAV's map in every step would be a pass over N L1 L2 counts per environment. Instead a UAV's
+counts are stored as float64 sums of keep^-s (a detection of step s adds keep^-s,
+:attr:`EvidenceDecay.step_weight`), and a count is read at step t as stored * keep^t (only the 8 cells
+around a UAV are read per step). Max-plus-sum fusion is unchanged: every copy of q's map ages alike, so the
+copy with more of q's detections is still the larger one. The one global map is read whole every step,
+so it is kept as float32 counts and aged in place (``counts *= keep``). Config validation bounds
+``max_steps * -ln(keep)`` by 80, so that keep^-s stays finite and keep^t a normal float32 (> 0).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ class EvidenceDecay:
     """The weights of detections by step, and the factor that turns stored counts into counts now."""
 
     def __init__(self, config: EnvConfig, device: torch.device) -> None:
+        self.keep = 1.0 - config.evidence_decay
         self.log_keep = math.log1p(-config.evidence_decay)
         steps = torch.arange(config.max_steps + 1, dtype=torch.float64, device=device)
         self.step_weight = torch.exp(-self.log_keep * steps)  # [T + 1]: keep^-s

@@ -42,18 +42,28 @@ def budgeted_round(
     levels = known.to(torch.float32)  # small integers: exact
     mine, theirs = levels[env, receiver], levels[env, sender]  # [P, N] over sources q
     backlog = (theirs - mine).clamp(min=0)
-    # ahead[p, q]: detections the link sends before source q's = backlog of every source ranked before q.
-    other, this = backlog.unsqueeze(-2), backlog.unsqueeze(-1)  # [P, 1, q'], [P, q, 1]
-    lower = torch.ones(n_uavs, n_uavs, dtype=torch.bool, device=known.device).tril(-1)  # [q, q']: q' < q
-    ranked_before = (other > this) | ((other == this) & lower)
-    ahead = torch.matmul(ranked_before.to(torch.float32), backlog.unsqueeze(-1)).squeeze(-1)
-    budget = remaining[env, receiver, sender].unsqueeze(-1)
-    sent = torch.minimum(backlog, (budget - ahead).clamp(min=0))
-    remaining[env, receiver, sender] = budget.squeeze(-1) - sent.sum(-1)
+    budget = remaining[env, receiver, sender]
+    total = backlog.sum(-1)
+    sent = backlog.clone()  # links whose whole backlog fits send it all
+    over = (total > budget).nonzero().squeeze(-1)
+    if over.numel():
+        sent[over] = _within_budget(backlog[over], budget[over])
+    remaining[env, receiver, sender] = budget - sent.sum(-1)
     merged = levels.view(n_envs * n_uavs, n_uavs).clone()
     rows = (env * n_uavs + receiver).unsqueeze(-1).expand(-1, n_uavs)
     merged.scatter_reduce_(0, rows, mine + sent, "amax", include_self=True)
     return merged.view_as(known).to(known.dtype), remaining
+
+
+def _within_budget(backlog: torch.Tensor, budget: torch.Tensor) -> torch.Tensor:
+    """What links whose backlog ``[P, N]`` exceeds ``budget [P]`` send: largest backlog first, ties lower q."""
+    n_uavs = backlog.shape[-1]
+    # ahead[p, q]: detections the link sends before source q's = backlog of every source ranked before q.
+    other, this = backlog.unsqueeze(-2), backlog.unsqueeze(-1)  # [P, 1, q'], [P, q, 1]
+    lower = torch.ones(n_uavs, n_uavs, dtype=torch.bool, device=backlog.device).tril(-1)  # [q, q']: q' < q
+    ranked_before = (other > this) | ((other == this) & lower)
+    ahead = torch.matmul(ranked_before.to(torch.float32), backlog.unsqueeze(-1)).squeeze(-1)
+    return torch.minimum(backlog, (budget.unsqueeze(-1) - ahead).clamp(min=0))
 
 
 class MessageChannel:

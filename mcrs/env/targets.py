@@ -17,11 +17,10 @@ class TargetWalk:
     """
 
     def __init__(self, config: EnvConfig, moves: torch.Tensor, device: torch.device) -> None:
-        E, K = config.num_envs, config.n_targets
+        E = config.num_envs
         self.config, self.moves = config, moves
         self.grid_max = torch.tensor([config.width - 1, config.height - 1], dtype=torch.int64, device=device)
         self.is_no_fly = torch.zeros(E, config.n_cells, dtype=torch.bool, device=device)
-        self._earlier = torch.ones(K, K, dtype=torch.bool, device=device).tril(-1)  # [k, k']: k' < k
 
     def tensors(self) -> list[torch.Tensor]:
         return [self.is_no_fly]
@@ -45,8 +44,13 @@ class TargetWalk:
         dest_cell = torch.where(on_grid, dest[..., 0] * c.height + dest[..., 1], old_cell)
         free = ~(self.is_no_fly.gather(1, dest_cell) | is_target.gather(1, dest_cell))
         candidate = tries & on_grid & free
-        contested = (dest_cell.unsqueeze(-1) == dest_cell.unsqueeze(-2)) & candidate.unsqueeze(-2)
-        moves = candidate & ~(contested & self._earlier).any(-1)
+        # Of the candidates choosing one cell of one env, the lowest index moves. Candidates are few
+        # (about K * target_move_prob per env), so this works on them alone, not on [E, K, K] pairs.
+        env, index = candidate.nonzero().unbind(-1)
+        chosen, slot = torch.unique(env * c.n_cells + dest_cell[env, index], return_inverse=True)
+        winner = torch.full_like(chosen, position.shape[1]).scatter_reduce_(0, slot, index, "amin")
+        moves = torch.zeros_like(candidate)
+        moves[env, index] = index == winner[slot]
         is_target.scatter_(1, old_cell, False)
         is_target.scatter_(1, torch.where(moves, dest_cell, old_cell), True)
         return torch.where(moves.unsqueeze(-1), dest, position)
