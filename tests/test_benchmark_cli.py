@@ -88,3 +88,33 @@ def test_bad_arguments_are_rejected_naming_the_argument(
     with pytest.raises(SystemExit):
         main(argv)
     assert message in capsys.readouterr().err
+
+
+def test_variants_are_timed_beside_the_paper_rows_with_their_ratio(tmp_path: Path) -> None:
+    argv = ["--maps", "map10", "--num-envs", "4", "--seconds", "0.1", "--skip-memory", "--threads", "1"]
+    data = _run(tmp_path, [*argv, "--variants", "--env-override", "comm_budget=2"])
+    rows = {(r["map"], r["path"], r["num_envs"]): r for r in data["tables"]["throughput"]}
+    paper, variant = rows["map10", "MCRSEnv", 4], rows["map10", "MCRSEnv+var", 4]
+    assert variant["ratio_to_paper"] == pytest.approx(variant["env_steps_per_s"] / paper["env_steps_per_s"])
+    assert variant["env_steps_per_cpu_s"] == pytest.approx(variant["steps"] / variant["cpu_seconds"])
+    assert data["arguments"]["env_override"] == ["comm_budget=2"] and data["arguments"]["variants"]
+    assert data["figures"]["goal_variant_env_steps_per_s"]["not_judged"] == "not measured"  # map20 @1024
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("comm_delay", "--env-override takes KEY=VALUE items"),
+        ("comm_budget=0", "--env-override on map10: invalid environment config: - comm_budget=0: must be"),
+        ("target_motion=teleport", "target_motion='teleport': must be one of ['static', 'random_walk']"),
+        ("comm_radius=3", "unknown environment field(s) ['comm_radius']"),
+    ],
+)
+def test_bad_env_overrides_are_one_line_naming_the_field(
+    override: str, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--maps", "map10", "--num-envs", "2", "--json", "none", "--env-override", override])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
