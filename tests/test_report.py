@@ -278,3 +278,27 @@ def test_tsne_without_a_readable_buffer_is_reported_not_raised(tmp_path: Path) -
     text = (out / "report.md").read_text()
     assert "## t-SNE of memory states (figure 9)\n\nnot made: checkpoint" in text
     assert (out / "final.csv").is_file()  # the rest of the report is still written
+
+
+def test_trained_policies_on_fixed_episodes_count_once_per_trained_run(tmp_path: Path) -> None:
+    """mcrs-eval of trained runs: a run's evaluation seeds are averaged first, then mean ± std over runs;
+    runs that differ in more than their seed are separate methods."""
+    for run, base in (("qmix_shield_seed0", 3.0), ("qmix_shield_seed1", 5.0), ("qmix_plain_seed0", 1.0)):
+        for seed in range(2):
+            make_evaluation(tmp_path, f"{run}_eval{seed}", f"outputs/x/{run}", 5.0, seed, found=base + seed)
+    make_evaluation(tmp_path, "greedy_0", "greedy", 5.0, 0, found=2.0)
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    rows = {r[0]: r[1:] for r in _table_rows((out / "report.md").read_text())}
+    # qmix_shield: run means 3.5 and 5.5 -> 4.50 ± 1.41 (std over the two runs, not over four rows)
+    assert rows["trained qmix_shield"][:2] == ["2", "-"]
+    assert (
+        rows["trained qmix_shield"][2] == "45.00 ± 14.14" and rows["trained qmix_shield"][5] == "4.50 ± 1.41"
+    )
+    assert rows["trained qmix_plain"][0] == "1" and rows["trained qmix_plain"][5].startswith("1.50")
+    assert rows["greedy (heuristic)"][0] == "1"
+
+
+def _table_rows(markdown_text: str) -> list[list[str]]:
+    lines = [line for line in markdown_text.splitlines() if line.startswith("| ") and "---" not in line]
+    return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[1:]]

@@ -24,6 +24,7 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -145,6 +146,48 @@ def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) 
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
             values = np.array([g.means[name] for g in group if name in g.means])
+            row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
+            row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def _trained_groups(evaluations: list[EvaluationRow]) -> dict[str, dict[str, list[EvaluationRow]]]:
+    """Evaluations of trained policies: method -> trained run -> its rows (one per evaluation seed). A
+    method is the policy's label (``trained qmix``), plus the run's name without its seed (``[qmix_shield]``)
+    where runs of one label differ in more than their seed."""
+    by_label: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for row in evaluations:
+        if not row.is_heuristic:
+            by_label.setdefault(row.label or f"trained {_run_stem(row.policy)}", {}).setdefault(
+                row.policy, []
+            ).append(row)
+    methods: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for label in sorted(by_label):
+        stems = {policy: _run_stem(policy) for policy in by_label[label]}
+        for policy, rows in by_label[label].items():
+            method = f"{label} [{stems[policy]}]" if len(set(stems.values())) > 1 else label
+            methods.setdefault(method, {})[policy] = rows
+    return dict(sorted(methods.items()))
+
+
+def _run_stem(policy: str) -> str:
+    """A trained run's name without its seed: ``outputs/shield/qmix_shield_seed2`` -> ``qmix_shield``."""
+    path = Path(policy)
+    name = path.parent.name if path.suffix == ".pt" else path.name
+    return re.sub(r"_?seed\d+$", "", name) or name
+
+
+def _trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
+    """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
+    mean and std over the runs (training seeds)."""
+    rows = []
+    for method, runs in _trained_groups(evaluations).items():
+        row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
+        for metric in FINAL_METRICS:
+            name = metric.split("/")[-1]
+            per_run = [np.mean([g.means[name] for g in group if name in g.means]) for group in runs.values()]
+            values = np.array([v for v in per_run if np.isfinite(v)])
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
@@ -409,7 +452,13 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, CheckpointError) as error:  # an empty or unreadable buffer: say so, keep the rest
             report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
     if not runs.training and not has_ranges:  # evaluations only: their table
-        report.add("Evaluations", _final_table(_heuristic_rows(runs.evaluations, None)))
+        rows = _heuristic_rows(runs.evaluations, None) + _trained_rows(runs.evaluations)
+        report.add(
+            "Evaluations",
+            "Heuristics: mean ± std over evaluation seeds. Trained policies: each trained run counts by its "
+            "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
+            + _final_table(rows),
+        )
     path = report.write()
     print(f"\nreport: {path}", flush=True)
     return 0
