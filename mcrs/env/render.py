@@ -10,12 +10,14 @@ content (blitting), so every frame has the same size, as a video needs.
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from matplotlib.axis import Axis
 from matplotlib.colors import Normalize
+from PIL import Image
 from tensordict import TensorDictBase
 
 from mcrs.env.canvas import (
@@ -210,3 +212,15 @@ def episode_rgb_frames(
         )
         for t in range(fr.steps + 1)
     ]
+
+
+def encode_gif(frames: list[np.ndarray], fps: int = 5) -> bytes:
+    """An animated GIF (looping) of ``[H, W, 3]`` uint8 frames: the episode GIF's and the video's format."""
+    if not frames:
+        raise ValueError("encode_gif needs at least one frame")
+    images = [Image.fromarray(frame) for frame in frames]
+    out = io.BytesIO()
+    images[0].save(
+        out, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0
+    )
+    return out.getvalue()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -10,15 +11,21 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS
+from mcrs.env.render import episode_frames, episode_rgb_frames
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.models.acting import recurrent_primer
 
 
 def make_eval_env(
-    env_config: EnvConfig, episodes: int, hidden_dim: int, device: str | torch.device
+    env_config: EnvConfig,
+    episodes: int,
+    hidden_dim: int,
+    device: str | torch.device,
+    expose_beliefs: bool = False,
 ) -> TransformedEnv:
-    """``episodes`` environments run as one batch, carrying the agents' recurrent state."""
-    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=False), device=str(device))
+    """``episodes`` environments run as one batch, carrying the agents' recurrent state (with
+    ``expose_beliefs``, also what an episode's pictures are drawn from)."""
+    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=expose_beliefs), device=str(device))
     return TransformedEnv(env, recurrent_primer(episodes, env_config.n_uavs, hidden_dim, device=device))
 
 
@@ -41,3 +48,10 @@ def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> di
     out = {name: values.mean().item() for name, values in metrics.items()}
     out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
     return out
+
+
+def greedy_episode_video(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> list[np.ndarray]:
+    """The frames (``[H, W, 3]`` uint8, reset to the time limit) of the first greedy episode of ``env``
+    (built with ``expose_beliefs=True``), drawn as the episode GIF is."""
+    episode = rollout_greedy(env, policy, seed)
+    return episode_rgb_frames(episode_frames(episode, env.base_env.config))

@@ -2,6 +2,12 @@
 
 ``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``; ``tensorboard`` writes ``<run>/logs/``;
 ``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``.
+
+Videos (``logger.video=true``: one greedy evaluation episode per evaluation) are animated GIFs encoded
+with Pillow, written to ``<run>/videos/`` with every backend and also sent to TensorBoard (an image
+summary holding the GIF: TensorBoard's own video format, shown in its Images tab) and wandb
+(``wandb.Video``). TorchRL's ``log_video`` is not used: it needs moviepy (TensorBoard's encoder even
+moviepy 1.x), which nothing else here needs.
 """
 
 from __future__ import annotations
@@ -10,7 +16,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from torchrl.record.loggers import Logger
+
+from mcrs.env.render import encode_gif
 
 
 def make_logger(
@@ -63,6 +72,32 @@ def _hparams(config: dict[str, Any]) -> dict[str, Any]:
 def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
     for name, value in values.items():
         logger.log_scalar(name, float(value), step=step)
+
+
+def log_video(
+    logger: Logger, run_dir: Path, name: str, frames: list[np.ndarray], step: int, fps: int = 5
+) -> Path:
+    """Log ``frames`` (``[H, W, 3]`` uint8 each) as the video ``name`` (``eval/video``) at ``step``: a GIF
+    in ``<run>/videos/`` and, for TensorBoard and wandb, the same GIF in the run's log."""
+    gif = encode_gif(frames, fps)
+    path = run_dir / "videos" / f"{name.replace('/', '_')}_{step}.gif"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(gif)
+    backend = type(logger).__name__
+    if backend == "TensorboardLogger":
+        from torch.utils.tensorboard.summary import Summary
+
+        height, width, channels = frames[0].shape
+        image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=gif)
+        summary = Summary(value=[Summary.Value(tag=name, image=image)])
+        logger.experiment._get_file_writer().add_summary(summary, step)  # what SummaryWriter.add_video does
+        logger.experiment.flush()
+    elif backend == "WandbLogger":
+        import wandb
+
+        # TorchRL's per-group step bookkeeping, as for the scalars (the value is not a float here).
+        logger.log_scalar(name, wandb.Video(str(path), format="gif"), step=step)
+    return path
 
 
 def progress_bar(total: int, initial: int, enabled: bool, description: str):

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from PIL import Image
 from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
-from mcrs.env.render import episode_rgb_frames
+from mcrs.env.render import encode_gif, episode_rgb_frames
 from mcrs.viz.frames import episode_frames
 
 
@@ -28,10 +27,7 @@ def save_episode_gif(
     trail; a short one keeps large maps readable). The frames are those of
     :func:`mcrs.env.render.episode_rgb_frames`, the same drawing as the adapter's ``render()``.
     """
-    arrays = episode_rgb_frames(episode_frames(episode, env_config), background, trail, dpi)
-    frames = [Image.fromarray(a) for a in arrays]
+    frames = episode_rgb_frames(episode_frames(episode, env_config), background, trail, dpi)
     path = Path(path)
-    frames[0].save(
-        path, format="GIF", save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0
-    )
+    path.write_bytes(encode_gif(frames, fps))
     return path
