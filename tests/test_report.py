@@ -278,3 +278,25 @@ def test_tsne_without_a_readable_buffer_is_reported_not_raised(tmp_path: Path) -
     text = (out / "report.md").read_text()
     assert "## t-SNE of memory states (figure 9)\n\nnot made: checkpoint" in text
     assert (out / "final.csv").is_file()  # the rest of the report is still written
+
+
+def test_one_seed_shows_no_spread_and_close_steps_get_distinct_headings(tmp_path: Path) -> None:
+    """One seed: the mean alone (``± 0.00`` would claim a spread that was never measured). A run whose last
+    evaluation comes right after the one before (11,200 then 11,240) keeps both columns apart: the
+    headings get the decimals they need; a step nearest to two fractions is one column."""
+    make_run(tmp_path, "qmix", reward=[1.0, 2.0, 3.0], steps=[0, 11_200, 11_240])
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    final, milestones = (out / "final.md").read_text(), (out / "milestones.md").read_text()
+    assert "±" not in final and "±" not in milestones
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    assert cells(final.splitlines()[2])[:4] == ["qmix", "1", "11.2k", "3.00"]
+    assert cells(milestones.splitlines()[0]) == ["method", "seeds", "0.00k", "11.20k", "11.24k"]
+    assert cells(milestones.splitlines()[2]) == ["qmix", "1", "1.00", "2.00", "3.00"]
+    # Two seeds: the spread is shown again.
+    make_run(tmp_path, "qmix_1", seed=1, reward=[1.0, 4.0, 5.0], steps=[0, 11_200, 11_240])
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    assert "4.00 ± 1.41" in (out / "milestones.md").read_text()

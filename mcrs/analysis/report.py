@@ -62,8 +62,18 @@ ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "se
 HEURISTIC_ORDER = ("random", "lawnmower", "greedy")
 
 
-def _steps(s: int) -> str:
-    return f"{s / 1e6:.2f}M" if s >= 1_000_000 else f"{s / 1e3:.1f}k"
+def _steps(s: int, extra: int = 0) -> str:
+    return f"{s / 1e6:.{2 + extra}f}M" if s >= 1_000_000 else f"{s / 1e3:.{1 + extra}f}k"
+
+
+def step_labels(steps: list[int]) -> list[str]:
+    """Column headings for env steps (``11.2k``, ``1.33M``), with as many decimals as it takes for
+    distinct steps to get distinct headings (11,150 and 11,200 are both ``11.2k`` at one decimal)."""
+    for extra in range(4):
+        labels = [_steps(s, extra) for s in steps]
+        if len(set(labels)) == len(set(steps)):
+            return labels
+    return [f"{s:,}" for s in steps]
 
 
 class Report:
@@ -123,7 +133,8 @@ def _final_table(rows: list[dict[str, object]]) -> str:
         steps = int(r.get("env_steps", 0))
         cells = [str(r["method"]), str(r.get("seeds", "")), _steps(steps) if steps else "-"]
         names = [m.split("/")[-1] for m in FINAL_METRICS]
-        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"]) for n in names])
+        seeds = int(r["seeds"]) if r.get("seeds") not in (None, "") else None
+        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"], n=seeds) for n in names])
     return markdown(header, table)
 
 
@@ -245,11 +256,14 @@ def _report_milestones(
             [
                 label,
                 str(rewards[label].seeds),
-                *(mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"]) for s in steps),
+                *(
+                    mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"], n=rewards[label].seeds)
+                    for s in steps
+                ),
             ]
         )
     write_csv(report.out / "milestones.csv", rows)
-    md = markdown(["method", "seeds", *(_steps(s) for s in steps)], table)
+    md = markdown(["method", "seeds", *step_labels(steps)], table)
     (report.out / "milestones.md").write_text(md + "\n")
     report.add("Episode reward at thirds of the budget", md)
 
@@ -276,9 +290,10 @@ def _report_milestones(
                 **{f"reward_{s}": m for s, (m, _) in zip(steps, values, strict=True)},
             }
         )
-        table4.append([f"{delta:g}", algo, *(mean_std(m, sd) for m, sd in values)])
+        seeds = rewards[label].seeds
+        table4.append([f"{delta:g}", algo, *(mean_std(m, sd, n=seeds) for m, sd in values)])
     write_csv(report.out / "table4.csv", rows4)
-    md4 = markdown(["delta", "algorithm", *(_steps(s) for s in steps)], table4)
+    md4 = markdown(["delta", "algorithm", *step_labels(steps)], table4)
     (report.out / "table4.md").write_text(md4 + "\n")
     report.add("Table 4: episode reward by delta (mean over seeds)", md4)
 
