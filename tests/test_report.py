@@ -300,3 +300,29 @@ def test_one_seed_shows_no_spread_and_close_steps_get_distinct_headings(tmp_path
     make_run(tmp_path, "qmix_1", seed=1, reward=[1.0, 4.0, 5.0], steps=[0, 11_200, 11_240])
     assert report_main([str(tmp_path), "--out", str(out)]) == 0
     assert "4.00 ± 1.41" in (out / "milestones.md").read_text()
+
+
+def test_marl_eval_export_has_marl_evals_structure(tmp_path: Path) -> None:
+    """``--marl-eval``: environment -> map -> method -> run -> step_i (step_count, metric lists) plus
+    absolute_metrics last; every map is a task (the report itself keeps one), the seeds are the runs."""
+    import json
+
+    for seed in range(2):
+        make_run(tmp_path, f"qmix_{seed}", seed=seed, reward=[0.0, 10.0 + seed, 20.0, 30.0 + seed])
+    make_run(tmp_path, "vdn", algo="vdn", reward=[1.0, 2.0], steps=[0, 10_000])  # shorter: its own steps
+    make_run(tmp_path, "other_map", env="map20", steps=[0, 5_000])
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "me.json")]) == 0
+    data = json.loads((out / "me.json").read_text())
+    assert list(data) == ["mcrs"] and sorted(data["mcrs"]) == ["map10", "map20"]
+    assert sorted(data["mcrs"]["map10"]) == ["qmix", "vdn"]
+    qmix = data["mcrs"]["map10"]["qmix"]
+    assert list(qmix) == ["run_0", "run_1"]  # seed order
+    run1 = qmix["run_1"]
+    assert list(run1) == ["step_0", "step_1", "step_2", "step_3", "absolute_metrics"]  # absolute last
+    assert run1["step_1"]["step_count"] == 10_000 and run1["step_1"]["episode_reward"] == [11.0]
+    assert set(run1["step_1"]) == {"step_count", *METRICS}
+    assert all(isinstance(v, list) and len(v) == 1 for k, v in run1["step_3"].items() if k != "step_count")
+    assert run1["absolute_metrics"]["episode_reward"] == [31.0]
+    assert "step_count" not in run1["absolute_metrics"]
+    assert list(data["mcrs"]["map10"]["vdn"]["run_0"]) == ["step_0", "step_1", "absolute_metrics"]

@@ -3,6 +3,7 @@
     mcrs-report outputs/experiments/baselines --out outputs/reports/baselines_map10 --env map10
     mcrs-report outputs/experiments/delta outputs/eval/comm_range --out outputs/reports/delta
     mcrs-report outputs/experiments/baselines --out outputs/reports/tsne --tsne       (figure 9, from saved buffers)
+    mcrs-report outputs/experiments/baselines --out outputs/reports/b --marl-eval outputs/reports/b/marl_eval.json
 
 It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs.analysis.runs),
 keeps one map, groups training runs into methods (an algorithm plus the settings swept within it, e.g.
@@ -18,7 +19,12 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
-- ``report.md``: all of it, plus every run that was skipped and why.
+- ``report.md``: all of it, plus every run that was skipped and why;
+- with ``--marl-eval out.json``: every training run's evaluations (all maps) in marl-eval's JSON
+  (mcrs.analysis.marl_eval).
+
+Runs logged with any of ``mcrs-train``'s loggers are read: CSV, TensorBoard event files, and wandb runs
+(through the CSV history they keep beside them).
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ from mcrs.analysis.curves import (
     milestone_values,
     plot_curves,
 )
+from mcrs.analysis.marl_eval import write_marl_eval
 from mcrs.analysis.runs import (
     EvaluationRow,
     Runs,
@@ -401,6 +408,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tsne", action="store_true", help="also make figure 9 from saved episodic buffers")
     parser.add_argument("--tsne-samples", type=int, default=20_000, help="states in the t-SNE (paper: 20000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the t-SNE and of its sample")
+    parser.add_argument(
+        "--marl-eval",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="also write the training runs' evaluations (every map) as marl-eval's raw-data JSON",
+    )
     return parser
 
 
@@ -409,6 +423,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.tsne_samples < 2:
         raise SystemExit(f"mcrs-report: error: --tsne-samples={args.tsne_samples}: must be >= 2")
     runs = find_runs(args.paths)
+    if args.marl_eval is not None:  # every map (a task each), before the report keeps one
+        data = write_marl_eval(args.marl_eval, runs.training)
+        tasks = {task: len(algos) for env in data.values() for task, algos in env.items()}
+        print(f"marl-eval JSON: {args.marl_eval} (methods per map: {tasks or 'none'})", flush=True)
     env_name = select_map(runs, args.env)
     if env_name is None or (not runs.training and not runs.evaluations):
         reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
