@@ -57,3 +57,35 @@ def test_evaluation_video_reaches_an_offline_wandb_run(
     media = sorted((run / "wandb").glob("offline-run-*/files/media/videos/eval/video_*.gif"))
     assert len(media) == 2
     assert gif_frames(media[0].read_bytes())[0] == T + 1
+
+
+def test_report_reads_the_runs_of_every_logger_alike(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same seed and config logged by csv, tensorboard and wandb (offline): ``mcrs-report`` finds all
+    three (none skipped), reads the same evaluations from each, and exports them for marl-eval."""
+    import json
+
+    import numpy as np
+
+    from mcrs.analysis.report import main as report_main
+    from mcrs.analysis.runs import find_runs
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    for backend in ("csv", "tensorboard", "wandb"):
+        tiny_run(tmp_path / backend, f"logger={backend}")
+    assert not (tmp_path / "csv" / "videos").exists()  # video is off by default
+    runs = find_runs([tmp_path])
+    assert runs.skipped == [] and len(runs.training) == 3
+    series = {run.path.name: run.scalar("eval/episode_reward") for run in runs.training}
+    steps, values = series["csv"]
+    assert steps.tolist() == [0, STEPS]
+    for backend in ("tensorboard", "wandb"):
+        assert series[backend][0].tolist() == [0, STEPS]
+        np.testing.assert_allclose(series[backend][1], values, rtol=1e-6)  # TensorBoard keeps float32
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "marl_eval.json")]) == 0
+    assert "3 training runs and 0 evaluation results read; 0 skipped" in (out / "report.md").read_text()
+    runs_json = json.loads((out / "marl_eval.json").read_text())["mcrs"]["map10"]["qmix"]
+    assert len(runs_json) == 3
+    for run in runs_json.values():
+        assert [run[f"step_{i}"]["step_count"] for i in range(2)] == [0, STEPS]
+        assert run["absolute_metrics"]["episode_reward"][0] == pytest.approx(values[-1], rel=1e-6)
