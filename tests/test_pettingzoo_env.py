@@ -261,3 +261,12 @@ def test_human_render_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     with pytest.raises(RuntimeError, match=r'render_mode="human" needs a display.*rgb_array'):
         MCRSParallelEnv("map10", render_mode="human")
+
+
+def test_human_render_with_a_display_but_no_window_backend_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.pyplot as plt
+
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(plt, "get_backend", lambda: "agg")  # what a headless machine or MPLBACKEND=agg gives
+    with pytest.raises(RuntimeError, match=r"interactive matplotlib backend.*MPLBACKEND"):
+        MCRSParallelEnv("map10", render_mode="human")

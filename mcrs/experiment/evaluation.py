@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.record.loggers import Logger
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS
-from mcrs.env.render import episode_frames, episode_rgb_frames
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.logging import log_video
 from mcrs.models.acting import recurrent_primer
 
 
@@ -50,8 +53,23 @@ def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> di
     return out
 
 
-def greedy_episode_video(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> list[np.ndarray]:
-    """The frames (``[H, W, 3]`` uint8, reset to the time limit) of the first greedy episode of ``env``
-    (built with ``expose_beliefs=True``), drawn as the episode GIF is."""
-    episode = rollout_greedy(env, policy, seed)
-    return episode_rgb_frames(episode_frames(episode, env.base_env.config))
+class EvaluationVideo:
+    """``logger.video``: one greedy episode (the first evaluation seed, one environment with its beliefs
+    exposed) drawn frame by frame as the episode GIF is, and logged as ``eval/video``."""
+
+    def __init__(self, env_config: EnvConfig, hidden_dim: int, device: torch.device, seed: int) -> None:
+        self.env_config, self.hidden_dim, self.device, self.seed = env_config, hidden_dim, device, seed
+        self.env: TransformedEnv | None = None  # built on the first video
+
+    def frames(self, policy: TensorDictModuleBase) -> list[np.ndarray]:
+        """``[H, W, 3]`` uint8 frames, reset to the time limit."""
+        from mcrs.env.render import episode_frames, episode_rgb_frames  # matplotlib: only for videos
+
+        if self.env is None:
+            self.env = make_eval_env(self.env_config, 1, self.hidden_dim, self.device, expose_beliefs=True)
+        episode = rollout_greedy(self.env, policy, self.seed)
+        return episode_rgb_frames(episode_frames(episode, self.env_config))
+
+    def log(self, logger: Logger, run_dir: Path, policy: TensorDictModuleBase, step: int) -> Path:
+        """Draw the episode and log it at ``step``; returns the GIF written into the run directory."""
+        return log_video(logger, run_dir, "eval/video", self.frames(policy), step)

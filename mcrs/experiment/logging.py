@@ -20,8 +20,6 @@ from typing import Any
 import numpy as np
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
-from mcrs.env.render import encode_gif
-
 
 def make_logger(
     backend: str, run_dir: Path, config: dict[str, Any], project: str = "mcrs", mode: str = "offline"
@@ -94,6 +92,8 @@ def log_video(
 ) -> Path:
     """Log ``frames`` (``[H, W, 3]`` uint8 each) as the video ``name`` (``eval/video``) at ``step``: a GIF
     in ``<run>/videos/`` and, for TensorBoard and wandb, the same GIF in the run's log."""
+    from mcrs.env.render import encode_gif  # matplotlib and Pillow: only for videos
+
     gif = encode_gif(frames, fps)
     path = run_dir / "videos" / f"{name.replace('/', '_')}_{step}.gif"
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -38,9 +38,9 @@ from mcrs.experiment.callbacks import Callback, CuriosityCallback, append_scalar
 from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.evaluation import evaluate, greedy_episode_video, make_eval_env
+from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.logging import log_scalars, log_video, make_logger, progress_bar
+from mcrs.experiment.logging import log_scalars, make_logger, progress_bar
 from mcrs.experiment.replay import (
     episodes_from_rollout,
     load_replay_state_dict,
@@ -168,7 +168,7 @@ class Experiment:
             recurrent_primer(t.num_envs, self.env_config.n_uavs, hidden, device=self.device),
         )
         self.eval_env = make_eval_env(self.env_config, t.eval_episodes, hidden, self.device)
-        self._video_env: TransformedEnv | None = None  # built on the first video (logger.video)
+        self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
         self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
         self.counters = Counters(
@@ -353,23 +353,13 @@ class Experiment:
         """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed))
+        if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
+            self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
-        if self.config.logger.video:
-            self._log_video()
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
         return dict(self.last_eval)
-
-    def _log_video(self) -> None:
-        """One greedy episode (the first evaluation seed) drawn frame by frame, as ``eval/video``."""
-        start = time.perf_counter()
-        if self._video_env is None:  # one environment with its beliefs exposed: what the frames show
-            hidden = self.config.model.hidden_dim
-            self._video_env = make_eval_env(self.env_config, 1, hidden, self.device, expose_beliefs=True)
-        frames = greedy_episode_video(self._video_env, self.greedy, int(self.config.train.eval_seed))
-        log_video(self.logger, self.run_dir, "eval/video", frames, self.counters.env_steps)
-        self._timer["eval"] += time.perf_counter() - start
 
     def _log_train(self, stats: dict[str, list[torch.Tensor]]) -> None:
         c = self.counters
