@@ -205,13 +205,21 @@ def test_unreadable_and_foreign_directories_are_reported(tmp_path: Path) -> None
     (tb / "logs" / "scalars" / "eval").rmdir()
     (tb / "logs" / "scalars" / "train").rmdir()
     (tb / "logs" / "scalars").rmdir()
+    junk = make_run(tmp_path, "junk_events")
+    for csv_file in (junk / "logs" / "scalars").rglob("*.csv"):
+        csv_file.unlink()
+    (junk / "logs" / "scalars" / "eval").rmdir()
+    (junk / "logs" / "scalars" / "train").rmdir()
+    (junk / "logs" / "scalars").rmdir()
+    (junk / "logs" / "events.out.tfevents.1.host").write_bytes(b"not an event file")
     old = tmp_path / "old_eval"
     old.mkdir()
     (old / "metrics.csv").write_text("policy,env,episodes,episode_reward_mean\ngreedy,map10,4,1.0\n")
     runs = find_runs([tmp_path, tmp_path / "missing"])
     reasons = {s.path.name: s.reason for s in runs.skipped}
     assert reasons["bad"].startswith("config.yaml cannot be read")
-    assert reasons["tb"].startswith("no CSV metrics (logger.backend=csv)")
+    assert reasons["tb"] == "no metrics found (logger.backend=csv)"
+    assert reasons["junk_events"] == "its TensorBoard event files hold no scalars"
     assert reasons["old_eval"] == "metrics.csv lacks comm_range, seed (rerun mcrs-eval)"
     assert reasons["missing"] == "no such file or directory"
     assert [r.path.name for r in runs.training] == ["good"]

@@ -264,6 +264,9 @@ def _add_training_run(run_dir: Path, runs: Runs) -> None:
         except Exception as error:  # a truncated or foreign event file: say so, keep going
             runs.skipped.append(Skipped(run_dir, f"TensorBoard events cannot be read ({error})"))
             return
+        if not scalars:
+            runs.skipped.append(Skipped(run_dir, "its TensorBoard event files hold no scalars"))
+            return
         runs.training.append(TrainingRun(run_dir, config, scalars=scalars))
         return
     backend = (config.get("logger") or {}).get("backend", "?")
