@@ -27,6 +27,8 @@ SLOW_MODULES = {
     "test_crash_safety.py",
     "test_experiment_api.py",
     "test_experiments.py",
+    "test_ray_launcher.py",
+    "test_interop_logging.py",
     "test_memory_training.py",
     "test_records.py",
     "test_report.py",

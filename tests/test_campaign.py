@@ -239,6 +239,15 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
     }
     write_record(records / "comm_range" / "smoke" / "earlier.json", earlier)
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["run", *args, "--hours", "1.5", "--dry-run"]) == 0
+    plan = capsys.readouterr().out  # the dry run applies the same rule as the run
+    for point in (first, second):
+        assert f"not started: {point.id} needs about 2.00 h, 1.50 h left" in plan
+    assert campaign_main(["run", *args, "--hours", "3", "--dry-run", "--jobs", "1"]) == 0
+    plan = capsys.readouterr().out  # one job: the second run would start at 2 h and end after 3 h
+    assert (
+        f"start {first.id} " in plan and f"not started: {second.id} needs about 2.00 h, 1.00 h left" in plan
+    )
     assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
     out = capsys.readouterr().out
     for point in (first, second):

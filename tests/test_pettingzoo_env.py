@@ -12,6 +12,7 @@ from gymnasium.utils.env_checker import data_equivalence
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from mcrs.env.config import SCENARIOS, scenario
+from mcrs.env.core import METRICS
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
 from mcrs.env.torchrl_env import MCRSEnv
 
@@ -83,16 +84,9 @@ def test_full_episode_follows_the_parallel_conventions() -> None:
         assert env.state_space.contains(state)
         for agent, obs in observations.items():
             assert env.observation_space(agent).contains(obs), (step, agent)
-            assert infos[agent]["metrics"].keys() == {
-                "episode_reward",
-                "uncertainty",
-                "targets_found",
-                "false_discoveries",
-                "collisions",
-                "no_fly_violations",
-                "coverage",
-            }
-            assert all(type(v) is float for v in infos[agent]["metrics"].values())
+            # Flat and numeric (TorchRL's PettingZooWrapper stacks every entry into one tensor).
+            assert infos[agent].keys() == {"reading", "position", *METRICS}
+            assert all(type(infos[agent][name]) is float for name in METRICS)
             assert type(infos[agent]["reading"]) is bool
             x, y = infos[agent]["position"]
             # The observation's first two values are the normalised position (paper eq. 18).
@@ -104,7 +98,7 @@ def test_full_episode_follows_the_parallel_conventions() -> None:
         assert set(truncations.values()) == {step == max_steps}
     # Team rewards add up to the episode-reward metric.
     total = sum(rewards["uav_0"] for _, rewards, *_ in trace[1:])
-    assert trace[-1][4]["uav_0"]["metrics"]["episode_reward"] == pytest.approx(total, rel=1e-5, abs=1e-4)
+    assert trace[-1][4]["uav_0"]["episode_reward"] == pytest.approx(total, rel=1e-5, abs=1e-4)
     with pytest.raises(RuntimeError, match="reset"):
         env.step(dict.fromkeys(env.possible_agents, 0))
 
@@ -158,7 +152,7 @@ def test_matches_torchrl_env_over_a_full_episode(name: str) -> None:
         steps += 1
         assert rewards["uav_0"] == td["reward"].item()
         assert truncations["uav_0"] == td["truncated"].item()
-        assert infos["uav_0"]["metrics"]["coverage"] == td["metrics", "coverage"].item()
+        assert infos["uav_0"]["coverage"] == td["metrics", "coverage"].item()
         assert [infos[a]["reading"] for a in agents] == td["agents", "reading"][0].tolist()
     assert steps == TABLE_2[name][3]
 
@@ -203,8 +197,76 @@ def test_config_object_overrides_and_render_mode() -> None:
     assert env.core.num_envs == 1 and env.config.num_envs == 1
     assert env.config.comm_range == 2.0 and env.config.name == "map15"
     assert env.metadata["name"] == "mcrs_v0"
-    assert env.render() is None
-    with pytest.raises(ValueError, match="render_mode"):
-        MCRSParallelEnv("map10", render_mode="human")
+    assert env.render() is None  # no render_mode: nothing to draw, as PettingZoo asks
+    with pytest.raises(ValueError, match=r"render_mode='video'.*allowed \[None, 'rgb_array', 'human'\]"):
+        MCRSParallelEnv("map10", render_mode="video")
     with pytest.raises(RuntimeError, match="reset"):
         MCRSParallelEnv("map10").state()
+
+
+# ------------------------------------------------------------------ TorchRL's PettingZooWrapper
+def test_torchrl_pettingzoo_wrapper_runs_the_adapter() -> None:
+    """TorchRL's own wrapper over the adapter: specs check, one group of agents, the action mask as
+    TorchRL's ``action_mask`` (a whole episode of random actions under the strict config never picks a
+    masked move), and the flat infos stacked per agent."""
+    from torchrl.envs.libs.pettingzoo import PettingZooWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "tested with PettingZoo 1.24.3"
+        env = PettingZooWrapper(
+            MCRSParallelEnv("map10"), return_state=True, use_mask=False, categorical_actions=True, seed=0
+        )
+    check_env_specs(env)
+    assert env.group_map == {"uav": [f"uav_{i}" for i in range(4)]}
+    assert env.full_action_spec["uav", "action"].shape == (4,)
+    torch.manual_seed(0)
+    td = env.rollout(100, break_when_any_done=True)
+    assert td.batch_size == (50,)  # the time limit of map10, then done
+    assert td["next", "done"][-1].item() and not td["next", "done"][:-1].any()
+    assert td["uav", "action_mask"].shape == (50, 4, 8) and td["state"].shape == (50, 226)
+    info = td["next", "uav", "info"]
+    assert set(info.keys()) == {"reading", "position", *METRICS}
+    assert info["position"].shape == (50, 4, 2)
+    # The running episode reward in the infos is the sum of the team rewards.
+    total = td["next", "uav", "reward"][:, 0, 0].sum()
+    assert info["episode_reward"][-1, 0].item() == pytest.approx(total.item(), rel=1e-5, abs=1e-4)
+
+
+# ------------------------------------------------------------------ rendering
+def test_rgb_array_render_draws_the_current_state() -> None:
+    env = MCRSParallelEnv("map10", render_mode="rgb_array")
+    with pytest.raises(RuntimeError, match="reset"):
+        env.render()
+    observations, _ = env.reset(seed=4)
+    first = env.render()
+    assert first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3
+    assert first.shape[0] > 100 and first.shape[1] > 100 and first.std() > 10  # a picture, not a blank
+    assert np.array_equal(env.render(), first)  # rendering does not change the state
+    rng = np.random.default_rng(0)
+    observations, *_ = env.step(allowed_actions(observations, rng))
+    second = env.render()
+    assert second.shape == first.shape and not np.array_equal(second, first)  # the UAVs moved
+    # The same seed and actions draw the same frames (a fresh env, a fresh figure).
+    again = MCRSParallelEnv("map10", render_mode="rgb_array")
+    observations, _ = again.reset(seed=4)
+    assert np.array_equal(again.render(), first)
+    again.step(allowed_actions(observations, np.random.default_rng(0)))
+    assert np.array_equal(again.render(), second)
+
+
+def test_human_render_without_a_display_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("sys.platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(RuntimeError, match=r'render_mode="human" needs a display.*rgb_array'):
+        MCRSParallelEnv("map10", render_mode="human")
+
+
+def test_human_render_with_a_display_but_no_window_backend_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.pyplot as plt
+
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(plt, "get_backend", lambda: "agg")  # what a headless machine or MPLBACKEND=agg gives
+    with pytest.raises(RuntimeError, match=r"interactive matplotlib backend.*MPLBACKEND"):
+        MCRSParallelEnv("map10", render_mode="human")

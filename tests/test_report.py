@@ -205,13 +205,21 @@ def test_unreadable_and_foreign_directories_are_reported(tmp_path: Path) -> None
     (tb / "logs" / "scalars" / "eval").rmdir()
     (tb / "logs" / "scalars" / "train").rmdir()
     (tb / "logs" / "scalars").rmdir()
+    junk = make_run(tmp_path, "junk_events")
+    for csv_file in (junk / "logs" / "scalars").rglob("*.csv"):
+        csv_file.unlink()
+    (junk / "logs" / "scalars" / "eval").rmdir()
+    (junk / "logs" / "scalars" / "train").rmdir()
+    (junk / "logs" / "scalars").rmdir()
+    (junk / "logs" / "events.out.tfevents.1.host").write_bytes(b"not an event file")
     old = tmp_path / "old_eval"
     old.mkdir()
     (old / "metrics.csv").write_text("policy,env,episodes,episode_reward_mean\ngreedy,map10,4,1.0\n")
     runs = find_runs([tmp_path, tmp_path / "missing"])
     reasons = {s.path.name: s.reason for s in runs.skipped}
     assert reasons["bad"].startswith("config.yaml cannot be read")
-    assert reasons["tb"].startswith("no CSV metrics (logger.backend=csv)")
+    assert reasons["tb"] == "no metrics found (logger.backend=csv)"
+    assert reasons["junk_events"] == "its TensorBoard event files hold no scalars"
     assert reasons["old_eval"] == "metrics.csv lacks comm_range, seed (rerun mcrs-eval)"
     assert reasons["missing"] == "no such file or directory"
     assert [r.path.name for r in runs.training] == ["good"]
@@ -278,3 +286,75 @@ def test_tsne_without_a_readable_buffer_is_reported_not_raised(tmp_path: Path) -
     text = (out / "report.md").read_text()
     assert "## t-SNE of memory states (figure 9)\n\nnot made: checkpoint" in text
     assert (out / "final.csv").is_file()  # the rest of the report is still written
+
+
+def test_trained_policies_on_fixed_episodes_count_once_per_trained_run(tmp_path: Path) -> None:
+    """mcrs-eval of trained runs: a run's evaluation seeds are averaged first, then mean ± std over runs;
+    runs that differ in more than their seed are separate methods."""
+    for run, base in (("qmix_shield_seed0", 3.0), ("qmix_shield_seed1", 5.0), ("qmix_plain_seed0", 1.0)):
+        for seed in range(2):
+            make_evaluation(tmp_path, f"{run}_eval{seed}", f"outputs/x/{run}", 5.0, seed, found=base + seed)
+    make_evaluation(tmp_path, "greedy_0", "greedy", 5.0, 0, found=2.0)
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    rows = {r[0]: r[1:] for r in _table_rows((out / "report.md").read_text())}
+    # qmix_shield: run means 3.5 and 5.5 -> 4.50 ± 1.41 (std over the two runs, not over four rows)
+    assert rows["trained qmix_shield"][:2] == ["2", "-"]
+    assert (
+        rows["trained qmix_shield"][2] == "45.00 ± 14.14" and rows["trained qmix_shield"][5] == "4.50 ± 1.41"
+    )
+    assert rows["trained qmix_plain"][0] == "1" and rows["trained qmix_plain"][5].startswith("1.50")
+    assert rows["greedy (heuristic)"][0] == "1"
+
+
+def _table_rows(markdown_text: str) -> list[list[str]]:
+    lines = [line for line in markdown_text.splitlines() if line.startswith("| ") and "---" not in line]
+    return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[1:]]
+
+
+def test_one_seed_shows_no_spread_and_close_steps_get_distinct_headings(tmp_path: Path) -> None:
+    """One seed: the mean alone (``± 0.00`` would claim a spread that was never measured). A run whose last
+    evaluation comes right after the one before (11,200 then 11,240) keeps both columns apart: the
+    headings get the decimals they need; a step nearest to two fractions is one column."""
+    make_run(tmp_path, "qmix", reward=[1.0, 2.0, 3.0], steps=[0, 11_200, 11_240])
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    final, milestones = (out / "final.md").read_text(), (out / "milestones.md").read_text()
+    assert "±" not in final and "±" not in milestones
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    assert cells(final.splitlines()[2])[:4] == ["qmix", "1", "11.2k", "3.00"]
+    assert cells(milestones.splitlines()[0]) == ["method", "seeds", "0.00k", "11.20k", "11.24k"]
+    assert cells(milestones.splitlines()[2]) == ["qmix", "1", "1.00", "2.00", "3.00"]
+    # Two seeds: the spread is shown again.
+    make_run(tmp_path, "qmix_1", seed=1, reward=[1.0, 4.0, 5.0], steps=[0, 11_200, 11_240])
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    assert "4.00 ± 1.41" in (out / "milestones.md").read_text()
+
+
+def test_marl_eval_export_has_marl_evals_structure(tmp_path: Path) -> None:
+    """``--marl-eval``: environment -> map -> method -> run -> step_i (step_count, metric lists) plus
+    absolute_metrics last; every map is a task (the report itself keeps one), the seeds are the runs."""
+    import json
+
+    for seed in range(2):
+        make_run(tmp_path, f"qmix_{seed}", seed=seed, reward=[0.0, 10.0 + seed, 20.0, 30.0 + seed])
+    make_run(tmp_path, "vdn", algo="vdn", reward=[1.0, 2.0], steps=[0, 10_000])  # shorter: its own steps
+    make_run(tmp_path, "other_map", env="map20", steps=[0, 5_000])
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "me.json")]) == 0
+    data = json.loads((out / "me.json").read_text())
+    assert list(data) == ["mcrs"] and sorted(data["mcrs"]) == ["map10", "map20"]
+    assert sorted(data["mcrs"]["map10"]) == ["qmix", "vdn"]
+    qmix = data["mcrs"]["map10"]["qmix"]
+    assert list(qmix) == ["run_0", "run_1"]  # seed order
+    run1 = qmix["run_1"]
+    assert list(run1) == ["step_0", "step_1", "step_2", "step_3", "absolute_metrics"]  # absolute last
+    assert run1["step_1"]["step_count"] == 10_000 and run1["step_1"]["episode_reward"] == [11.0]
+    assert set(run1["step_1"]) == {"step_count", *METRICS}
+    assert all(isinstance(v, list) and len(v) == 1 for k, v in run1["step_3"].items() if k != "step_count")
+    assert run1["absolute_metrics"]["episode_reward"] == [31.0]
+    assert "step_count" not in run1["absolute_metrics"]
+    assert list(data["mcrs"]["map10"]["vdn"]["run_0"]) == ["step_0", "step_1", "absolute_metrics"]

@@ -180,9 +180,11 @@ def final_rows(curves_by_metric: dict[str, dict[str, Curve]], order: list[str]) 
 
 
 def milestone_steps(curve: Curve, fractions: tuple[float, ...] = (1 / 3, 2 / 3, 1.0)) -> list[int]:
-    """The logged steps nearest to fractions of the curve's last step (the paper's 0.67M/1.33M/2M)."""
+    """The logged steps nearest to fractions of the curve's last step (the paper's 0.67M/1.33M/2M); a
+    short curve whose nearest step is the same for two fractions gives it once (no repeated column)."""
     last = curve.steps[-1]
-    return [int(curve.steps[np.abs(curve.steps - f * last).argmin()]) for f in fractions]
+    nearest = [int(curve.steps[np.abs(curve.steps - f * last).argmin()]) for f in fractions]
+    return list(dict.fromkeys(nearest))
 
 
 def milestone_values(curve: Curve, steps: list[int]) -> list[tuple[float, float]]:

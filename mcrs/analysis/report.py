@@ -3,6 +3,7 @@
     mcrs-report outputs/experiments/baselines --out outputs/reports/baselines_map10 --env map10
     mcrs-report outputs/experiments/delta outputs/eval/comm_range --out outputs/reports/delta
     mcrs-report outputs/experiments/baselines --out outputs/reports/tsne --tsne       (figure 9, from saved buffers)
+    mcrs-report outputs/experiments/baselines --out outputs/reports/b --marl-eval outputs/reports/b/marl_eval.json
 
 It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs.analysis.runs),
 keeps one map, groups training runs into methods (an algorithm plus the settings swept within it, e.g.
@@ -18,12 +19,18 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
-- ``report.md``: all of it, plus every run that was skipped and why.
+- ``report.md``: all of it, plus every run that was skipped and why;
+- with ``--marl-eval out.json``: every training run's evaluations (all maps) in marl-eval's JSON
+  (mcrs.analysis.marl_eval).
+
+Runs logged with any of ``mcrs-train``'s loggers are read: CSV, TensorBoard event files, and wandb runs
+(through the CSV history they keep beside them).
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -44,6 +51,7 @@ from mcrs.analysis.curves import (
     milestone_values,
     plot_curves,
 )
+from mcrs.analysis.marl_eval import write_marl_eval
 from mcrs.analysis.runs import (
     EvaluationRow,
     Runs,
@@ -62,8 +70,18 @@ ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "se
 HEURISTIC_ORDER = ("random", "lawnmower", "greedy")
 
 
-def _steps(s: int) -> str:
-    return f"{s / 1e6:.2f}M" if s >= 1_000_000 else f"{s / 1e3:.1f}k"
+def _steps(s: int, extra: int = 0) -> str:
+    return f"{s / 1e6:.{2 + extra}f}M" if s >= 1_000_000 else f"{s / 1e3:.{1 + extra}f}k"
+
+
+def step_labels(steps: list[int]) -> list[str]:
+    """Column headings for env steps (``11.2k``, ``1.33M``), with as many decimals as it takes for
+    distinct steps to get distinct headings (11,150 and 11,200 are both ``11.2k`` at one decimal)."""
+    for extra in range(4):
+        labels = [_steps(s, extra) for s in steps]
+        if len(set(labels)) == len(set(steps)):
+            return labels
+    return [f"{s:,}" for s in steps]
 
 
 class Report:
@@ -123,7 +141,8 @@ def _final_table(rows: list[dict[str, object]]) -> str:
         steps = int(r.get("env_steps", 0))
         cells = [str(r["method"]), str(r.get("seeds", "")), _steps(steps) if steps else "-"]
         names = [m.split("/")[-1] for m in FINAL_METRICS]
-        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"]) for n in names])
+        seeds = int(r["seeds"]) if r.get("seeds") not in (None, "") else None
+        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"], n=seeds) for n in names])
     return markdown(header, table)
 
 
@@ -145,6 +164,48 @@ def _heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) 
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
             values = np.array([g.means[name] for g in group if name in g.means])
+            row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
+            row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def _trained_groups(evaluations: list[EvaluationRow]) -> dict[str, dict[str, list[EvaluationRow]]]:
+    """Evaluations of trained policies: method -> trained run -> its rows (one per evaluation seed). A
+    method is the policy's label (``trained qmix``), plus the run's name without its seed (``[qmix_shield]``)
+    where runs of one label differ in more than their seed."""
+    by_label: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for row in evaluations:
+        if not row.is_heuristic:
+            by_label.setdefault(row.label or f"trained {_run_stem(row.policy)}", {}).setdefault(
+                row.policy, []
+            ).append(row)
+    methods: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for label in sorted(by_label):
+        stems = {policy: _run_stem(policy) for policy in by_label[label]}
+        for policy, rows in by_label[label].items():
+            method = f"{label} [{stems[policy]}]" if len(set(stems.values())) > 1 else label
+            methods.setdefault(method, {})[policy] = rows
+    return dict(sorted(methods.items()))
+
+
+def _run_stem(policy: str) -> str:
+    """A trained run's name without its seed: ``outputs/shield/qmix_shield_seed2`` -> ``qmix_shield``."""
+    path = Path(policy)
+    name = path.parent.name if path.suffix == ".pt" else path.name
+    return re.sub(r"_?seed\d+$", "", name) or name
+
+
+def _trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
+    """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
+    mean and std over the runs (training seeds)."""
+    rows = []
+    for method, runs in _trained_groups(evaluations).items():
+        row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
+        for metric in FINAL_METRICS:
+            name = metric.split("/")[-1]
+            per_run = [np.mean([g.means[name] for g in group if name in g.means]) for group in runs.values()]
+            values = np.array([v for v in per_run if np.isfinite(v)])
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
@@ -245,11 +306,14 @@ def _report_milestones(
             [
                 label,
                 str(rewards[label].seeds),
-                *(mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"]) for s in steps),
+                *(
+                    mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"], n=rewards[label].seeds)
+                    for s in steps
+                ),
             ]
         )
     write_csv(report.out / "milestones.csv", rows)
-    md = markdown(["method", "seeds", *(_steps(s) for s in steps)], table)
+    md = markdown(["method", "seeds", *step_labels(steps)], table)
     (report.out / "milestones.md").write_text(md + "\n")
     report.add("Episode reward at thirds of the budget", md)
 
@@ -276,9 +340,10 @@ def _report_milestones(
                 **{f"reward_{s}": m for s, (m, _) in zip(steps, values, strict=True)},
             }
         )
-        table4.append([f"{delta:g}", algo, *(mean_std(m, sd) for m, sd in values)])
+        seeds = rewards[label].seeds
+        table4.append([f"{delta:g}", algo, *(mean_std(m, sd, n=seeds) for m, sd in values)])
     write_csv(report.out / "table4.csv", rows4)
-    md4 = markdown(["delta", "algorithm", *(_steps(s) for s in steps)], table4)
+    md4 = markdown(["delta", "algorithm", *step_labels(steps)], table4)
     (report.out / "table4.md").write_text(md4 + "\n")
     report.add("Table 4: episode reward by delta (mean over seeds)", md4)
 
@@ -386,6 +451,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tsne", action="store_true", help="also make figure 9 from saved episodic buffers")
     parser.add_argument("--tsne-samples", type=int, default=20_000, help="states in the t-SNE (paper: 20000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the t-SNE and of its sample")
+    parser.add_argument(
+        "--marl-eval",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="also write the training runs' evaluations (every map) as marl-eval's raw-data JSON",
+    )
     return parser
 
 
@@ -394,6 +466,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.tsne_samples < 2:
         raise SystemExit(f"mcrs-report: error: --tsne-samples={args.tsne_samples}: must be >= 2")
     runs = find_runs(args.paths)
+    if args.marl_eval is not None:  # every map (a task each), before the report keeps one
+        data = write_marl_eval(args.marl_eval, runs.training)
+        tasks = {task: len(algos) for env in data.values() for task, algos in env.items()}
+        print(f"marl-eval JSON: {args.marl_eval} (methods per map: {tasks or 'none'})", flush=True)
     env_name = select_map(runs, args.env)
     if env_name is None or (not runs.training and not runs.evaluations):
         reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
@@ -409,7 +485,13 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, CheckpointError) as error:  # an empty or unreadable buffer: say so, keep the rest
             report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
     if not runs.training and not has_ranges:  # evaluations only: their table
-        report.add("Evaluations", _final_table(_heuristic_rows(runs.evaluations, None)))
+        rows = _heuristic_rows(runs.evaluations, None) + _trained_rows(runs.evaluations)
+        report.add(
+            "Evaluations",
+            "Heuristics: mean ± std over evaluation seeds. Trained policies: each trained run counts by its "
+            "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
+            + _final_table(rows),
+        )
     path = report.write()
     print(f"\nreport: {path}", flush=True)
     return 0

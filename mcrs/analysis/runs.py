@@ -2,8 +2,11 @@
 
 Three kinds of file count as runs:
 
-- an ``mcrs-train`` run: ``config.yaml`` (the resolved config) beside ``logs/scalars/<group>/<name>.csv``
-  (TorchRL's CSV logger, one ``step,value`` row per point) and ``checkpoints/``;
+- an ``mcrs-train`` run: ``config.yaml`` (the resolved config) beside its metrics and ``checkpoints/``.
+  The metrics are read from ``logs/scalars/<group>/<name>.csv`` (TorchRL's CSV logger, one ``step,value``
+  row per point; ``logger=csv``, and ``logger=wandb``, which keeps the same files beside its wandb run)
+  or from TensorBoard's event files in ``logs/`` (``logger=tensorboard``, read with TensorBoard's own
+  ``EventAccumulator``);
 - an ``mcrs-eval`` result: ``metrics.csv`` with one row per policy (map, R_c, seed, mean and std of
   every episode metric);
 - a record (``mcrs-campaign record``, mcrs.analysis.records): a small JSON file holding either of the
@@ -252,13 +255,40 @@ def _add_training_run(run_dir: Path, runs: Runs) -> None:
     if not isinstance(config, dict) or not all(k in config for k in ("env", "algo", "seed")):
         runs.skipped.append(Skipped(run_dir, "config.yaml is not an mcrs-train config (no env/algo/seed)"))
         return
-    if not (run_dir / "logs" / "scalars").is_dir():
-        backend = (config.get("logger") or {}).get("backend", "?")
-        runs.skipped.append(
-            Skipped(run_dir, f"no CSV metrics (logger.backend={backend}); the report reads logger=csv runs")
-        )
+    if (run_dir / "logs" / "scalars").is_dir():
+        runs.training.append(TrainingRun(run_dir, config))
         return
-    runs.training.append(TrainingRun(run_dir, config))
+    if any((run_dir / "logs").glob("events.out.tfevents.*")):
+        try:
+            scalars = read_tensorboard_scalars(run_dir / "logs")
+        except Exception as error:  # a truncated or foreign event file: say so, keep going
+            runs.skipped.append(Skipped(run_dir, f"TensorBoard events cannot be read ({error})"))
+            return
+        if not scalars:
+            runs.skipped.append(Skipped(run_dir, "its TensorBoard event files hold no scalars"))
+            return
+        runs.training.append(TrainingRun(run_dir, config, scalars=scalars))
+        return
+    backend = (config.get("logger") or {}).get("backend", "?")
+    hint = (
+        " (a wandb run written before mcrs kept its CSV history beside it: sync it and export the history)"
+        if (run_dir / "wandb").is_dir()
+        else ""
+    )
+    runs.skipped.append(Skipped(run_dir, f"no metrics found (logger.backend={backend}){hint}"))
+
+
+def read_tensorboard_scalars(log_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Every scalar of the TensorBoard event files directly in ``log_dir`` (those of a resumed run too, in
+    the order written): ``{name: (steps, values)}``, a repeated step keeping its last value."""
+    from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
+
+    events = EventAccumulator(str(log_dir), size_guidance={SCALARS: 0})  # 0: keep every point
+    events.Reload()
+    return {
+        name: _sorted_points([(e.step, e.value) for e in events.Scalars(name)])
+        for name in events.Tags()["scalars"]
+    }
 
 
 def _add_evaluation(path: Path, runs: Runs) -> None:

@@ -7,9 +7,13 @@ import math
 from pathlib import Path
 
 
-def mean_std(mean: float, std: float, digits: int = 2) -> str:
+def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None) -> str:
+    """``mean ± std``; the mean alone when ``n`` (the samples behind it) is 1: one seed has no spread, and
+    ``± 0.00`` would claim one."""
     if math.isnan(mean):
         return "n/a"
+    if n is not None and n < 2:
+        return f"{mean:.{digits}f}"
     return f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 

@@ -131,11 +131,24 @@ class Campaign:
         to_record, launches = self.plan()
         speeds = self._speeds()
         lines = [f"record {s.point.run_dir(self.outputs)}" for s in to_record]
+        # The same rule as `run`, simulated: a run starts when a job slot frees, and only if its estimate
+        # ends before the deadline (a run without an estimate always starts).
+        deadline = hours * 3600
+        slots = [0.0] * self.jobs
         for state, command in launches:
+            estimate = self.estimate_s(state, speeds)
+            slot = min(range(self.jobs), key=slots.__getitem__)
+            if estimate is not None and slots[slot] + estimate > deadline:
+                left = max(0.0, deadline - slots[slot])
+                lines.append(
+                    f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(left)} left"
+                )
+                continue
+            slots[slot] += estimate or 0.0
             what = "resume" if state.state == "partial" else "start"
             lines.append(
                 f"{what} {state.point.id} (at {state.env_steps} env steps, estimated "
-                f"{_hours(self.estimate_s(state, speeds))}): {shlex.join(command)}"
+                f"{_hours(estimate)}): {shlex.join(command)}"
             )
         lines.append(f"{len(launches)} runs, {self.jobs} at a time, no new start after {hours:g} h")
         return lines

@@ -12,10 +12,25 @@ Per agent::
     reward        the team reward r1 + r2 + r3 + r4 (the same for every agent)
     termination   always False (episodes end by the time limit only)
     truncation    True for every agent after ``max_steps`` steps; ``agents`` is then emptied
-    info          {"metrics": {name: float} (running episode metrics), "reading": bool (True = "F"),
-                   "position": (x, y)}
+    info          {"reading": bool (True = "F"), "position": (x, y), and one float per running episode
+                   metric: "episode_reward", "uncertainty", "targets_found", "false_discoveries",
+                   "collisions", "no_fly_violations", "coverage"}; flat, with numbers only, so that
+                   TorchRL's ``PettingZooWrapper`` stacks them into ``(group, "info", name)``
 
 ``state()`` is the global state (float32 ``[state_dim]``, paper eq. 22).
+
+Rendering (``render_mode``): ``"rgb_array"``: :meth:`render` returns the current state as an
+``[H, W, 3]`` uint8 frame, drawn by :class:`mcrs.env.render.StateDrawing` (the drawing of the episode
+GIF and of the evaluation video); ``"human"``: the same frame in a matplotlib window, updated on every
+reset and step (it needs a display; without one the constructor says so).
+
+TorchRL::
+
+    from torchrl.envs.libs.pettingzoo import PettingZooWrapper
+    env = PettingZooWrapper(MCRSParallelEnv("map10"), return_state=True, use_mask=False,
+                            categorical_actions=True)
+    # group "uav": ("uav", "observation", "observation") [4, 36], ("uav", "action_mask") [4, 8],
+    # ("uav", "action") [4], ("uav", "info", <name>) [4], "state" [226]
 """
 
 from __future__ import annotations
@@ -29,6 +44,8 @@ from pettingzoo import ParallelEnv
 
 from mcrs.env.config import EnvConfig, scenario
 from mcrs.env.core import N_ACTIONS, MCRSCore, StepResult
+from mcrs.env.fusion import neighbour_graph
+from mcrs.env.layout import StateLayout
 
 AgentObs = dict[str, np.ndarray]
 
@@ -39,11 +56,17 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
     Args:
         config: a validated :class:`EnvConfig`, or a preset name (``"map10"``, ``"map15"``, ``"map20"``).
             Its ``num_envs`` is replaced by 1.
-        render_mode: only ``None``; episodes are drawn by ``mcrs-render`` from the exposed beliefs.
+        render_mode: ``None``, ``"rgb_array"`` (:meth:`render` returns an ``[H, W, 3]`` uint8 frame) or
+            ``"human"`` (a matplotlib window; needs a display).
         **overrides: config fields to change, e.g. ``invalid_action="clip"``, ``comm_range=3.0``.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"name": "mcrs_v0", "render_modes": [], "is_parallelizable": True}
+    metadata: ClassVar[dict[str, Any]] = {
+        "name": "mcrs_v0",
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": 5,
+        "is_parallelizable": True,
+    }
 
     def __init__(self, config: EnvConfig | str = "map10", render_mode: str | None = None, **overrides: Any):
         if isinstance(config, str):
@@ -52,11 +75,18 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
             config = config.replace(**overrides)
         if config.num_envs != 1:
             config = config.replace(num_envs=1)
-        if render_mode is not None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
-                f"render_mode={render_mode!r} is not supported: allowed {self.metadata['render_modes'] + [None]}"
+                f"render_mode={render_mode!r} is not supported: allowed {[None, *self.metadata['render_modes']]}"
             )
+        if render_mode == "human":
+            _check_display()
         self.render_mode = render_mode
+        self._drawing: Any = None  # a StateDrawing, built on the first render
+        self._window: Any = None  # the human mode's (figure, image)
+        self._path: list[np.ndarray] = []  # positions since the reset (the trails)
+        self._found: np.ndarray | None = None  # [W, H] cells whose m(F) reached tau so far
+        self._last: StepResult | None = None
         self.config = config
         self.core = MCRSCore(config)
         self.possible_agents = [f"uav_{i}" for i in range(config.n_uavs)]
@@ -90,7 +120,10 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         if seed is not None:
             self.core.seed(seed)
         self.agents = list(self.possible_agents)
+        self._path, self._found, self._drawing = [], None, None
         observations, infos, _ = self._convert(self.core.reset())
+        if self.render_mode == "human":
+            self.render()
         return observations, infos
 
     def step(
@@ -125,6 +158,8 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         truncations = dict.fromkeys(agents, done)
         if done:
             self.agents = []
+        if self.render_mode == "human":
+            self.render()
         return observations, rewards, terminations, truncations, infos
 
     def state(self) -> np.ndarray:
@@ -133,12 +168,35 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
             raise RuntimeError("state() is defined after reset()")
         return self._state
 
-    def render(self) -> None:
-        """Nothing to render in-process (``render_mode`` is always None); see ``mcrs-render``."""
+    def render(self) -> np.ndarray | None:
+        """The current state as an ``[H, W, 3]`` uint8 frame (``rgb_array``), or shown in a window
+        (``human``); None without a ``render_mode``, as PettingZoo asks."""
+        if self.render_mode is None:
+            return None
+        if self._last is None:
+            raise RuntimeError("render() is defined after reset()")
+        frame = self._frame()
+        if self.render_mode == "rgb_array":
+            return frame
+        import matplotlib.pyplot as plt  # human mode only: an interactive backend and its window
+
+        if self._window is None or not plt.fignum_exists(self._window[0].number):
+            figure = plt.figure(f"MCRS {self.config.name}")
+            axes = figure.add_axes((0, 0, 1, 1))
+            axes.set_axis_off()
+            self._window = (figure, axes.imshow(frame))
+            plt.show(block=False)
+        self._window[1].set_data(frame)
+        plt.pause(1.0 / self.metadata["render_fps"])
         return None
 
     def close(self) -> None:
-        """Nothing to release: the core holds only tensors."""
+        """Close the human mode's window; the core holds only tensors."""
+        if self._window is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._window[0])
+            self._window = None
 
     # ------------------------------------------------------------------ internals
     def _convert(self, result: StepResult) -> tuple[dict[str, AgentObs], dict[str, dict[str, Any]], float]:
@@ -151,9 +209,57 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         metric_names = list(result.metrics)
         metric_values = torch.stack([result.metrics[name][0] for name in metric_names]).tolist()
         metrics = dict(zip(metric_names, metric_values, strict=True))
+        self._last = result
+        if self.render_mode is not None:  # what a frame shows besides the last result: paths, found cells
+            self._path.append(np.asarray(positions, dtype=np.int64))
+            found = result.state_map[0, 1].cpu().numpy() >= self.config.target_threshold
+            self._found = found if self._found is None else self._found | found
         observations: dict[str, AgentObs] = {}
         infos: dict[str, dict[str, Any]] = {}
         for i, agent in enumerate(self.agents):
             observations[agent] = {"observation": observation[i], "action_mask": mask[i]}
-            infos[agent] = {"metrics": dict(metrics), "reading": readings[i], "position": tuple(positions[i])}
+            infos[agent] = {"reading": readings[i], "position": tuple(positions[i]), **metrics}
         return observations, infos, float(result.reward[0])
+
+    def _frame(self) -> np.ndarray:
+        """Draw the last result: the global m(U), the paths since the reset, this step's links."""
+        from mcrs.env.render import StateDrawing, frame_title  # matplotlib, only when rendering
+
+        result, cfg = self._last, self.config
+        maps = result.state_map[0].cpu().numpy()
+        if self._drawing is None:  # once per episode: no-fly cells and targets are the reset's
+            layout = StateLayout.from_config(cfg)
+            state = result.state[0]
+            self._drawing = StateDrawing(
+                cfg,
+                layout.cells(state, layout.no_fly_position).cpu().numpy(),
+                layout.cells(state, layout.target_position).cpu().numpy(),
+            )
+        neighbours = neighbour_graph(result.position[0], cfg.comm_range).cpu().numpy()
+        reward = float(result.metrics["episode_reward"][0])
+        title = frame_title(cfg, int(result.step_count[0]), maps[0], reward)
+        return self._drawing.draw(maps[0], np.stack(self._path), neighbours, self._found, title)
+
+
+def _check_display() -> None:
+    """``render_mode="human"`` needs a window: an interactive matplotlib backend and (on Linux) a display."""
+    import os
+    import sys
+
+    import matplotlib
+
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise RuntimeError(
+            'render_mode="human" needs a display (DISPLAY is not set); use render_mode="rgb_array" '
+            "and save or show the frames yourself"
+        )
+    import matplotlib.pyplot as plt
+
+    backend = plt.get_backend().lower()
+    if backend in ("agg", "pdf", "ps", "svg", "cairo", "template") or "inline" in backend:
+        raise RuntimeError(
+            f'render_mode="human" needs an interactive matplotlib backend, and {matplotlib.get_backend()!r} '
+            'is not one (set MPLBACKEND, e.g. TkAgg); or use render_mode="rgb_array"'
+        )

@@ -152,6 +152,7 @@ class LoggerConfig:
     wandb_mode: WandbMode = WandbMode.offline
     log_interval: int = 2000  # env steps between train/ and time/ log rows (means over the interval)
     progress_bar: bool = True
+    video: bool = False  # one greedy evaluation episode as a video at every evaluation (GIF; tb, wandb)
 
 
 @dataclass

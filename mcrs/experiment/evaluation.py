@@ -2,23 +2,33 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.record.loggers import Logger
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.logging import log_video
 from mcrs.models.acting import recurrent_primer
 
 
 def make_eval_env(
-    env_config: EnvConfig, episodes: int, hidden_dim: int, device: str | torch.device
+    env_config: EnvConfig,
+    episodes: int,
+    hidden_dim: int,
+    device: str | torch.device,
+    expose_beliefs: bool = False,
 ) -> TransformedEnv:
-    """``episodes`` environments run as one batch, carrying the agents' recurrent state."""
-    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=False), device=str(device))
+    """``episodes`` environments run as one batch, carrying the agents' recurrent state (with
+    ``expose_beliefs``, also what an episode's pictures are drawn from)."""
+    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=expose_beliefs), device=str(device))
     return TransformedEnv(env, recurrent_primer(episodes, env_config.n_uavs, hidden_dim, device=device))
 
 
@@ -41,3 +51,25 @@ def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> di
     out = {name: values.mean().item() for name, values in metrics.items()}
     out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
     return out
+
+
+class EvaluationVideo:
+    """``logger.video``: one greedy episode (the first evaluation seed, one environment with its beliefs
+    exposed) drawn frame by frame as the episode GIF is, and logged as ``eval/video``."""
+
+    def __init__(self, env_config: EnvConfig, hidden_dim: int, device: torch.device, seed: int) -> None:
+        self.env_config, self.hidden_dim, self.device, self.seed = env_config, hidden_dim, device, seed
+        self.env: TransformedEnv | None = None  # built on the first video
+
+    def frames(self, policy: TensorDictModuleBase) -> list[np.ndarray]:
+        """``[H, W, 3]`` uint8 frames, reset to the time limit."""
+        from mcrs.env.render import episode_frames, episode_rgb_frames  # matplotlib: only for videos
+
+        if self.env is None:
+            self.env = make_eval_env(self.env_config, 1, self.hidden_dim, self.device, expose_beliefs=True)
+        episode = rollout_greedy(self.env, policy, self.seed)
+        return episode_rgb_frames(episode_frames(episode, self.env_config))
+
+    def log(self, logger: Logger, run_dir: Path, policy: TensorDictModuleBase, step: int) -> Path:
+        """Draw the episode and log it at ``step``; returns the GIF written into the run directory."""
+        return log_video(logger, run_dir, "eval/video", self.frames(policy), step)

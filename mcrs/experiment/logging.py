@@ -1,7 +1,14 @@
 """Metric logging through TorchRL's loggers, with grouped names (``train/``, ``eval/``, ``time/``).
 
 ``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``; ``tensorboard`` writes ``<run>/logs/``;
-``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``.
+``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``, and keeps the same CSV
+files as ``csv`` beside it (the history that ``mcrs-report`` and a resume read).
+
+Videos (``logger.video=true``: one greedy evaluation episode per evaluation) are animated GIFs encoded
+with Pillow, written to ``<run>/videos/`` with every backend and also sent to TensorBoard (an image
+summary holding the GIF: TensorBoard's own video format, shown in its Images tab) and wandb
+(``wandb.Video``). TorchRL's ``log_video`` is not used: it needs moviepy (TensorBoard's encoder even
+moviepy 1.x), which nothing else here needs.
 """
 
 from __future__ import annotations
@@ -10,7 +17,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from torchrl.record.loggers import Logger
+import numpy as np
+from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
 
 def make_logger(
@@ -19,27 +27,41 @@ def make_logger(
     """A TorchRL logger for the run; the resolved config is logged as hyper-parameters."""
     name = run_dir.name
     if backend == "csv":
-        from torchrl.record.loggers import CSVLogger
-
         logger = CSVLogger(exp_name="logs", log_dir=str(run_dir))
     elif backend == "tensorboard":
-        from torchrl.record.loggers import TensorboardLogger
-
         logger = TensorboardLogger(exp_name="logs", log_dir=str(run_dir))
     elif backend == "wandb":
-        from torchrl.record.loggers import WandbLogger
-
         if mode not in ("offline", "online"):
             raise ValueError(f"logger.wandb_mode={mode!r}: allowed values are offline, online")
         os.environ.setdefault("WANDB_SILENT", "true")
-        logger = WandbLogger(
-            exp_name=name, save_dir=str(run_dir), project=project, offline=mode == "offline", config=config
+        return WandbLoggerWithHistory(
+            run_dir,
+            exp_name=name,
+            save_dir=str(run_dir),
+            project=project,
+            offline=mode == "offline",
+            config=config,
         )
-        return logger
     else:
         raise ValueError(f"logger.backend={backend!r}: allowed values are csv, wandb, tensorboard")
     logger.log_hparams(_hparams(config))
     return logger
+
+
+class WandbLoggerWithHistory(WandbLogger):
+    """TorchRL's ``WandbLogger`` that also keeps every scalar where the CSV logger puts it
+    (``<run>/logs/scalars/``). That copy is the run's history for ``mcrs-report`` and for a resume (which
+    drops the rows logged after its checkpoint): wandb's own ``.wandb`` file has no public reader (the
+    wandb 0.31 installed here has none in Python), and an offline run is on no server to ask."""
+
+    def __init__(self, run_dir: Path, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.history = CSVLogger(exp_name="logs", log_dir=str(run_dir))
+
+    def log_scalar(self, name: str, value: Any, step: int | None = None, **options: Any) -> None:
+        super().log_scalar(name, value, step=step, **options)
+        if isinstance(value, (int, float)):  # not a wandb.Video (log_video)
+            self.history.log_scalar(name, float(value), step=step)
 
 
 def flatten_config(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -63,6 +85,33 @@ def _hparams(config: dict[str, Any]) -> dict[str, Any]:
 def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
     for name, value in values.items():
         logger.log_scalar(name, float(value), step=step)
+
+
+def log_video(
+    logger: Logger, run_dir: Path, name: str, frames: list[np.ndarray], step: int, fps: int = 5
+) -> Path:
+    """Log ``frames`` (``[H, W, 3]`` uint8 each) as the video ``name`` (``eval/video``) at ``step``: a GIF
+    in ``<run>/videos/`` and, for TensorBoard and wandb, the same GIF in the run's log."""
+    from mcrs.env.render import encode_gif  # matplotlib and Pillow: only for videos
+
+    gif = encode_gif(frames, fps)
+    path = run_dir / "videos" / f"{name.replace('/', '_')}_{step}.gif"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(gif)
+    if isinstance(logger, TensorboardLogger):
+        from torch.utils.tensorboard.summary import Summary
+
+        height, width, channels = frames[0].shape
+        image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=gif)
+        summary = Summary(value=[Summary.Value(tag=name, image=image)])
+        logger.experiment._get_file_writer().add_summary(summary, step)  # what SummaryWriter.add_video does
+        logger.experiment.flush()
+    elif isinstance(logger, WandbLogger):
+        import wandb
+
+        # TorchRL's per-group step bookkeeping, as for the scalars (the value is not a float here).
+        logger.log_scalar(name, wandb.Video(str(path), format="gif"), step=step)
+    return path
 
 
 def progress_bar(total: int, initial: int, enabled: bool, description: str):

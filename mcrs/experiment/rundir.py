@@ -24,7 +24,7 @@ from typing import Any
 
 LOCK = ".mcrs.lock"
 #: What ``mcrs-train`` writes into a run directory (``overwrite=true`` removes exactly these).
-RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb")
+RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb", "videos")
 #: What may be in a fresh run directory before the run writes: Hydra's own files and our lock.
 FRESH_ALLOWED = (".hydra", LOCK)
 

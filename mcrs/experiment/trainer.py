@@ -38,7 +38,7 @@ from mcrs.experiment.callbacks import Callback, CuriosityCallback, append_scalar
 from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.evaluation import evaluate, make_eval_env
+from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.learner import Learner
 from mcrs.experiment.logging import log_scalars, make_logger, progress_bar
 from mcrs.experiment.replay import (
@@ -168,6 +168,7 @@ class Experiment:
             recurrent_primer(t.num_envs, self.env_config.n_uavs, hidden, device=self.device),
         )
         self.eval_env = make_eval_env(self.env_config, t.eval_episodes, hidden, self.device)
+        self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
         self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
         self.counters = Counters(
@@ -352,6 +353,8 @@ class Experiment:
         """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed))
+        if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
+            self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
         for callback in self.callbacks:

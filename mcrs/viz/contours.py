@@ -9,8 +9,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from tensordict import TensorDictBase
 
+from mcrs.env.canvas import UNCERTAINTY_CMAP, as_image, new_figure, setup_grid
 from mcrs.env.config import EnvConfig
-from mcrs.viz.canvas import UNCERTAINTY_CMAP, as_image, new_figure, setup_grid
 from mcrs.viz.frames import episode_frames
 
 

@@ -10,8 +10,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from tensordict import TensorDictBase
 
-from mcrs.env.config import EnvConfig
-from mcrs.viz.canvas import (
+from mcrs.env.canvas import (
     FOUND_COLOR,
     MISSED_COLOR,
     NO_FLY_COLOR,
@@ -23,6 +22,7 @@ from mcrs.viz.canvas import (
     trail_offsets,
     uav_colors,
 )
+from mcrs.env.config import EnvConfig
 from mcrs.viz.frames import episode_frames
 
 

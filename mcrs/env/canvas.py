@@ -1,5 +1,8 @@
 """Shared drawing helpers: an Agg figure (never the global pyplot backend), the grid, colours.
 
+They sit in the environment layer so that the adapter's ``render()`` (mcrs.env.render) and the pictures
+of mcrs.viz draw with the same code; matplotlib is loaded only by whoever imports this module.
+
 Grid convention: cell (x, y) is drawn at x horizontally and y vertically, y growing upwards, so that
 the action names of the paper (left, up, ...) match the picture.
 """

@@ -1,0 +1,91 @@
+"""Evaluation videos reach the loggers (TensorBoard, wandb offline), and ``mcrs-report`` reads the runs
+of every logger: tiny training runs, read back through the loggers' own file readers."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from mcrs.experiment.config import compose
+from mcrs.experiment.trainer import Experiment
+from tests.train_helpers import TINY
+
+#: Two evaluations (at 0 and at the end) of 10-step episodes.
+STEPS, T = 40, 10
+
+
+def tiny_run(run_dir: Path, *overrides: str) -> Path:
+    Experiment(compose("algo=qmix", *TINY, f"train.total_env_steps={STEPS}", *overrides), run_dir).run()
+    return run_dir
+
+
+def gif_frames(data: bytes) -> tuple[int, tuple[int, int]]:
+    image = Image.open(io.BytesIO(data))
+    return image.n_frames, image.size
+
+
+def test_evaluation_video_reaches_a_tensorboard_run(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import IMAGES, EventAccumulator
+
+    run = tiny_run(tmp_path / "tb", "logger=tensorboard", "logger.video=true")
+    events = EventAccumulator(str(run / "logs"), size_guidance={IMAGES: 0})
+    events.Reload()
+    assert "eval/video" in events.Tags()["images"]
+    videos = events.Images("eval/video")
+    assert [v.step for v in videos] == [0, STEPS]  # one greedy episode per evaluation
+    for video in videos:
+        data = video.encoded_image_string
+        assert data[:6] == b"GIF89a"
+        frames, size = gif_frames(data)
+        assert frames == T + 1 and size == (video.width, video.height)  # reset to the time limit
+    # The same GIFs beside the run, whatever the backend.
+    assert sorted(p.name for p in (run / "videos").iterdir()) == [
+        "eval_video_0.gif",
+        f"eval_video_{STEPS}.gif",
+    ]
+    assert (run / "videos" / f"eval_video_{STEPS}.gif").read_bytes() == videos[-1].encoded_image_string
+
+
+def test_evaluation_video_reaches_an_offline_wandb_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    run = tiny_run(tmp_path / "wb", "logger=wandb", "logger.video=true")
+    media = sorted((run / "wandb").glob("offline-run-*/files/media/videos/eval/video_*.gif"))
+    assert len(media) == 2
+    assert gif_frames(media[0].read_bytes())[0] == T + 1
+
+
+def test_report_reads_the_runs_of_every_logger_alike(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same seed and config logged by csv, tensorboard and wandb (offline): ``mcrs-report`` finds all
+    three (none skipped), reads the same evaluations from each, and exports them for marl-eval."""
+    import json
+
+    import numpy as np
+
+    from mcrs.analysis.report import main as report_main
+    from mcrs.analysis.runs import find_runs
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    for backend in ("csv", "tensorboard", "wandb"):
+        tiny_run(tmp_path / backend, f"logger={backend}")
+    assert not (tmp_path / "csv" / "videos").exists()  # video is off by default
+    runs = find_runs([tmp_path])
+    assert runs.skipped == [] and len(runs.training) == 3
+    series = {run.path.name: run.scalar("eval/episode_reward") for run in runs.training}
+    steps, values = series["csv"]
+    assert steps.tolist() == [0, STEPS]
+    for backend in ("tensorboard", "wandb"):
+        assert series[backend][0].tolist() == [0, STEPS]
+        np.testing.assert_allclose(series[backend][1], values, rtol=1e-6)  # TensorBoard keeps float32
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "marl_eval.json")]) == 0
+    assert "3 training runs and 0 evaluation results read; 0 skipped" in (out / "report.md").read_text()
+    runs_json = json.loads((out / "marl_eval.json").read_text())["mcrs"]["map10"]["qmix"]
+    assert len(runs_json) == 3
+    for run in runs_json.values():
+        assert [run[f"step_{i}"]["step_count"] for i in range(2)] == [0, STEPS]
+        assert run["absolute_metrics"]["episode_reward"][0] == pytest.approx(values[-1], rel=1e-6)
