@@ -239,6 +239,7 @@ WRONG_TYPES = [
     "seed=x",
     "seed=1.5",
     "overwrite=maybe",
+    "report=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.

@@ -36,6 +36,7 @@ NOT_A_SETTING = (
     "seed",
     "resume",
     "threads",
+    "report",
     "device",
     "logger",
     "experiment",
