@@ -32,14 +32,20 @@ def _run(command: list[str], cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
 
 
-def _interrupt(run_dir: Path, signum: int, cwd: Path) -> tuple[int, str, str]:
-    """Start a run far too long to finish, signal it once it has trained a few batches; its exit status
-    and output."""
+def _interrupt(
+    run_dir: Path, signum: int, cwd: Path, *extra: str, group: bool = False
+) -> tuple[int, str, str]:
+    """Start a run far too long to finish, signal it once it has trained a few batches (``group``: its
+    whole process group, as a terminal's Ctrl-C does); its exit status and output."""
     env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    command = _command(run_dir, "train.total_env_steps=10000000", "train.checkpoint_interval=10000000")
+    command = _command(
+        run_dir, "train.total_env_steps=10000000", "train.checkpoint_interval=10000000", *extra
+    )
     out, err = cwd / f"{run_dir.name}.out", cwd / f"{run_dir.name}.err"  # files: a full pipe stalls a run
     with open(out, "w") as stdout, open(err, "w") as stderr:
-        process = subprocess.Popen(command, cwd=cwd, env=env, stdout=stdout, stderr=stderr)
+        process = subprocess.Popen(
+            command, cwd=cwd, env=env, stdout=stdout, stderr=stderr, start_new_session=group
+        )
         rows = run_dir / "logs" / "scalars" / "train" / "episodes.csv"  # a row per log_interval=40 steps
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and process.poll() is None:
@@ -47,7 +53,10 @@ def _interrupt(run_dir: Path, signum: int, cwd: Path) -> tuple[int, str, str]:
                 break
             time.sleep(0.2)
         assert process.poll() is None, f"the run ended before the signal: {err.read_text()}"
-        process.send_signal(signum)
+        if group:
+            os.killpg(process.pid, signum)
+        else:
+            process.send_signal(signum)
         code = process.wait(timeout=300)
     return code, out.read_text(), err.read_text()
 
@@ -92,6 +101,23 @@ def test_a_signal_saves_and_resume_continues_exactly(
         assert torch.equal(value, a["learner"]["agent"][name_]), name_
     for name_, value in b["learner"]["mixer"].items():
         assert torch.equal(value, a["learner"]["mixer"][name_]), name_
+
+
+def test_ctrl_c_to_the_process_group_of_a_multiprocess_run(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches the collector's worker processes too: they ignore it, the trainer ends
+    the batch, saves and exits; a resume finishes the run."""
+    stopped = tmp_path / "multi"
+    workers = ("train.collector=multiprocess", "train.collector_workers=2")
+    exit_code, out, err = _interrupt(stopped, signal.SIGINT, tmp_path, *workers, group=True)
+    assert exit_code == 130, (out, err)
+    assert "Traceback" not in out + err and "leaked semaphore" not in out + err, err
+    (line,) = [line for line in out.splitlines() if line.startswith("mcrs-train:")]
+    steps = int(line.split("env step ")[1].split(",")[0])
+    assert _state(stopped)["counters"]["env_steps"] == steps > 0
+    total = steps + 2 * BATCH_STEPS
+    resumed = _run(_command(stopped, f"resume={stopped}", f"train.total_env_steps={total}"), tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    assert _state(stopped)["counters"]["env_steps"] == total
 
 
 def test_stop_signals_record_the_first_signal_and_restore_the_handlers() -> None:

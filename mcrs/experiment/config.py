@@ -177,7 +177,7 @@ class TrainConfig:
     eval_episodes: int = 32
     eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
     checkpoint_interval: int = 100_000
-    checkpoint_minutes: float = 0.0  # also checkpoint every this many minutes of wall clock (0: off)
+    checkpoint_minutes: float = 10.0  # also checkpoint every this many minutes of wall clock (0: off)
     keep_checkpoints: int = (
         5  # weight files model_<steps>.pt kept, the newest (0: all); last.pt is always kept
     )
