@@ -228,8 +228,8 @@ class Experiment:
         self._last_save = time.monotonic()
         self._speed = SpeedCheck(self.threads, str(t.collector) == "single")
         stats: dict[str, list[torch.Tensor]] = {}
-        try:  # a signal ends the loop after the batch in progress, with a checkpoint
-            with StopSignals() as stop:
+        with StopSignals() as stop:  # a signal: a checkpoint after this batch; more signals are ignored
+            try:
                 while c.env_steps < t.total_env_steps:
                     if c.env_steps >= c.next_eval:
                         self.evaluate()
@@ -253,14 +253,14 @@ class Experiment:
                 if stats:  # batches since the last row (none: that row is already at this step)
                     self._log_train(stats)
                 self.save()
-        except OSError as error:  # a full disk or a vanished directory while logging: one line, not a trace
-            raise RunDirError(
-                f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
-            ) from None
-        finally:
-            progress.close()
-            self.collector.shutdown()
-            self.close()
+            except OSError as error:  # a full disk or a vanished directory: one line, not a trace
+                raise RunDirError(
+                    f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
+                ) from None
+            finally:
+                progress.close()
+                self.collector.shutdown()
+                self.close()
         return dict(self.last_eval)
 
     def _collect(self, collector_iter, stats: dict[str, list[torch.Tensor]]):
