@@ -1,5 +1,7 @@
 # Two commands do all the set-up on a fresh machine (see README.md):
-#   make run    create .venv, install mcrs, train CNN-SEMU on map10 (writes to outputs/); make run ARGS="seed=1"
+#   make run    create .venv, install mcrs, train CNN-SEMU on map10 for a few minutes (budget=quickstart), then
+#               evaluate it against the heuristics: table, learning curve and GIF in <run dir>/report/.
+#               make run ARGS="seed=1"; the paper's 2M-step run: make run ARGS="budget=paper"
 #   make test   create .venv, install mcrs with the dev extra and run the fast tests (make test-slow: the
 #               rest; CI runs both, see .ci/run)
 PYTHON ?= python3
@@ -18,7 +20,7 @@ install: $(BIN)/.installed
 ARGS ?=
 
 run: install
-	$(BIN)/mcrs-train $(ARGS)
+	$(BIN)/mcrs-train budget=quickstart $(ARGS)
 
 lint: install
 	$(BIN)/ruff check .

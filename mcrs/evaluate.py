@@ -219,6 +219,59 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     return results
 
 
+REPORT_DIR = "report"  # a training run's report (evaluate_run), inside its run directory
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What :func:`evaluate_run` wrote, and the episode rewards it measured (``{label: (mean, std)}``)."""
+
+    table: Path
+    curve: Path
+    gif: Path
+    rewards: dict[str, tuple[float, float]]
+
+
+def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int, seed: int) -> RunReport:
+    """A finished training run against the heuristics, into ``run_dir/report/``: the greedy trained policy
+    and every heuristic on the same ``episodes`` fixed-seed episodes (``summary.md``, ``metrics.csv``,
+    ``episodes.csv``, as ``mcrs-eval`` writes them), the run's learning curves with the heuristics as
+    horizontal lines (``learning_curves.png``) and one episode of the trained policy (``episode.gif``,
+    ``scene.png``, ``uncertainty_contours.png``). ``label`` names the trained policy in the table."""
+    import numpy as np
+    import yaml
+
+    from mcrs.analysis.curves import CURVE_METRICS, Reference, aggregate, confidence_half_width, plot_curves
+    from mcrs.analysis.runs import TrainingRun
+
+    out = run_dir / REPORT_DIR
+    env_config = env_config.replace(num_envs=min(episodes, MAX_BATCH))
+    names = [str(run_dir), *POLICIES]  # the CSV names the trained policy by its run, as mcrs-eval does
+    per_episode = {name: episode_metrics(env_config, name, episodes, seed) for name in names}
+    results = {name: summarize(values) for name, values in per_episode.items()}
+    labelled = {label if name == str(run_dir) else f"{name} (heuristic)": r for name, r in results.items()}
+    table = format_table(labelled)
+    write_results(out, env_config, seed, per_episode, results, describe(env_config, episodes, seed), table)
+
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    runs = {label: [TrainingRun(run_dir, config)]}
+    panels = {panel: aggregate(runs, metric, []) for metric, panel in CURVE_METRICS.items()}
+    references: dict[str, list[Reference]] = {}
+    for name in POLICIES:
+        for metric, panel in CURVE_METRICS.items():
+            values = per_episode[name][metric.split("/")[-1]].to(torch.float64).numpy()
+            half = float(confidence_half_width(values[:, None])[0])
+            references.setdefault(panel, []).append(
+                Reference(f"{name} (heuristic)", float(np.mean(values)), half, len(values))
+            )
+    curve = plot_curves(
+        panels, out / "learning_curves.png", f"{env_config.name}: greedy evaluation", [label], references
+    )
+    pictures = write_figures(out, env_config.replace(num_envs=1), str(run_dir), seed)
+    rewards = {name: r["episode_reward"] for name, r in labelled.items()}
+    return RunReport(out / "summary.md", curve, pictures[-1], rewards)
+
+
 @hydra.main(config_path=CONFIG_DIR, config_name="eval", version_base=None)
 def main(cfg: DictConfig) -> None:
     """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""

@@ -146,7 +146,33 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
         flush=True,
     )
     print(f"run directory: {run_dir}", flush=True)
+    if cfg.report:
+        try:
+            write_report(experiment, cfg, run_dir)
+        except KeyboardInterrupt:  # the run itself is complete and saved
+            print(f"mcrs-train: report interrupted; the trained run is complete in {run_dir}", flush=True)
+            raise SystemExit(130) from None
     return result
+
+
+def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
+    """``report=true``: the trained policy and the heuristics on the evaluation episodes, the learning
+    curve and a GIF into ``run_dir/report`` (:func:`mcrs.evaluate.evaluate_run`), and where they are."""
+    from mcrs.evaluate import evaluate_run
+
+    steps = experiment.counters.env_steps
+    label = f"{cfg.algo.name} ({f'{steps / 1000:g}k' if steps >= 1000 else steps} steps)"
+    episodes, seed = int(cfg.train.eval_episodes), int(cfg.train.eval_seed)
+    print(f"evaluating {label} and the heuristics on {episodes} episodes ...", flush=True)
+    report = evaluate_run(run_dir, experiment.env_config, label, episodes, seed)
+    rewards = ", ".join(f"{name} {mean:.1f}" for name, (mean, _) in report.rewards.items())
+    print(
+        f"report ({cfg.env.name}, episode reward: {rewards}):\n"
+        f"  metric table    {report.table}\n"
+        f"  learning curve  {report.curve}\n"
+        f"  episode GIF     {report.gif}",
+        flush=True,
+    )
 
 
 register_configs()
@@ -159,12 +185,24 @@ def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     from mcrs.experiment.collection import CollectorWorkerFailed
+    from mcrs.experiment.interrupt import RunInterrupted
     from mcrs.objectives.gradient import TrainingDiverged
 
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
+    except RunInterrupted as stop:  # Ctrl-C or SIGTERM: the checkpoint is written; one line, no traceback
+        print(
+            f"mcrs-train: {stop.signal_name}: stopped at env step {stop.env_steps}, checkpoint {stop.checkpoint}\n"
+            f"resume with: mcrs-train resume={stop.run_dir}",
+            flush=True,
+        )
+        raise SystemExit(stop.exit_code) from None
+    except KeyboardInterrupt:  # before training started: nothing to save
+        remove_if_unused(run_dir)
+        print("mcrs-train: interrupted before training started: nothing to save", flush=True)
+        raise SystemExit(130) from None
     except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed, RunDirError) as error:
         if cfg.resume is not None or isinstance(error, ConfigError):
             remove_if_unused(run_dir)  # the directory Hydra made for a run that never started

@@ -212,7 +212,13 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path,
     (session,) = [
         json.loads(line) for line in (point.run_dir(outputs) / "campaign.jsonl").read_text().splitlines()
     ]
-    assert session["stopped_by_campaign"] and session["returncode"] != 0
+    assert session["stopped_by_campaign"] and session["returncode"] == 128 + signal.SIGINT
+    # the child saved at the stop (not only at its last step-based checkpoint) and said how to resume
+    log = (point.run_dir(outputs) / "campaign.log").read_text()
+    stop = [line for line in log.splitlines() if line.startswith("mcrs-train: SIGINT: stopped at env step ")]
+    assert len(stop) == 1 and "Traceback" not in log, log
+    assert int(stop[0].split("env step ")[1].split(",")[0]) == record["checkpoint_env_steps"]
+    assert f"resume with: mcrs-train resume={point.run_dir(outputs)}" in log
     assert "replay_blocks" in ckpt.load(last)  # a stopped run is not pruned: it resumes next time
     # The child (its own process group) is gone: no member left but zombies (a container's PID 1 may
     # not reap the orphaned helpers the child had, such as multiprocessing's resource tracker).

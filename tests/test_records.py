@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.analysis.records import make_record, write_record
 from mcrs.analysis.evaluations import heuristic_references
+from mcrs.analysis.records import make_record, write_record
 from mcrs.analysis.report import main as report_main
 from mcrs.analysis.runs import find_runs
 from mcrs.campaign.cli import main as campaign_main

@@ -139,7 +139,8 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("device=gpu", "device='gpu': is not a torch device"),
     ("device=meta", "device='meta': device type 'meta' is not supported"),
     ("device=", "device='': is not a torch device"),
-    ("threads=-1", "threads=-1: must be >= 0"),
+    ("threads=-1", "threads=-1: allowed values are auto (the cores the load leaves free), 0"),
+    ("threads=all", "threads=all: allowed values are auto"),
     # env (mcrs.env.EnvConfig owns these rules; wrong types reach it as strings: env is a free mapping)
     ("env.name=", "env.name='': must be a non-empty label"),
     ("env.name=a/b", "env.name='a/b': must be a non-empty label without '/'"),
@@ -252,8 +253,8 @@ WRONG_TYPES = [
     "train.eval_seed=x",
     "seed=x",
     "seed=1.5",
-    "threads=all",
     "overwrite=maybe",
+    "report=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.

@@ -202,7 +202,7 @@ def training_record(run_dir: Path) -> dict[str, Any]:
         "checkpoint_env_steps": checkpoint_steps,  # where a resume would start
         "logged_env_steps": logged,  # the last step with a metric (past the checkpoint if stopped)
         "loop_time_s": loop_time_s(run_dir),
-        "torch_threads": run.config.get("threads") or "torch's default (one per core)",
+        "torch_threads": _threads(run.config.get("threads")),
         "final_eval": {"env_step": final_step, **final},
         "sessions": _sessions(run_dir),
         "config": run.config,
@@ -258,6 +258,15 @@ def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
         run = run.parent.parent if run.suffix == ".pt" else run
         policy = f"{(row['label'] or 'trained').replace(' ', '-')}-{run.name}"
     return root / record["study"] / row["env"] / f"{policy}_rc{row['comm_range']:g}_seed{row['seed']}.json"
+
+
+def _threads(setting: object) -> object:
+    """The run's ``threads`` as a record says it (``auto``: chosen from the load when the run started)."""
+    if setting in (None, 0, "0"):
+        return "torch's default (one per core)"
+    if setting == "auto":
+        return "auto (the cores the load average left free at the start)"
+    return int(setting) if str(setting).isdigit() else setting
 
 
 def make_record(run_dir: Path, root: Path = RECORDS_DIR) -> tuple[Path, dict[str, Any]]:

@@ -39,6 +39,7 @@ NOT_A_SETTING = (
     "seed",
     "resume",
     "threads",
+    "report",
     "device",
     "logger",
     "experiment",

@@ -18,9 +18,12 @@ traceback of an exception in its environment to a per-run temporary folder befor
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import tempfile
+import threading
 import traceback
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,6 +36,21 @@ from torchrl.envs import EnvBase, TransformedEnv
 from mcrs.env.config import EnvConfig
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.models.acting import recurrent_primer
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """Start worker processes with SIGINT ignored (they inherit it): Ctrl-C in a terminal reaches the whole
+    process group, and the trainer, not its workers, decides how to stop (mcrs.experiment.interrupt: the
+    batch in progress ends, then a checkpoint). Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 class CollectorWorkerFailed(RuntimeError):
@@ -111,16 +129,17 @@ class TrainingCollector:
         per_worker = env_config.num_envs // workers
         self.error_dir = tempfile.mkdtemp(prefix="mcrs-collector-")
         worker_config = env_config.replace(num_envs=per_worker)
-        self.collector = MultiSyncCollector(
-            [WorkerEnvFactory(worker_config, hidden_dim, self.error_dir) for _ in range(workers)],
-            policy,
-            frames_per_batch=env_config.num_envs * T,  # split evenly: per_worker whole episodes each
-            total_frames=-1,
-            device=device,
-            cat_results=0,  # [workers * per_worker, T]: the single-process layout
-            trust_policy=True,
-            auto_register_policy_transforms=False,
-        )
+        with _workers_ignore_sigint():
+            self.collector = MultiSyncCollector(
+                [WorkerEnvFactory(worker_config, hidden_dim, self.error_dir) for _ in range(workers)],
+                policy,
+                frames_per_batch=env_config.num_envs * T,  # split evenly: per_worker whole episodes each
+                total_frames=-1,
+                device=device,
+                cat_results=0,  # [workers * per_worker, T]: the single-process layout
+                trust_policy=True,
+                auto_register_policy_transforms=False,
+            )
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         return iter(self.collector)

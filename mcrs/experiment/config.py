@@ -68,6 +68,7 @@ RESUME_MUTABLE = (
     "resume",
     "overwrite",
     "threads",
+    "report",
     "train.eval_interval",
     "train.checkpoint_interval",
     "train.checkpoint_minutes",
@@ -177,7 +178,7 @@ class TrainConfig:
     eval_episodes: int = 32
     eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
     checkpoint_interval: int = 100_000
-    checkpoint_minutes: float = 0.0  # also checkpoint every this many minutes of wall clock (0: off)
+    checkpoint_minutes: float = 10.0  # also checkpoint every this many minutes of wall clock (0: off)
     keep_checkpoints: int = (
         5  # weight files model_<steps>.pt kept, the newest (0: all); last.pt is always kept
     )
@@ -202,7 +203,8 @@ class Config:
     budget: str = "none"  # label of the budget (conf/budget/): smoke, cpu or paper
     seed: int = 0
     device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ... (the env's runtime field)
-    threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    threads: str = "auto"  # torch CPU threads: auto (the cores the load leaves free), 0 (torch's: all) or N
+    report: bool = False  # after training: evaluate with the heuristics, write report/ (table, curve, GIF)
     resume: str | None = None  # a run directory to continue
     overwrite: bool = False  # a fresh run may replace the previous run in a non-empty hydra.run.dir
 
@@ -310,13 +312,12 @@ def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
             )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
-    _positive(errors, "threads", cfg.threads, allow_zero=True)
     from mcrs.experiment.resources import cpu_count, resource_errors
+    from mcrs.experiment.threads import threads_problem
 
-    if cfg.threads > cpu_count():
-        errors.append(
-            f"threads={cfg.threads}: this machine has {cpu_count()} CPU cores: use 0 (torch's default) to {cpu_count()}"
-        )
+    problem = threads_problem(cfg.threads, cpu_count())
+    if problem:
+        errors.append(f"threads={cfg.threads}: {problem}")
     if not errors and env_config is not None:  # sizes are sane: does this machine have what the run needs?
         errors += resource_errors(cfg, env_config)
     return errors, env_config

@@ -6,17 +6,17 @@
         (Algorithm 1 on every collected batch, phi every t_emb env steps, H(phi(s')) on every sampled
         batch) and EMC's curiosity (an intrinsic reward on every sampled batch)
     every eval_interval env steps: greedy evaluation on fixed-seed environments
+    on Ctrl-C or SIGTERM: the batch in progress ends, a checkpoint, RunInterrupted (mcrs.experiment.interrupt)
     every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
         checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
         only the blocks with episodes added since the previous one (mcrs.experiment.replay_store); the
         newest keep_checkpoints weight files model_<steps>.pt are kept
 
-    experiment = Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run")
-    experiment.run()
+    Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run").run()
 
-Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments
-from ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in
-every checkpoint. So a run resumed from a checkpoint repeats the straight run exactly on the CPU.
+Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments from
+``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in every
+checkpoint. So a run resumed from a checkpoint repeats the straight run exactly on the CPU.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
+from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.learner import Learner
 from mcrs.experiment.logging import log_scalars, make_logger, progress_bar
 from mcrs.experiment.replay import (
@@ -57,6 +58,7 @@ from mcrs.experiment.rundir import (
     prepare_fresh,
     truncate_csv_logs,
 )
+from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.objectives.gradient import TrainingDiverged
 
@@ -145,15 +147,13 @@ class Experiment:
         if not resume:  # a fresh run never mixes its files with another run's
             prepare_fresh(self.run_dir, cfg.overwrite)
         self._log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
-        if cfg.threads:
-            torch.set_num_threads(int(cfg.threads))
+        self.threads = apply_threads(cfg.threads)  # auto: the cores the load leaves free
         self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
         self.T = self.env_config.max_steps
         self.learner = Learner(cfg.algo, cfg.model, t, self.env_config, self.device)
-        self.callbacks = (
-            algorithm_callbacks(cfg, self.env_config, self.learner, self.device) + extra_callbacks
-        )
+        self.callbacks = algorithm_callbacks(cfg, self.env_config, self.learner, self.device)
+        self.callbacks += extra_callbacks
         check_names(self.callbacks)
         self.greedy, self.exploring, self.epsilon = make_acting_policy(
             self.learner.agent,
@@ -222,40 +222,44 @@ class Experiment:
             self.config.logger.progress_bar,
             f"{self.config.algo.name} {self.env_config.name}",
         )
-        stats: dict[str, list[torch.Tensor]] = {}
         self._timer = dict.fromkeys(self._timer, 0.0)  # this session's clock
         collector_iter = iter(self.collector)
         self._last_save = time.monotonic()
-        try:
-            while c.env_steps < t.total_env_steps:
-                if c.env_steps >= c.next_eval:
-                    self.evaluate()
+        self._speed = SpeedCheck(self.threads, str(t.collector) == "single")
+        stats: dict[str, list[torch.Tensor]] = {}
+        with StopSignals() as stop:  # a signal: a checkpoint after this batch; more signals are ignored
+            try:
+                while c.env_steps < t.total_env_steps:
+                    if c.env_steps >= c.next_eval:
+                        self.evaluate()
+                        c.next_eval += t.eval_interval
+                    batch = self._collect(collector_iter, stats)  # num_envs whole episodes, into the replay
+                    self._learn(stats)  # updates_per_episode updates per collected episode
+                    if c.env_steps >= c.next_log:
+                        self._log_train(stats)
+                        stats = {}
+                        c.next_log = c.env_steps + self.config.logger.log_interval
+                    saved = self._checkpoint_if_due()
+                    progress.update(batch.numel())
+                    progress.set_postfix(self._postfix(), refresh=False)
+                    if stop.requested:  # a consistent point: the batch is in the replay, its updates done
+                        path = saved or self.save()
+                        raise RunInterrupted(int(stop.signum or 0), self.run_dir, c.env_steps, path)
+                    self._speed.observe()
+                self.evaluate()
+                if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
                     c.next_eval += t.eval_interval
-
-                batch = self._collect(collector_iter, stats)  # num_envs whole episodes, into the replay
-                self._learn(stats)  # updates_per_episode updates per collected episode
-
-                if c.env_steps >= c.next_log:
+                if stats:  # batches since the last row (none: that row is already at this step)
                     self._log_train(stats)
-                    stats = {}
-                    c.next_log = c.env_steps + self.config.logger.log_interval
-                self._checkpoint_if_due()
-                progress.update(batch.numel())
-                progress.set_postfix(self._postfix(), refresh=False)
-            self.evaluate()
-            if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
-                c.next_eval += t.eval_interval
-            if stats:  # batches since the last row (none: that row is already at this step)
-                self._log_train(stats)
-            self.save()
-        except OSError as error:  # a full disk or a vanished directory while logging: one line, not a trace
-            raise RunDirError(
-                f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
-            ) from None
-        finally:
-            progress.close()
-            self.collector.shutdown()
-            self.close()
+                self.save()
+            except OSError as error:  # a full disk or a vanished directory: one line, not a trace
+                raise RunDirError(
+                    f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
+                ) from None
+            finally:
+                progress.close()
+                self.collector.shutdown()
+                self.close()
         return dict(self.last_eval)
 
     def _collect(self, collector_iter, stats: dict[str, list[torch.Tensor]]):
@@ -323,7 +327,7 @@ class Experiment:
         c.updates += 1
         return {**{f"train/{k}": v for k, v in stats.items()}, **out}
 
-    def _checkpoint_if_due(self) -> None:
+    def _checkpoint_if_due(self) -> Path | None:
         t, c = self.config.train, self.counters
         due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
         due_by_time = (
@@ -331,8 +335,7 @@ class Experiment:
         )
         if due_by_steps:
             c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
-        if due_by_steps or due_by_time:
-            self.save()
+        return self.save() if due_by_steps or due_by_time else None
 
     #: What a collected batch must hold finite, and how an error names it.
     FINITE_KEYS = (("state", "belief maps / state"), (("next", "reward"), "reward"),
