@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.core import METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION
@@ -219,14 +220,17 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     return results
 
 
+@one_line_errors("mcrs-eval")
 @hydra.main(config_path=CONFIG_DIR, config_name="eval", version_base=None)
 def main(cfg: DictConfig) -> None:
     """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
     from hydra.core.hydra_config import HydraConfig
 
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        run(cfg, Path(HydraConfig.get().runtime.output_dir))
-    except ValueError as error:  # bad input: one clear message, no traceback
+        run(cfg, out_dir)
+    except ValueError as error:  # bad input: one clear message, no traceback, no directory left
+        remove_refused_dirs(out_dir)
         raise SystemExit(f"mcrs-eval: error: {error}") from None
 
 
