@@ -13,6 +13,7 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION
 
 ALL = "all"
+log = logging.getLogger(__name__)
 # The Hydra configs: mcrs/conf links to the repo's conf/ (and is copied into wheels as package data). An
 # absolute directory, because Hydra's pkg:// lookup of "mcrs.conf" needs an __init__.py that conf/ lacks.
 CONFIG_DIR = str(Path(__file__).parent / "conf")
@@ -210,14 +212,20 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)
     table = format_table(results)
-    print(f"{title}\n\n{table}\n", flush=True)
+    _say(f"{title}\n\n{table}\n")
     write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
             paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
-            print("figures: " + ", ".join(str(p) for p in paths), flush=True)
-    print(f"results in {out_dir}", flush=True)
+            _say("figures: " + ", ".join(str(p) for p in paths))
+    _say(f"results in {out_dir}")
     return results
+
+
+def _say(message: str) -> None:
+    """Print a result, and keep it in the run's log (``evaluate.log`` under ``mcrs-eval``)."""
+    print(message, flush=True)
+    log.info("%s", message, extra={"console": False})
 
 
 @one_line_errors("mcrs-eval")

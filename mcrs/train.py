@@ -11,6 +11,7 @@ Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the res
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -142,6 +143,7 @@ def main(cfg: DictConfig) -> float:
     try:
         result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
     except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed, RunDirError) as error:
+        logging.getLogger(__name__).error("%s", error, extra={"console": False})  # train.log; printed below
         if cfg.resume is not None or isinstance(error, ConfigError):
             remove_refused_dirs(run_dir)  # the directories Hydra made for a run that never started
         # one clear message (with the cause), no traceback
