@@ -26,6 +26,7 @@ SLOW_MODULES = {
     "test_collector_workers.py",
     "test_crash_safety.py",
     "test_experiment_api.py",
+    "test_example_api.py",
     "test_experiments.py",
     "test_ray_launcher.py",
     "test_interop_logging.py",
