@@ -265,7 +265,9 @@ def test_cli_bad_input_is_one_clear_message(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr
     done = cli(*TINY, "algo.mixer=qtran", cwd=tmp_path)  # a choice: Hydra refuses it while composing
     assert done.returncode != 0 and "Traceback" not in done.stderr
-    assert done.stderr == "mcrs-train: error: algo.mixer=qtran: allowed values: qmix, vdn, qplex\n", done.stderr
+    assert done.stderr == "mcrs-train: error: algo.mixer=qtran: allowed values: qmix, vdn, qplex\n", (
+        done.stderr
+    )
     done = cli(f"resume={tmp_path / 'missing'}", cwd=tmp_path)
     assert done.returncode != 0 and "no such directory" in done.stderr
 
