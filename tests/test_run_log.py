@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import mcrs.evaluate  # noqa: F401 (registers the mcrs-eval schema)
-from mcrs.experiment.logging import ANSI, PlainFormatter, TqdmHandler
+from mcrs.experiment.logging import ANSI, PlainFormatter, TqdmHandler, log_event
 from mcrs.experiment.trainer import Experiment
 from mcrs.train import CONFIG_DIR
 from tests.train_helpers import compose_config
@@ -64,14 +64,14 @@ def test_the_job_log_gets_every_record_plain_and_the_console_only_warnings(
 ) -> None:
     for config_name in ("config", "eval"):
         logging.config.dictConfig(_job_logging(config_name, tmp_path))
-        logging.getLogger("mcrs.experiment.trainer").info("evaluation at env step 0")
+        log_event("evaluation at env step 0")
         logging.getLogger("torchrl").info("Initialized LazyTensorStorage")  # TorchRL's noise: nowhere
         logging.getLogger("torchrl").warning("\x1b[92ma torchrl warning\x1b[0m")
         logging.getLogger("mcrs.train").error("diverged", extra={"console": False})  # the CLI prints it
         for h in logging.getLogger().handlers:
             h.flush()
         text = (tmp_path / f"{config_name}.log").read_text()
-        assert "[mcrs.experiment.trainer][INFO] evaluation at env step 0" in text
+        assert "[mcrs.run][INFO] evaluation at env step 0" in text
         assert "[torchrl][WARNING] a torchrl warning" in text and "diverged" in text
         assert "LazyTensorStorage" not in text and "\x1b" not in text
         out, err = capfd.readouterr()

@@ -12,7 +12,7 @@ summary holding the GIF: TensorBoard's own video format, shown in its Images tab
 moviepy 1.x), which nothing else here needs.
 
 The text log is Python's ``logging``: the trainer says what it did (each evaluation, each checkpoint) at
-INFO. The commands' Hydra job-logging config (``conf/hydra/job_logging/mcrs.yaml``) writes every record to
+INFO through :func:`log_event` (logger ``mcrs.run``). The commands' Hydra job-logging config (``conf/hydra/job_logging/mcrs.yaml``) writes every record to
 ``<run dir>/train.log`` (``evaluate.log`` for ``mcrs-eval``) through :class:`PlainFormatter` (no colour
 codes), and warnings to the console through :class:`TqdmHandler` (above the progress bar, not through it).
 TorchRL's own logger prints an INFO line in colour when the replay storage is built; :func:`quiet_torchrl`
@@ -92,6 +92,15 @@ def _hparams(config: dict[str, Any]) -> dict[str, Any]:
     return {
         k: v if isinstance(v, (int, float, str, bool)) else str(v) for k, v in flatten_config(config).items()
     }
+
+
+#: What a run did, at INFO (the trainer's evaluations and checkpoints): mcrs-train writes it to train.log.
+RUN_LOG = logging.getLogger("mcrs.run")
+
+
+def log_event(message: str) -> None:
+    """One line of the run's text log (:data:`RUN_LOG`)."""
+    RUN_LOG.info("%s", message)
 
 
 def metrics_line(metrics: dict[str, float]) -> str:

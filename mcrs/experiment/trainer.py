@@ -21,7 +21,6 @@ every checkpoint. So a run resumed from a checkpoint repeats the straight run ex
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -41,7 +40,7 @@ from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.logging import log_scalars, make_logger, metrics_line, progress_bar
+from mcrs.experiment.logging import log_event, log_scalars, make_logger, metrics_line, progress_bar
 from mcrs.experiment.replay import (
     episodes_from_rollout,
     load_replay_state_dict,
@@ -62,7 +61,6 @@ from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.objectives.gradient import TrainingDiverged
 
 __all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", "batch_seed"]
-log = logging.getLogger(__name__)  # what the run did, at INFO: mcrs-train writes it to <run dir>/train.log
 
 
 @dataclass
@@ -205,8 +203,7 @@ class Experiment:
             torch.set_rng_state(rng["torch"].cpu())
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
-        what = f"resuming from env step {self.counters.env_steps}" if resume else "training"
-        log.info("%s %s on %s: %s", what, cfg.algo.name, self.env_config.name, self.run_dir)
+        log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.env_config.name}")
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
@@ -361,7 +358,7 @@ class Experiment:
             self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
-        log.info("evaluation at env step %d: %s", self.counters.env_steps, metrics_line(self.last_eval))
+        log_event(f"evaluation at env step {self.counters.env_steps}: {metrics_line(self.last_eval)}")
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
         return dict(self.last_eval)
@@ -439,7 +436,7 @@ class Experiment:
         target = ckpt.checkpoint_path(self.run_dir, name)
         with io_errors(f"write checkpoint {target}", self._intact()):
             path = self._save(name)
-        log.info("checkpoint at env step %d: %s", self.counters.env_steps, path)
+        log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
         return path
 
     def _intact(self) -> str:
