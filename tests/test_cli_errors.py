@@ -31,7 +31,7 @@ def _hydra_error(override: str) -> BaseException:
 @pytest.mark.parametrize(
     ("override", "expected"),
     [
-        ("env.comm_rage=3", "env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_rounds,"),
+        ("env.comm_rage=3", "env.comm_rage: unknown key; the keys of env (closest first): comm_range,"),
         ("train.lrr=1", "train.lrr: unknown key; the keys of train (closest first): lr,"),
         ("algo.mixr=qmix", "algo.mixr: unknown key; the keys of algo (closest first): mixer,"),
         ("algo.memory.capcity=1", "algo.memory.capcity: unknown key; the keys of algo.memory (closest first): capacity,"),
