@@ -255,6 +255,7 @@ WRONG_TYPES = [
     "seed=1.5",
     "threads=all",
     "overwrite=maybe",
+    "logger.video=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.
