@@ -13,6 +13,7 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,11 +26,13 @@ from omegaconf import DictConfig
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.core import METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION
 
 ALL = "all"
+log = logging.getLogger(__name__)
 # The Hydra configs: mcrs/conf links to the repo's conf/ (and is copied into wheels as package data). An
 # absolute directory, because Hydra's pkg:// lookup of "mcrs.conf" needs an __init__.py that conf/ lacks.
 CONFIG_DIR = str(Path(__file__).parent / "conf")
@@ -209,13 +212,13 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)
     table = format_table(results)
-    print(f"{title}\n\n{table}\n", flush=True)
+    _say(f"{title}\n\n{table}\n")
     write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
             paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
-            print("figures: " + ", ".join(str(p) for p in paths), flush=True)
-    print(f"results in {out_dir}", flush=True)
+            _say("figures: " + ", ".join(str(p) for p in paths))
+    _say(f"results in {out_dir}")
     return results
 
 
@@ -272,14 +275,23 @@ def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int
     return RunReport(out / "summary.md", curve, pictures[-1], rewards)
 
 
+def _say(message: str) -> None:
+    """Print a result, and keep it in the run's log (``evaluate.log`` under ``mcrs-eval``)."""
+    print(message, flush=True)
+    log.info("%s", message, extra={"console": False})
+
+
+@one_line_errors("mcrs-eval")
 @hydra.main(config_path=CONFIG_DIR, config_name="eval", version_base=None)
 def main(cfg: DictConfig) -> None:
     """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
     from hydra.core.hydra_config import HydraConfig
 
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        run(cfg, Path(HydraConfig.get().runtime.output_dir))
-    except ValueError as error:  # bad input: one clear message, no traceback
+        run(cfg, out_dir)
+    except ValueError as error:  # bad input: one clear message, no traceback, no directory left
+        remove_refused_dirs(out_dir)
         raise SystemExit(f"mcrs-eval: error: {error}") from None
 
 

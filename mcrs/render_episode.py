@@ -19,6 +19,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 
 # The Hydra configs: mcrs/conf links to the repo's conf/ (see mcrs.evaluate.CONFIG_DIR).
 CONFIG_DIR = str(Path(__file__).parent / "conf")
@@ -78,6 +79,7 @@ def run(cfg: DictConfig, out_dir: Path) -> list[Path]:
 register_configs()
 
 
+@one_line_errors("mcrs-render")
 @hydra.main(config_path=CONFIG_DIR, config_name="render", version_base=None)
 def main(cfg: DictConfig) -> None:
     """Console entry point ``mcrs-render`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
@@ -87,8 +89,7 @@ def main(cfg: DictConfig) -> None:
     try:
         run(cfg, out_dir)
     except ValueError as error:  # bad input: one clear message, no traceback
-        if out_dir.is_dir() and not any(out_dir.iterdir()):
-            out_dir.rmdir()  # Hydra made it for this run: leave no empty folder behind
+        remove_refused_dirs(out_dir)  # Hydra made it for this run: leave no empty folder behind
         raise SystemExit(f"mcrs-render: error: {error}") from None
 
 

@@ -11,17 +11,17 @@ Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the res
 
 from __future__ import annotations
 
-import os
+import logging
 from pathlib import Path
 from typing import Any
 
 import hydra
 import yaml
-from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.config import (
     CONFIG_DIR,
     RESUME_MUTABLE,
@@ -29,7 +29,7 @@ from mcrs.experiment.config import (
     ConfigError,
     register_configs,
 )
-from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, remove_if_unused
+from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers
 
 
 def _is_mutable(name: str) -> bool:
@@ -106,30 +106,6 @@ def _read_run_config(path: Path) -> dict[str, Any]:
     return saved
 
 
-class RunDirCheck(Callback):
-    """A Hydra callback (``hydra.callbacks`` in conf/config.yaml): before Hydra creates the run (or sweep)
-    directory, check that it can be written, so that a read-only or impossible path is one line, not
-    Hydra's traceback."""
-
-    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        _check_writable(Path(str(config.hydra.run.dir)))
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        _check_writable(Path(str(config.hydra.sweep.dir)))
-
-
-def _check_writable(directory: Path) -> None:
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / f".mcrs-write-test.{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as error:
-        raise SystemExit(
-            f"mcrs-train: error: cannot write the run directory {directory}: {describe_os_error(error)}"
-        ) from None
-
-
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
     from mcrs.experiment.trainer import Experiment
@@ -179,6 +155,7 @@ register_configs()
 register_resolvers()
 
 
+@one_line_errors("mcrs-train")
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""
@@ -200,12 +177,13 @@ def main(cfg: DictConfig) -> float:
         )
         raise SystemExit(stop.exit_code) from None
     except KeyboardInterrupt:  # before training started: nothing to save
-        remove_if_unused(run_dir)
+        remove_refused_dirs(run_dir)
         print("mcrs-train: interrupted before training started: nothing to save", flush=True)
         raise SystemExit(130) from None
     except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed, RunDirError) as error:
+        logging.getLogger(__name__).error("%s", error, extra={"console": False})  # train.log; printed below
         if cfg.resume is not None or isinstance(error, ConfigError):
-            remove_if_unused(run_dir)  # the directory Hydra made for a run that never started
+            remove_refused_dirs(run_dir)  # the directories Hydra made for a run that never started
         # one clear message (with the cause), no traceback
         raise SystemExit(f"mcrs-train: error: {error}") from None
     except OSError as error:  # an I/O failure outside the checkpoint writes (which say what is intact)

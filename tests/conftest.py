@@ -26,6 +26,7 @@ SLOW_MODULES = {
     "test_collector_workers.py",
     "test_crash_safety.py",
     "test_experiment_api.py",
+    "test_example_api.py",
     "test_experiments.py",
     "test_ray_launcher.py",
     "test_interop_logging.py",
@@ -41,6 +42,8 @@ SLOW_MODULES = {
 }
 #: Slow tests in otherwise fast modules (``module::test``).
 SLOW_TESTS = {
+    "test_cli_errors.py::test_refused_commands_print_one_line_of_ours_and_leave_no_directory",
+    "test_cli_errors.py::test_hydra_full_error_still_gives_hydras_trace",
     "test_env_variants.py::test_variant_matches_the_slow_reference_on_larger_maps",
     "test_evaluate.py::test_cli_runs_and_prints_table",
     "test_evaluate.py::test_cli_unknown_policy_lists_allowed_names",

@@ -10,6 +10,7 @@ fails when a field is added to a schema without bad inputs here. The number of b
 from __future__ import annotations
 
 from dataclasses import fields
+from pathlib import Path
 
 import pytest
 from hydra.errors import ConfigCompositionException
@@ -255,6 +256,7 @@ WRONG_TYPES = [
     "seed=1.5",
     "overwrite=maybe",
     "report=maybe",
+    "logger.video=maybe",
 ]
 
 #: Keys that do not exist (typos) and group options that do not exist.
@@ -282,6 +284,7 @@ def _case_id(case: tuple[str, str] | str) -> str:
     return case[0] if isinstance(case, tuple) else case
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(("override", "expected"), BAD_VALUES, ids=[_case_id(c) for c in BAD_VALUES])
 def test_bad_value_is_refused_naming_the_field_and_the_rule(override: str, expected: str) -> None:
     cfg = compose_config(*override.split("|"))
@@ -290,6 +293,7 @@ def test_bad_value_is_refused_naming_the_field_and_the_rule(override: str, expec
     assert expected in str(info.value), str(info.value)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("override", WRONG_TYPES)
 def test_wrong_type_fails_while_composing(override: str) -> None:
     with pytest.raises((ConfigCompositionException, ValidationError)) as info:
@@ -299,6 +303,7 @@ def test_wrong_type_fails_while_composing(override: str) -> None:
     assert key.split(".")[-1] in message, message  # the field is named
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(("override", "allowed"), BAD_CHOICES, ids=[_case_id(c) for c in BAD_CHOICES])
 def test_bad_choice_fails_while_composing_naming_the_allowed_values(override: str, allowed: str) -> None:
     with pytest.raises((ConfigCompositionException, ValidationError)) as info:
@@ -316,6 +321,7 @@ def test_bad_choice_from_python_is_refused_by_validate() -> None:
     assert "train.optimizer='sgd': allowed values are rmsprop, adam" in str(info.value)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("override", UNKNOWN_KEYS)
 def test_unknown_key_or_option_fails_while_composing(override: str) -> None:
     with pytest.raises((ConfigCompositionException, ConfigKeyError)):
@@ -389,6 +395,34 @@ def test_count_of_bad_inputs(capsys: pytest.CaptureFixture) -> None:
             f"{len(UNKNOWN_KEYS)} unknown keys)"
         )
     assert total >= 150
+
+
+def _documented_counts() -> dict[str, int]:
+    """The bad-input count each document states (README.md: "(N bad inputs tried in the suite)")."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    counts = {}
+    for doc in ("README.md", "docs/RELIABILITY.md"):
+        text = " ".join((root / doc).read_text().split())
+        found = {int(n.replace(",", "")) for n in re.findall(r"(\d[\d,]*) bad inputs", text)}
+        assert len(found) == 1, f"{doc} states the bad-input count {len(found)} ways: {sorted(found)}"
+        counts[doc] = found.pop()
+    return counts
+
+
+def test_the_documented_bad_input_count_is_the_suites() -> None:
+    """README.md and docs/RELIABILITY.md state the number of bad inputs the suite tries: exactly the tests
+    marked ``bad_input`` (``pytest -m bad_input tests/test_reliability_config.py`` runs and counts them)."""
+    marked = [
+        test
+        for test in globals().values()
+        if any(m.name == "bad_input" for m in getattr(test, "pytestmark", []))
+    ]
+    cases = sum(len(next(m for m in test.pytestmark if m.name == "parametrize").args[1]) for test in marked)
+    total = len(BAD_VALUES) + len(BAD_CHOICES) + len(WRONG_TYPES) + len(UNKNOWN_KEYS)
+    assert len(marked) == 4 and cases == total
+    assert _documented_counts() == {"README.md": total, "docs/RELIABILITY.md": total}
 
 
 def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:

@@ -101,6 +101,36 @@ def test_save_episode_gif_has_one_frame_per_step(short_episode, tmp_path: Path) 
         save_episode_gif(short_episode, SHORT, tmp_path / "bad.gif", background=99)
 
 
+def test_gif_no_fly_zones_stand_out_from_the_belief_map_and_a_legend_names_every_mark(short_episode) -> None:
+    """Each no-fly cell is dark and hatched over any belief colour (the red-blue map never is), and the
+    legend names UAVs, targets, no-fly zones and comm links; the colour bar says which end is which."""
+    from mcrs.env.render import StateDrawing
+
+    fr = episode_frames(short_episode, SHORT)
+    drawing = StateDrawing(SHORT, fr.no_fly, fr.targets)
+    t = fr.steps
+    found = (fr.global_maps[:, 1] >= SHORT.target_threshold).any(0)
+    pixels = drawing.draw(fr.global_maps[t, 0], fr.positions[: t + 1], fr.neighbours[t], found, "last")
+    pixels = pixels.astype(int)
+    fig, ax = drawing.fig, drawing.ax
+    height = pixels.shape[0]
+
+    def cell(x: int, y: int) -> np.ndarray:  # the inner half of the cell's square, in pixels
+        (x0, y0), (x1, y1) = ax.transData.transform([(x - 0.25, y - 0.25), (x + 0.25, y + 0.25)])
+        return pixels[height - int(y1) : height - int(y0), int(x0) : int(x1)].reshape(-1, 3)
+
+    no_fly = fr.no_fly
+    assert len(no_fly)
+    for x, y in no_fly:
+        dark = (cell(x, y).max(axis=1) < 70).mean()
+        assert dark > 0.3, f"no-fly cell ({x}, {y}): {dark:.0%} dark pixels"
+    labels = " | ".join(t.get_text() for legend in fig.legends for t in legend.get_texts())
+    for mark in ("UAV", "target, not yet found", "target found", "no-fly zone", "comm link"):
+        assert mark in labels, labels
+    bar = next(a for a in fig.axes if a is not ax)
+    assert [t.get_text() for t in bar.get_yticklabels()] == ["0 known", "0.5", "1 uncertain"]
+
+
 def _frames(image: Image.Image, indices: list[int]) -> list[Image.Image]:
     out = []
     for k in indices:

@@ -242,6 +242,12 @@ def test_cli_trains_from_any_directory_and_sweeps(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     runs = sorted(p.name for p in (tmp_path / "outputs" / "multirun").glob("*/*") if p.is_dir())
     assert runs == ["0_map10_qmix_seed0", "1_map10_qmix_seed1", "2_map10_vdn_seed0", "3_map10_vdn_seed1"]
+    for log in (tmp_path / "outputs" / "multirun").glob("*/*/train.log"):  # the run's own log, plain text
+        text = log.read_text()
+        assert "evaluation at env step 0: episode_reward" in text and "checkpoint at env step" in text, text
+        assert "\x1b" not in text
+    assert len(list((tmp_path / "outputs" / "multirun").glob("*/*/train.log"))) == 4
+    assert "LazyTensorStorage" not in done.stdout + done.stderr  # TorchRL's INFO line stays quiet
 
 
 def test_cli_joblib_launcher(tmp_path: Path) -> None:
@@ -259,7 +265,9 @@ def test_cli_bad_input_is_one_clear_message(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr
     done = cli(*TINY, "algo.mixer=qtran", cwd=tmp_path)  # a choice: Hydra refuses it while composing
     assert done.returncode != 0 and "Traceback" not in done.stderr
-    assert "algo.mixer=qtran" in done.stderr and "expected one of [qmix, vdn, qplex]" in done.stderr
+    assert done.stderr == "mcrs-train: error: algo.mixer=qtran: allowed values: qmix, vdn, qplex\n", (
+        done.stderr
+    )
     done = cli(f"resume={tmp_path / 'missing'}", cwd=tmp_path)
     assert done.returncode != 0 and "no such directory" in done.stderr
 

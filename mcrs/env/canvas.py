@@ -55,12 +55,16 @@ def extent(cfg: EnvConfig) -> tuple[float, float, float, float]:
     return (-0.5, cfg.width - 0.5, -0.5, cfg.height - 0.5)
 
 
-def draw_no_fly(ax: Axes, no_fly: np.ndarray) -> None:
-    """Hatched squares on the no-fly cells ``[Z, 2]``."""
+#: No-fly cells over a coloured belief map (the GIF): dark, opaque, white-hatched, so that they stand out
+#: from both ends of the red-blue scale; over the scene's grey map the red of NO_FLY_COLOR is clear.
+NO_FLY_ON_MAP = {"facecolor": "0.12", "edgecolor": "white", "alpha": 0.9, "hatch": "xx", "linewidth": 0.8}
+
+
+def draw_no_fly(ax: Axes, no_fly: np.ndarray, **style) -> None:
+    """Hatched squares on the no-fly cells ``[Z, 2]`` (``style``: patch keywords, e.g. NO_FLY_ON_MAP)."""
+    style = {"facecolor": NO_FLY_COLOR, "alpha": 0.35, "edgecolor": NO_FLY_COLOR, "hatch": "xx", **style}
     for x, y in no_fly:
-        ax.add_patch(
-            square(x, y, facecolor=NO_FLY_COLOR, alpha=0.35, edgecolor=NO_FLY_COLOR, hatch="xx", zorder=2)
-        )
+        ax.add_patch(square(x, y, zorder=2, **style))
 
 
 def square(x: float, y: float, **kwargs) -> Rectangle:

@@ -28,7 +28,7 @@ MAX_DECAY_EXPONENT = 80.0
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """Every parameter of the MCRS-LCR environment (see ``shared/spec/environment.md``)."""
+    """Every parameter of the MCRS-LCR environment (see docs/ENVIRONMENT.md)."""
 
     name: str = "map10"
     width: int = 10

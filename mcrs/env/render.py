@@ -17,11 +17,14 @@ import numpy as np
 import torch
 from matplotlib.axis import Axis
 from matplotlib.colors import Normalize
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 from PIL import Image
 from tensordict import TensorDictBase
 
 from mcrs.env.canvas import (
     FOUND_COLOR,
+    NO_FLY_ON_MAP,
     UNCERTAINTY_CMAP,
     as_image,
     draw_no_fly,
@@ -95,7 +98,7 @@ class StateDrawing:
         no_fly, targets: ``[Z, 2]`` and ``[K, 2]`` cells (fixed for an episode).
         label: what the background map is (the colour bar's label).
         trail: how many past steps of each UAV's path to draw (None: all).
-        dpi: resolution; 80 gives a 512 x 432 frame.
+        dpi: resolution; 80 gives a 512 x 496 frame (the map, its colour bar and a legend of the marks).
     """
 
     def __init__(
@@ -109,7 +112,7 @@ class StateDrawing:
     ) -> None:
         self.cfg, self.trail = cfg, trail
         self.targets = np.asarray(targets, dtype=np.int64).reshape(-1, 2)
-        fig = new_figure(6.4, 5.4)
+        fig = new_figure(6.4, 6.2)
         ax = fig.add_subplot()
         setup_grid(ax, cfg)
         self.image = ax.imshow(
@@ -120,8 +123,9 @@ class StateDrawing:
             norm=Normalize(0.0, 1.0),
             zorder=0,
         )
-        fig.colorbar(self.image, ax=ax, shrink=0.8, label=label)
-        draw_no_fly(ax, np.asarray(no_fly).reshape(-1, 2))
+        bar = fig.colorbar(self.image, ax=ax, shrink=0.8, label=f"{label} (the belief colour scale)")
+        bar.set_ticks([0.0, 0.5, 1.0], labels=["0 known", "0.5", "1 uncertain"])
+        draw_no_fly(ax, np.asarray(no_fly).reshape(-1, 2), **NO_FLY_ON_MAP)  # dark: clear on red and blue
         self.target_marks = ax.scatter(
             *self.targets.T, marker="*", s=180, facecolors="none", edgecolors="k", lw=1.2, zorder=5
         )
@@ -131,6 +135,10 @@ class StateDrawing:
         self.uavs = ax.scatter(np.zeros(n), np.zeros(n), s=80, c=colors, edgecolors="k", zorder=6)
         self.pairs = list(zip(*np.triu_indices(n, 1), strict=True))
         self.links = [ax.plot([], [], ls="--", lw=1.0, c="k", zorder=3)[0] for _ in self.pairs]
+        # The legend is outside the axes: drawn once with the decorations, not redrawn per frame.
+        fig.legend(
+            handles=legend(cfg, colors), loc="outside lower center", ncols=3, fontsize=8, frameon=False
+        )
         # The widest title an episode can have, so that the layout frozen below fits every frame.
         widest = frame_title(cfg, cfg.max_steps, np.full(cfg.n_cells, 1.0), -99999.9)
         self.title = ax.set_title(widest, fontsize=10)
@@ -181,6 +189,17 @@ class StateDrawing:
         for artist in self.content:
             self.ax.draw_artist(artist)
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def legend(cfg: EnvConfig, colors: list) -> list:
+    """What each mark of a frame is: UAVs and trails, targets (not yet found, found), no-fly zones, links."""
+    return [
+        Line2D([], [], marker="o", ls="-", c=colors[0], mec="k", ms=8, label=f"UAV and its trail ({cfg.n_uavs}, one colour each)"),
+        Line2D([], [], marker="*", ls="", mfc="none", mec="k", ms=13, label="target, not yet found"),
+        Line2D([], [], marker="*", ls="", mfc=FOUND_COLOR, mec="k", ms=13, label="target found"),
+        Patch(**{**NO_FLY_ON_MAP, "label": "no-fly zone"}),
+        Line2D([], [], ls="--", lw=1.0, c="k", label=f"comm link (R_c={cfg.comm_range:g})"),
+    ]  # fmt: skip
 
 
 def episode_rgb_frames(

@@ -446,11 +446,20 @@ def to_container(cfg: Config | DictConfig) -> dict[str, Any]:
 
 def compose(*overrides: str) -> Config:
     """The typed config ``mcrs-train <overrides>`` would run, composed from the packaged presets
-    (``compose("algo=qmix", "env=map20", "train.total_env_steps=100000")``)."""
+    (``compose("algo=qmix", "env=map20", "train.total_env_steps=100000")``).
+
+    A bad override raises :class:`ConfigError` with the line ``mcrs-train`` prints for it
+    (``env.comm_rage: unknown key; the keys of env (closest first): comm_range, ...``)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+
+    from mcrs.experiment.cli import describe
 
     register_configs()
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        cfg = hydra_compose(config_name="config", overrides=list(overrides))
+    try:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = hydra_compose(config_name="config", overrides=list(overrides))
+    except (HydraException, OmegaConfBaseException) as error:
+        raise ConfigError(describe(error)) from None
     return as_typed(cfg)

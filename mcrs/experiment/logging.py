@@ -1,4 +1,5 @@
-"""Metric logging through TorchRL's loggers, with grouped names (``train/``, ``eval/``, ``time/``).
+"""Metric logging through TorchRL's loggers, with grouped names (``train/``, ``eval/``, ``time/``), and the
+run's text log.
 
 ``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``; ``tensorboard`` writes ``<run>/logs/``;
 ``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``, and keeps the same CSV
@@ -9,11 +10,20 @@ with Pillow, written to ``<run>/videos/`` with every backend and also sent to Te
 summary holding the GIF: TensorBoard's own video format, shown in its Images tab) and wandb
 (``wandb.Video``). TorchRL's ``log_video`` is not used: it needs moviepy (TensorBoard's encoder even
 moviepy 1.x), which nothing else here needs.
+
+The text log is Python's ``logging``: the trainer says what it did (each evaluation, each checkpoint) at
+INFO through :func:`log_event` (logger ``mcrs.run``). The commands' Hydra job-logging config (``conf/hydra/job_logging/mcrs.yaml``) writes every record to
+``<run dir>/train.log`` (``evaluate.log`` for ``mcrs-eval``) through :class:`PlainFormatter` (no colour
+codes), and warnings to the console through :class:`TqdmHandler` (above the progress bar, not through it).
+TorchRL's own logger prints an INFO line in colour when the replay storage is built; :func:`quiet_torchrl`
+keeps it to warnings unless ``RL_LOGGING_LEVEL`` (TorchRL's own setting) asks otherwise.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +34,9 @@ from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLo
 def make_logger(
     backend: str, run_dir: Path, config: dict[str, Any], project: str = "mcrs", mode: str = "offline"
 ) -> Logger:
-    """A TorchRL logger for the run; the resolved config is logged as hyper-parameters."""
+    """A TorchRL logger for the run; the resolved config is logged as hyper-parameters. TorchRL's own text
+    logger is kept to warnings (:func:`quiet_torchrl`): its INFO line would break the progress bar."""
+    quiet_torchrl()
     name = run_dir.name
     if backend == "csv":
         logger = CSVLogger(exp_name="logs", log_dir=str(run_dir))
@@ -82,6 +94,20 @@ def _hparams(config: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+#: What a run did, at INFO (the trainer's evaluations and checkpoints): mcrs-train writes it to train.log.
+RUN_LOG = logging.getLogger("mcrs.run")
+
+
+def log_event(message: str) -> None:
+    """One line of the run's text log (:data:`RUN_LOG`)."""
+    RUN_LOG.info("%s", message)
+
+
+def metrics_line(metrics: dict[str, float]) -> str:
+    """``"episode_reward 11.04, uncertainty 76.26, ..."``: an evaluation's means, for the text log."""
+    return ", ".join(f"{k} {v:.4g}" for k, v in metrics.items() if not k.endswith("_std"))
+
+
 def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
     for name, value in values.items():
         logger.log_scalar(name, float(value), step=step)
@@ -128,3 +154,38 @@ def progress_bar(total: int, initial: int, enabled: bool, description: str):
         disable=not enabled,
         desc=description,
     )
+
+
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")  # colour and cursor codes
+
+
+class PlainFormatter(logging.Formatter):
+    """A formatter whose output has no ANSI colour codes (a log file is read in an editor)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return ANSI.sub("", super().format(record))
+
+
+class TqdmHandler(logging.StreamHandler):
+    """Writes each record with ``tqdm.write``, which lifts the progress bar, prints and redraws it.
+
+    A record logged with ``extra={"console": False}`` (a message the command prints itself) is skipped.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if getattr(record, "console", True) is False:
+            return
+        try:
+            from tqdm import tqdm
+
+            tqdm.write(self.format(record), file=self.stream)
+            self.flush()
+        except Exception:  # logging's contract: report the failure, never raise
+            self.handleError(record)
+
+
+def quiet_torchrl() -> None:
+    """TorchRL's INFO lines (``Initialized LazyTensorStorage ...``) off, unless ``RL_LOGGING_LEVEL`` is set."""
+    if "RL_LOGGING_LEVEL" not in os.environ:
+        logger = logging.getLogger("torchrl")
+        logger.setLevel(max(logger.level, logging.WARNING))

@@ -114,18 +114,6 @@ def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
             path.unlink()
 
 
-def remove_if_unused(run_dir: Path) -> None:
-    """Remove a run directory that a refused run left holding only what Hydra wrote before the run started
-    (never one that a run has locked: it may be starting in it)."""
-    try:
-        entries = list(run_dir.iterdir())
-    except OSError:
-        return
-    if any(p.name == LOCK or (p.name != ".hydra" and not _hydra_log(p)) for p in entries):
-        return
-    shutil.rmtree(run_dir, ignore_errors=True)
-
-
 def _hydra_log(path: Path) -> bool:
     """Hydra's job log (``<job name>.log``), written before the task starts."""
     return path.suffix == ".log" and path.is_file()

@@ -22,7 +22,7 @@ checkpoint. So a run resumed from a checkpoint repeats the straight run exactly 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +37,12 @@ from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.callbacks import Callback, CuriosityCallback, append_scalar, check_names
 from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
+from mcrs.experiment.counters import Counters, batch_seed
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.logging import log_scalars, make_logger, progress_bar
+from mcrs.experiment.logging import log_event, log_scalars, make_logger, metrics_line, progress_bar
 from mcrs.experiment.replay import (
     episodes_from_rollout,
     load_replay_state_dict,
@@ -63,26 +64,6 @@ from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.objectives.gradient import TrainingDiverged
 
 __all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", "batch_seed"]
-
-
-@dataclass
-class Counters:
-    """Progress of a run; saved in every checkpoint."""
-
-    env_steps: int = 0
-    episodes: int = 0
-    updates: int = 0
-    iteration: int = 0  # collector batches
-    update_credit: float = 0.0  # fractional learner updates owed (updates_per_episode < 1)
-    next_target_update: int = 0  # episode count at which the target networks are next copied
-    next_eval: int = 0
-    next_checkpoint: int = 0
-    next_log: int = 0
-
-
-def batch_seed(seed: int, iteration: int) -> int:
-    """Seed of the environments of collector batch ``iteration`` (a run-local, reproducible stream)."""
-    return (seed * 1_000_003 + iteration) % (2**63)
 
 
 def algorithm_callbacks(
@@ -203,6 +184,7 @@ class Experiment:
             torch.set_rng_state(rng["torch"].cpu())
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
+        log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.env_config.name}")
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
@@ -360,6 +342,7 @@ class Experiment:
             self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start
         self._log({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters.env_steps)
+        log_event(f"evaluation at env step {self.counters.env_steps}: {metrics_line(self.last_eval)}")
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
         return dict(self.last_eval)
@@ -437,6 +420,7 @@ class Experiment:
         target = ckpt.checkpoint_path(self.run_dir, name)
         with io_errors(f"write checkpoint {target}", self._intact()):
             path = self._save(name)
+        log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
         return path
 
     def _intact(self) -> str:

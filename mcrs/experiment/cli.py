@@ -1,0 +1,232 @@
+"""What the Hydra command lines share: a refused command is one line of ours and leaves no directory.
+
+Hydra reports a misspelled key as ``Could not override 'env.comm_rage'. To append to your config use
++env.comm_rage=3`` followed by the schema's internals and a ``HYDRA_FULL_ERROR`` hint, and an unknown
+option with its config search path. :func:`describe` turns each composition error into one line that names
+the key, group or override and lists what is allowed, closest match first::
+
+    env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_rounds, name, ...
+    algo=qmx: no such option of algo; allowed (closest first): qmix, emc, emu, ...
+
+:func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
+``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
+Hydra does, refusing an unwritable one in one line, and remembers the directories it made, so that
+:func:`remove_refused_dirs` can take them away again when the command is refused.
+"""
+
+from __future__ import annotations
+
+import difflib
+import functools
+import os
+import shutil
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
+
+from mcrs.experiment.rundir import LOCK, describe_os_error
+
+F = TypeVar("F", bound=Callable[..., Any])
+#: Files Hydra writes into a run or sweep directory before the task runs: they do not make it a run.
+HYDRA_FILES = (".hydra", "multirun.yaml")
+#: OmegaConf's "Value 'abc' of type 'str' could not be converted to Float", said as what is wanted.
+TYPE_NAMES = {
+    "Float": "a number",
+    "Integer": "an integer",
+    "Boolean": "true or false",
+    "Bool": "true or false",
+    "String": "a string",
+}
+CLOSE = 0.6  # difflib ratio from which a key or option counts as a likely meant one
+GRAMMAR = "https://hydra.cc/docs/advanced/override_grammar/basic/"
+
+
+# --------------------------------------------------------------------------------------- messages
+def ranked(name: str, allowed: Sequence[str]) -> list[str]:
+    """``allowed`` with the close matches of ``name`` first (best first), the rest in their order."""
+    score = {a: difflib.SequenceMatcher(None, name, a).ratio() for a in allowed}
+    close = sorted(
+        (a for a in allowed if score[a] >= CLOSE), key=lambda a: -score[a]
+    )  # stable: ties keep order
+    return close + [a for a in allowed if a not in close]
+
+
+def _listing(name: str, allowed: Sequence[str]) -> str:
+    """``" (closest first): comm_range, comm_rounds, name, ..."``, or ``": a, b"`` when none is close."""
+    order = ranked(name, allowed)
+    close = difflib.SequenceMatcher(None, name, order[0]).ratio() >= CLOSE if order else False
+    return f"{' (closest first)' if close else ''}: {', '.join(order)}"
+
+
+def describe(error: BaseException) -> str:
+    """One line for an error Hydra or OmegaConf raised while composing a config."""
+    cause = error.__cause__
+    if isinstance(error, OverrideParseException):
+        reason = _lines(error.message)[0] if _lines(error.message) else "not an override"
+        return f"cannot read the override {error.override!r}: {reason} (the syntax: {GRAMMAR})"
+    if isinstance(error, MissingConfigException) and error.missing_cfg_file and error.options:
+        group, _, option = str(error.missing_cfg_file).rpartition("/")
+        return (
+            f"{group}={option}: no such option of {group}; allowed{_listing(option, sorted(error.options))}"
+        )
+    if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and getattr(cause, "full_key", None):
+        return _unknown_key(str(cause.full_key), cause)
+    if isinstance(cause, ValidationError) and getattr(cause, "full_key", None):
+        return _bad_value(str(error), cause)
+    if isinstance(error, (ConfigKeyError, ConfigAttributeError)) and getattr(error, "full_key", None):
+        return _unknown_key(str(error.full_key), error)
+    lines = _lines(str(error)) + (_lines(str(cause)) if cause is not None else [])
+    return "; ".join(lines) or type(error).__name__
+
+
+def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
+    parent, _, key = full_key.rpartition(".")
+    node = getattr(error, "parent_node", None)
+    keys = [str(k) for k in node if str(k) != "hydra"] if isinstance(node, DictConfig) else []
+    if not keys:
+        return f"{full_key}: unknown key"
+    where = f"the keys of {parent}" if parent else "the top-level keys"
+    return f"{full_key}: unknown key; {where}{_listing(key, keys)}"
+
+
+def _bad_value(message: str, cause: ValidationError) -> str:
+    """``algo.mixer=qtran: allowed values are qmix, vdn, qplex`` / ``train.lr=abc: not a float``."""
+    prefix = "Error merging override "
+    override = message.split("\n")[0][len(prefix) :] if message.startswith(prefix) else str(cause.full_key)
+    reason = _lines(str(cause))[0]
+    if "expected one of [" in reason:
+        allowed = reason.split("expected one of [", 1)[1].rstrip("]").split(", ")
+        value = override.split("=", 1)[-1]
+        return f"{override}: allowed values{_listing(value, allowed)}"
+    for kind, wanted in TYPE_NAMES.items():
+        if reason.endswith(f"could not be converted to {kind}") or f"is not a valid {kind.lower()}" in reason:
+            return f"{override}: must be {wanted}"
+    return f"{override}: {reason}"
+
+
+def _lines(text: str) -> list[str]:
+    """The lines of Hydra's report that say what is wrong (not its hints, search path or internals)."""
+    noise = ("Set the environment variable", "Config search path", "provider=", "See https://",
+             "To append to your config", "full_key:", "reference_type=", "object_type=")  # fmt: skip
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("In '") and "': " in line:
+            line = line.split("': ", 1)[1]  # "In 'config': Could not find ...": the provenance goes
+        if line and not line.startswith(noise):
+            out.append(line)
+    return out
+
+
+def one_line_errors(command: str) -> Callable[[F], F]:
+    """Wrap a ``@hydra.main`` function: a composition error becomes ``<command>: error: <one line>``
+    (exit status 1), and the directories the refused command made are removed.
+
+    Hydra prints its own report unless ``HYDRA_FULL_ERROR=1``, in which case it re-raises: the wrapper
+    sets it for the call so that it receives the exception. A user who sets it gets Hydra's full trace.
+    """
+
+    def wrap(hydra_main: F) -> F:
+        @functools.wraps(hydra_main)
+        def entry(*args: Any, **kwargs: Any) -> Any:
+            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                return hydra_main(*args, **kwargs)
+            before = os.environ.get("HYDRA_FULL_ERROR")
+            os.environ["HYDRA_FULL_ERROR"] = "1"
+            try:
+                return hydra_main(*args, **kwargs)
+            except (HydraException, OmegaConfBaseException) as error:
+                remove_refused_dirs()
+                raise SystemExit(f"{command}: error: {describe(error)}") from None
+            finally:
+                if before is None:
+                    os.environ.pop("HYDRA_FULL_ERROR", None)
+                else:
+                    os.environ["HYDRA_FULL_ERROR"] = before
+
+        return entry  # type: ignore[return-value]
+
+    return wrap
+
+
+# --------------------------------------------------------------------------------- run directories
+#: (directory, the topmost directory this process created for it), in the order they were made.
+_CREATED: list[tuple[Path, Path]] = []
+
+
+class RunDirCheck(Callback):
+    """A Hydra callback (``hydra.callbacks`` in the command's config): before Hydra creates the run (or
+    sweep) directory, create it and check that it can be written, so that a read-only or impossible path is
+    one line, not Hydra's traceback; the directories made are remembered for :func:`remove_refused_dirs`."""
+
+    def __init__(self, command: str = "mcrs") -> None:
+        self.command = command
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._make(Path(str(config.hydra.run.dir)))
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._make(Path(str(config.hydra.sweep.dir)))
+
+    def _make(self, directory: Path) -> None:
+        try:
+            make_run_dir(directory)
+            probe = directory / f".mcrs-write-test.{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as error:
+            remove_refused_dirs()
+            raise SystemExit(
+                f"{self.command}: error: cannot write the run directory {directory}: {describe_os_error(error)}"
+            ) from None
+
+
+def make_run_dir(directory: Path) -> None:
+    """``mkdir -p``, remembering the topmost directory that did not exist."""
+    directory = Path(os.path.abspath(directory))
+    missing = [p for p in (directory, *directory.parents) if not p.exists()]
+    directory.mkdir(parents=True, exist_ok=True)
+    if missing:
+        _CREATED.append((directory, missing[-1]))
+
+
+def remove_refused_dirs(run_dir: Path | None = None) -> None:
+    """Remove what a refused command made: ``run_dir`` and each directory :class:`RunDirCheck` made, when
+    it holds nothing but Hydra's own files, then the empty parents this process created for it.
+
+    A directory with a run's lock or any other file is kept (a run may be starting in it)."""
+    if run_dir is not None:
+        _remove_if_unused(Path(os.path.abspath(run_dir)))
+    for directory, root in reversed(_CREATED):
+        _remove_if_unused(directory)
+        for parent in (directory, *directory.parents):
+            if not parent.is_relative_to(root):
+                break
+            if not parent.exists():
+                continue
+            try:
+                parent.rmdir()  # only an empty one
+            except OSError:
+                break
+    _CREATED.clear()
+
+
+def _remove_if_unused(directory: Path) -> None:
+    try:
+        entries = list(directory.iterdir())
+    except OSError:
+        return
+    if all(_hydra_file(p) for p in entries):
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def _hydra_file(path: Path) -> bool:
+    """What Hydra writes before the task runs: ``.hydra/``, ``multirun.yaml``, the job's ``<name>.log``."""
+    if path.name == LOCK:
+        return False
+    return path.name in HYDRA_FILES or (path.suffix == ".log" and path.is_file())

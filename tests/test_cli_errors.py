@@ -1,0 +1,137 @@
+"""A refused command is one line of ours (the key, group or override, and what is allowed, closest match
+first) and leaves no directory behind; the same line is :func:`mcrs.compose`'s :class:`ConfigError`."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra.errors import HydraException
+from omegaconf.errors import OmegaConfBaseException
+
+import mcrs
+from mcrs.experiment.cli import describe, ranked
+from mcrs.experiment.config import ConfigError
+from tests.train_helpers import compose_config
+
+#: Hydra's own report, none of which may reach the user.
+HYDRA_NOISE = ("HYDRA_FULL_ERROR", "To append", "+env.", "Config search path", "provider=", "In 'config'",
+               "full_key", "object_type", "Traceback")  # fmt: skip
+
+
+def _hydra_error(override: str) -> BaseException:
+    with pytest.raises((HydraException, OmegaConfBaseException)) as info:
+        compose_config(override)
+    return info.value
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("env.comm_rage=3", "env.comm_rage: unknown key; the keys of env (closest first): comm_range,"),
+        ("train.lrr=1", "train.lrr: unknown key; the keys of train (closest first): lr,"),
+        ("algo.mixr=qmix", "algo.mixr: unknown key; the keys of algo (closest first): mixer,"),
+        ("algo.memory.capcity=1", "algo.memory.capcity: unknown key; the keys of algo.memory (closest first): capacity,"),
+        ("logger.backnd=csv", "logger.backnd: unknown key; the keys of logger (closest first): backend,"),
+        ("model.hiden_dim=3", "model.hiden_dim: unknown key; the keys of model (closest first): hidden_dim,"),
+        ("sed=1", "sed: unknown key; the top-level keys (closest first): seed,"),
+        ("algo=qmx", "algo=qmx: no such option of algo; allowed (closest first): qmix,"),
+        ("env=map99", "env=map99: no such option of env; allowed (closest first): map10, map15, map20"),
+        ("logger=mlflow", "logger=mlflow: no such option of logger; allowed: csv, tensorboard, wandb"),
+        ("hydra/launcher=jobib", "hydra/launcher=jobib: no such option of hydra/launcher; allowed (closest first): joblib,"),
+        ("algo.mixer=qtran", "algo.mixer=qtran: allowed values: qmix, vdn, qplex"),
+        ("train.lr=abc", "train.lr=abc: must be a number"),
+        ("seed=x", "seed=x: must be an integer"),
+        ("algo.double_q=maybe", "algo.double_q=maybe: must be true or false"),
+        ("seed=[1", "cannot read the override 'seed=[1': no viable alternative at input '[1'"),
+    ],
+)  # fmt: skip
+def test_a_composition_error_is_one_line_naming_the_key_and_what_is_allowed(
+    override: str, expected: str
+) -> None:
+    line = describe(_hydra_error(override))
+    assert line.startswith(expected), line
+    assert "\n" not in line and not any(noise in line for noise in HYDRA_NOISE), line
+
+
+def test_every_key_of_the_group_is_listed_once() -> None:
+    line = describe(_hydra_error("env.comm_rage=3"))
+    from mcrs.env.config import ScenarioConfig
+
+    listed = line.split(": ", 2)[-1].split(", ")
+    assert sorted(listed) == sorted(ScenarioConfig.__dataclass_fields__)
+
+
+def test_ranked_puts_close_matches_first_and_keeps_the_rest_in_order() -> None:
+    assert ranked("comm_rage", ["name", "width", "comm_rounds", "comm_range"]) == [
+        "comm_range", "comm_rounds", "name", "width"]  # fmt: skip
+    assert ranked("zzz", ["b", "a"]) == ["b", "a"]
+
+
+def test_compose_raises_config_error_with_the_same_line() -> None:
+    with pytest.raises(
+        ConfigError, match=r"^env\.comm_rage: unknown key; the keys of env \(closest first\): comm_range"
+    ):
+        mcrs.compose("env.comm_rage=3")
+    with pytest.raises(ConfigError, match=r"^algo=foo: no such option of algo; allowed"):
+        mcrs.compose("algo=foo")
+
+
+# ------------------------------------------------------------------ the commands (slow: processes)
+def _start(module: str, cwd: Path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        env={**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(Path.cwd())},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+REFUSED = {
+    ("mcrs.train", "env.comm_rage=3"): "mcrs-train: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",
+    ("mcrs.train", "algo=foo"): "mcrs-train: error: algo=foo: no such option of algo; allowed: cnn_semu, emc,",
+    ("mcrs.train", "env=map99"): "mcrs-train: error: env=map99: no such option of env; allowed (closest first): map10, map15, map20",
+    ("mcrs.train", "train.lr=-1"): "mcrs-train: error: invalid config:",
+    ("mcrs.train", "device=cuda:7"): "mcrs-train: error: invalid config:",
+    ("mcrs.train", "+env.widht=3"): "mcrs-train: error: invalid config: unknown field(s) env.widht",
+    ("mcrs.train", "-m", "algo=qmix,foo"): "mcrs-train: error: algo=foo: no such option of algo",
+    ("mcrs.evaluate", "env.comm_rage=3"): "mcrs-eval: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",
+    ("mcrs.evaluate", "episodes=0"): "mcrs-eval: error: invalid config: episodes=0: must be >= 1",
+    ("mcrs.render_episode", "env.comm_rage=3"): "mcrs-render: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",
+    ("mcrs.render_episode", "uav=9"): "mcrs-render: error: uav=9: must be in 0..3",
+}  # fmt: skip
+
+
+def test_refused_commands_print_one_line_of_ours_and_leave_no_directory(tmp_path: Path) -> None:
+    """Each command starts in an empty directory of its own (at once: they only wait for their imports);
+    afterwards that directory is still empty: no ``outputs/<map>/<algo>/``, no ``outputs/multirun/``."""
+    procs = {}
+    for n, (module, *args) in enumerate(REFUSED):
+        (tmp_path / str(n)).mkdir()
+        procs[(module, *args)] = (tmp_path / str(n), _start(module, tmp_path / str(n), *args))
+    for key, (cwd, proc) in procs.items():
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 1, (key, out, err)
+        assert err.startswith(REFUSED[key]), (key, err)
+        if "invalid config:\n" not in err:  # validation lists every problem, one line each
+            assert err.count("\n") == 1, (key, err)
+        assert not any(noise in err for noise in HYDRA_NOISE), (key, err)
+        assert list(cwd.iterdir()) == [], (key, sorted(map(str, cwd.rglob("*"))))
+
+
+def test_hydra_full_error_still_gives_hydras_trace(tmp_path: Path) -> None:
+    """A user who asks Hydra for its full trace (``HYDRA_FULL_ERROR=1``) still gets it."""
+    done = subprocess.run(
+        [sys.executable, "-m", "mcrs.train", "env.comm_rage=3"],
+        cwd=tmp_path,
+        env={**os.environ, "HYDRA_FULL_ERROR": "1", "PYTHONPATH": str(Path.cwd())},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 1 and "Traceback" in done.stderr and "ConfigCompositionException" in done.stderr
