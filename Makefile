@@ -1,6 +1,6 @@
 # Two commands do all the set-up on a fresh machine (see README.md):
-#   make run    create .venv, install mcrs, train CNN-SEMU on map10 for a few minutes (budget=quickstart), then
-#               evaluate it against the heuristics: table, learning curve and GIF in <run dir>/report/.
+#   make run    create .venv, install mcrs (without the dev extra), train CNN-SEMU on map10 for a few
+#               minutes (budget=quickstart), then evaluate it against the heuristics: table, learning curve and GIF in <run dir>/report/.
 #               make run ARGS="seed=1"; the paper's 2M-step run: make run ARGS="budget=paper"
 #   make test   create .venv, install mcrs with the dev extra and run the fast tests (make test-slow: the
 #               rest; CI runs both, see .ci/run)
@@ -10,16 +10,23 @@ BIN := $(VENV)/bin
 
 .PHONY: install run test test-slow test-all lint bench clean
 
+# The dev extra (pytest, ruff, the launchers the tests run: Ray's is large) is for `make test`;
+# `make run` needs only the package, so a first run does not wait for it.
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	touch $@ $(BIN)/.installed-run
+
+$(BIN)/.installed-run: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet -e .
 	touch $@
 
 install: $(BIN)/.installed
 
 ARGS ?=
 
-run: install
+run: $(BIN)/.installed-run
 	$(BIN)/mcrs-train budget=quickstart $(ARGS)
 
 lint: install
