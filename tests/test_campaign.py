@@ -124,6 +124,7 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
     assert plan[0] == f"record {unrecorded.run_dir(outputs)}"
     assert plan[1].startswith(f"resume {partial.id} (at 100 env steps, estimated unknown): ")
     assert f"resume={partial.run_dir(outputs)} train.total_env_steps=200 threads=1" in plan[1]
+    assert "train.checkpoint_minutes=10" in plan[1]  # also for runs first launched without the time interval
     assert plan[2].startswith(f"start {missing.id} ")
     assert (
         "experiment=comm_range budget=smoke env=map10 algo=qmix env.comm_range=3 seed=0 threads=1" in plan[2]

@@ -87,6 +87,8 @@ class Point:
             f"resume={run_dir}",
             f"train.total_env_steps={total_env_steps}",
             "threads=1",
+            # a run first launched before checkpoint_minutes' default of 10 keeps its saved 0 otherwise
+            "train.checkpoint_minutes=10",
             "logger.progress_bar=false",
             f"hydra.run.dir={run_dir}",
             "hydra.output_subdir=null",
