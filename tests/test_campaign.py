@@ -87,7 +87,9 @@ def test_bad_filters_and_files_are_one_line_errors(tmp_path: Path, capsys) -> No
         campaign_main(["status", "--matrix", str(bad)])
     with pytest.raises(SystemExit, match="--jobs=0: must be >= 1"):
         campaign_main(["run", "--hours", "1", "--jobs", "0"])
-    with pytest.raises(MatrixError, match="budget='huge': allowed values are campaign, cpu, paper, smoke"):
+    with pytest.raises(
+        MatrixError, match="budget='huge': allowed values are campaign, cpu, paper, quickstart, smoke"
+    ):
         bad.write_text(TWO_POINTS.replace("budget: smoke", "budget: huge"))
         load_matrix(bad)
 
