@@ -129,10 +129,8 @@ def test_tiny_run_prints_every_figure(capsys: pytest.CaptureFixture[str], tmp_pa
     assert report["passed"] is True  # only the agreement of the references is judged at these sizes
 
 
-def test_goal_lines_at_the_goal_sizes(
-    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    # Pretend the tiny sizes are the goal sizes, to check the verdict lines without a 1M buffer.
+def _tiny_goal_sizes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Pretend tiny sizes are the goal sizes, so verdicts are judged without a 1M buffer."""
     for name, value in (
         ("GOAL_ENTRIES", 3000),
         ("GOAL_MAP", "map10"),
@@ -140,6 +138,12 @@ def test_goal_lines_at_the_goal_sizes(
         ("GOAL_LOOKUPS", 200),
     ):
         monkeypatch.setattr(bench, name, value)
+
+
+def test_goal_lines_at_the_goal_sizes(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    _tiny_goal_sizes(monkeypatch)
     out, report = run(capsys, ["--repeats", "1", "--threads", "1"], tmp_path / "m.json")
     goals = out[out.index("\ngoals (wall clock;") :]
     figures = report["figures"]
@@ -168,13 +172,7 @@ def test_a_reference_that_finds_other_entries_fails(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """A comparison is void when the reference finds other entries than ours: FAIL, whatever the ratio."""
-    for name, value in (
-        ("GOAL_ENTRIES", 3000),
-        ("GOAL_MAP", "map10"),
-        ("GOAL_EPISODES", 2),
-        ("GOAL_LOOKUPS", 200),
-    ):
-        monkeypatch.setattr(bench, name, value)
+    _tiny_goal_sizes(monkeypatch)
     real = bench.reference_lookups
 
     def wrong(memory: Any, keys: torch.Tensor) -> tuple[str, float, float, torch.Tensor]:

@@ -52,6 +52,11 @@ def test_shield_masks_exactly_the_moves_into_d1_of_a_zone():
     assert allowed(unshielded, 0) == set(range(8)) and allowed(unshielded, 1) == set(range(8))
 
 
+def random_allowed(mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """One uniformly random allowed action per UAV."""
+    return torch.rand(mask.shape, generator=generator).masked_fill(~mask, -1).argmax(-1)
+
+
 @pytest.mark.parametrize("d1", [0.0, 1.0, 1.5, 2.0])
 def test_shield_matches_brute_force_on_random_scenes(d1):
     cfg = scenario("map10", num_envs=16, no_fly_safety=d1, no_fly_shield=True)
@@ -65,10 +70,7 @@ def test_shield_matches_brute_force_on_random_scenes(d1):
             for uav in range(cfg.n_uavs):
                 on_grid, safe = expected_mask(core.uav_pos[env, uav].tolist(), zones, 10, 10, d1)
                 assert allowed(result, uav, env) == (safe or on_grid)
-        scores = torch.rand(result.action_mask.shape, generator=generator).masked_fill(
-            ~result.action_mask, -1
-        )
-        result = core.step(scores.argmax(-1))
+        result = core.step(random_allowed(result.action_mask, generator))
 
 
 def test_uav_with_no_safe_move_keeps_its_unshielded_mask():
@@ -93,8 +95,7 @@ def test_shield_is_off_by_default_and_changes_nothing_but_the_mask():
         assert (a.action_mask <= b.action_mask).all()  # the shield only removes moves
         for field in ("observation", "state", "reward_terms", "position"):
             assert torch.equal(getattr(a, field), getattr(b, field)), field
-        scores = torch.rand(a.action_mask.shape, generator=generator).masked_fill(~a.action_mask, -1)
-        action = scores.argmax(-1)
+        action = random_allowed(a.action_mask, generator)
         a, b = shielded.step(action), plain.step(action)
 
 
@@ -114,10 +115,7 @@ def test_random_allowed_episodes_violate_only_where_the_fallback_applies(d1):
             for uav in range(cfg.n_uavs):
                 _, safe = expected_mask(core.uav_pos[env, uav].tolist(), zones, 10, 10, d1)
                 fallback[env, uav] = not safe
-        scores = torch.rand(result.action_mask.shape, generator=generator).masked_fill(
-            ~result.action_mask, -1
-        )
-        result = core.step(scores.argmax(-1))
+        result = core.step(random_allowed(result.action_mask, generator))
         # A violation: a (UAV, zone) pair within d1 after the move (reward term r3).
         offset = core.uav_pos.unsqueeze(2) - core.no_fly_pos.unsqueeze(1)
         pairs = (offset.pow(2).sum(-1) <= d1**2).sum(-1)  # [E, N]
