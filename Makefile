@@ -3,7 +3,7 @@
 #               minutes (budget=quickstart), then evaluate it against the heuristics: table, learning curve and GIF in <run dir>/report/.
 #               make run ARGS="seed=1"; the paper's 2M-step run: make run ARGS="budget=paper"
 #   make test   create .venv, install mcrs with the dev extra and run the fast tests (make test-slow: the
-#               rest; CI runs both, see .ci/run)
+#               rest; CI runs both, see .ci/run). Tests run in TEST_WORKERS=2 processes (make test TEST_WORKERS=0: one)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -25,6 +25,8 @@ $(BIN)/.installed-run: pyproject.toml
 install: $(BIN)/.installed
 
 ARGS ?=
+# pytest-xdist workers for the test targets: the tests run one torch thread each, so one per core.
+TEST_WORKERS ?= 2
 
 run: $(BIN)/.installed-run
 	$(BIN)/mcrs-train budget=quickstart $(ARGS)
@@ -34,13 +36,13 @@ lint: install
 	$(BIN)/ruff format --check .
 
 test: install
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m "not slow"
 
 test-slow: install
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m slow
 
 test-all: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 bench: install
 	$(BIN)/mcrs-bench-env

@@ -265,7 +265,7 @@ def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int
             values = per_episode[name][metric.split("/")[-1]].to(torch.float64).numpy()
             half = float(confidence_half_width(values[:, None])[0])
             references.setdefault(panel, []).append(
-                Reference(f"{name} (heuristic)", float(np.mean(values)), half, len(values))
+                Reference(f"{name} (heuristic)", float(np.mean(values)), half, len(values), "episodes")
             )
     curve = plot_curves(
         panels, out / "learning_curves.png", f"{env_config.name}: greedy evaluation", [label], references

@@ -125,9 +125,9 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     if cfg.report:
         try:
             write_report(experiment, cfg, run_dir)
-        except KeyboardInterrupt:  # the run itself is complete and saved
+        except KeyboardInterrupt as stop:  # Ctrl-C or SIGTERM; the run itself is complete and saved
             print(f"mcrs-train: report interrupted; the trained run is complete in {run_dir}", flush=True)
-            raise SystemExit(130) from None
+            raise SystemExit(getattr(stop, "exit_code", 130)) from None
     return result
 
 
@@ -162,13 +162,14 @@ def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     from mcrs.experiment.collection import CollectorWorkerFailed
-    from mcrs.experiment.interrupt import RunInterrupted
+    from mcrs.experiment.interrupt import RunInterrupted, TerminateAsInterrupt
     from mcrs.objectives.gradient import TrainingDiverged
 
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     try:
-        result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
+        with TerminateAsInterrupt():
+            result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
     except RunInterrupted as stop:  # Ctrl-C or SIGTERM: the checkpoint is written; one line, no traceback
         print(
             f"mcrs-train: {stop.signal_name}: stopped at env step {stop.env_steps}, checkpoint {stop.checkpoint}\n"
@@ -176,10 +177,11 @@ def main(cfg: DictConfig) -> float:
             flush=True,
         )
         raise SystemExit(stop.exit_code) from None
-    except KeyboardInterrupt:  # before training started: nothing to save
+    except KeyboardInterrupt as stop:  # Ctrl-C or SIGTERM before training started: nothing to save
         remove_refused_dirs(run_dir)
-        print("mcrs-train: interrupted before training started: nothing to save", flush=True)
-        raise SystemExit(130) from None
+        name = getattr(stop, "signal_name", "SIGINT")
+        print(f"mcrs-train: {name}: interrupted before training started: nothing to save", flush=True)
+        raise SystemExit(getattr(stop, "exit_code", 130)) from None
     except (ConfigError, ckpt.CheckpointError, TrainingDiverged, CollectorWorkerFailed, RunDirError) as error:
         logging.getLogger(__name__).error("%s", error, extra={"console": False})  # train.log; printed below
         if cfg.resume is not None or isinstance(error, ConfigError):

@@ -3,6 +3,7 @@ first) and leaves no directory behind; the same line is :func:`mcrs.compose`'s :
 
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 import sys
@@ -107,21 +108,53 @@ REFUSED = {
 }  # fmt: skip
 
 
+#: One refusal per command runs as a real process (the exit status and the stderr a user sees); the rest
+#: call the same console entry in this process, which is where the message and the clean-up are decided.
+AS_PROCESSES = [
+    ("mcrs.train", "env.comm_rage=3"),
+    ("mcrs.evaluate", "episodes=0"),
+    ("mcrs.render_episode", "uav=9"),
+]
+COMMANDS = {"mcrs.train": "mcrs-train", "mcrs.evaluate": "mcrs-eval", "mcrs.render_episode": "mcrs-render"}
+
+
+def _check_refusal(key: tuple[str, ...], err: str, cwd: Path) -> None:
+    assert err.startswith(REFUSED[key]), (key, err)
+    if "invalid config:\n" not in err:  # validation lists every problem, one line each
+        assert err.count("\n") == 1, (key, err)
+    assert not any(noise in err for noise in HYDRA_NOISE), (key, err)
+    assert list(cwd.iterdir()) == [], (key, sorted(map(str, cwd.rglob("*"))))
+
+
 def test_refused_commands_print_one_line_of_ours_and_leave_no_directory(tmp_path: Path) -> None:
     """Each command starts in an empty directory of its own (at once: they only wait for their imports);
-    afterwards that directory is still empty: no ``outputs/<map>/<algo>/``, no ``outputs/multirun/``."""
+    afterwards that directory is still empty: no ``outputs/<map>/<algo>/``."""
     procs = {}
-    for n, (module, *args) in enumerate(REFUSED):
+    for n, (module, *args) in enumerate(AS_PROCESSES):
         (tmp_path / str(n)).mkdir()
         procs[(module, *args)] = (tmp_path / str(n), _start(module, tmp_path / str(n), *args))
     for key, (cwd, proc) in procs.items():
         out, err = proc.communicate(timeout=300)
         assert proc.returncode == 1, (key, out, err)
-        assert err.startswith(REFUSED[key]), (key, err)
-        if "invalid config:\n" not in err:  # validation lists every problem, one line each
-            assert err.count("\n") == 1, (key, err)
-        assert not any(noise in err for noise in HYDRA_NOISE), (key, err)
-        assert list(cwd.iterdir()) == [], (key, sorted(map(str, cwd.rglob("*"))))
+        _check_refusal(key, err, cwd)
+
+
+@pytest.mark.parametrize("key", [key for key in REFUSED if key not in AS_PROCESSES], ids=" ".join)
+def test_refused_command_in_process_is_one_line_and_leaves_no_directory(
+    key: tuple[str, ...], tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The console entry raises ``SystemExit(<one line>)``, which the interpreter prints to stderr with
+    exit status 1; nothing else is printed, and no ``outputs/`` (nor ``outputs/multirun/``) is left."""
+    module, *args = key
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")
+    monkeypatch.setattr(sys, "argv", [COMMANDS[module], *args])
+    with pytest.raises(SystemExit) as refused:
+        importlib.import_module(module).main()
+    err = capsys.readouterr().err
+    assert isinstance(refused.value.code, str), refused.value.code  # a string: exit status 1
+    assert err == "", err
+    _check_refusal(key, refused.value.code + "\n", tmp_path)
 
 
 def test_hydra_full_error_still_gives_hydras_trace(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.interrupt import RunInterrupted, StopSignals
+from mcrs.experiment.interrupt import RunInterrupted, StopSignals, TerminateAsInterrupt, Terminated
 from tests.train_helpers import TINY
 
 BATCH_STEPS = 40  # TINY: 4 envs x 10-step episodes per collector batch
@@ -137,3 +137,38 @@ def test_run_interrupted_is_a_keyboard_interrupt_with_the_shell_exit_status(tmp_
     assert error.exit_code == 130 and error.signal_name == "SIGINT"
     assert f"resume with: mcrs-train resume={tmp_path}" in str(error)
     assert RunInterrupted(signal.SIGTERM, tmp_path, 0, tmp_path).exit_code == 143
+
+
+def test_sigterm_while_the_run_is_built_is_one_line_exit_143_and_no_directory(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """Before the training loop takes the signals over, SIGTERM used to kill ``mcrs-train`` without a word
+    and leave Hydra's directory behind; now it stops as Ctrl-C does there, and the handler is restored."""
+    import mcrs.train as train
+
+    def terminated_while_building(*args) -> dict:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises in here
+        raise AssertionError("SIGTERM did not stop the run")
+
+    before = signal.getsignal(signal.SIGTERM)
+    run_dir = tmp_path / "run"
+    monkeypatch.setattr(train, "run", terminated_while_building)
+    monkeypatch.setattr(sys, "argv", ["mcrs-train", "algo=qmix", *TINY, f"hydra.run.dir={run_dir}"])
+    with pytest.raises(SystemExit) as stop:
+        train.main()
+    assert stop.value.code == 143
+    assert (
+        "mcrs-train: SIGTERM: interrupted before training started: nothing to save" in capsys.readouterr().out
+    )
+    assert not run_dir.exists()
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_terminate_as_interrupt_raises_a_keyboard_interrupt_with_status_143() -> None:
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated) as stop, TerminateAsInterrupt():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)
+    assert isinstance(stop.value, KeyboardInterrupt) and stop.value.exit_code == 143
+    assert signal.getsignal(signal.SIGTERM) == before

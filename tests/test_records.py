@@ -231,7 +231,8 @@ def test_learning_curves_carry_the_heuristics_as_lines(tmp_path: Path) -> None:
     make_evaluation(tmp_path, "random_rc0", "random", 0.0, 0, found=1)
     references = heuristic_references(find_runs([tmp_path]).evaluations, 5.0)
     (greedy_targets,) = references["targets found"]
-    assert (greedy_targets.label, greedy_targets.seeds, greedy_targets.mean) == ("greedy (heuristic)", 3, 4.0)
+    got = (greedy_targets.label, greedy_targets.count, greedy_targets.over, greedy_targets.mean)
+    assert got == ("greedy (heuristic)", 3, "evaluation seeds", 4.0)
     assert greedy_targets.half_width == pytest.approx(4.303 / 3**0.5, rel=1e-3)  # t(0.975, 2) * 1 / sqrt(3)
     assert references["episode reward"][0].mean == pytest.approx(40.0)
     out = tmp_path / "report"

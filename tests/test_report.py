@@ -166,6 +166,24 @@ def test_lambda_sweep_labels(tmp_path: Path) -> None:
     assert sorted(labels.values()) == ["cnn_semu lambda=0.01", "cnn_semu lambda=0.5"]
 
 
+def test_runs_of_older_code_are_seeds_of_the_same_method(tmp_path: Path) -> None:
+    """A run recorded before a field existed (``env.comm_delay``, off by default) or after one was
+    dropped (``env.device``) is a seed of the method it ran, not a method of its own; a run that sets
+    the newer field to another value still is one."""
+    old = make_run(tmp_path, "old", seed=0)
+    config = OmegaConf.load(old / "config.yaml")
+    config.env["device"] = None  # a field today's config no longer has
+    OmegaConf.save(config, old / "config.yaml")
+    make_run(tmp_path, "new", seed=1, env__comm_delay=0, train__checkpoint_minutes=5.0)
+    make_run(tmp_path, "delayed", seed=2, env__comm_delay=2)
+    labels = run_labels(find_runs([tmp_path]).training)
+    assert {path.name: label for path, label in labels.items()} == {
+        "old": "qmix comm_delay=0",
+        "new": "qmix comm_delay=0",
+        "delayed": "qmix comm_delay=2",
+    }
+
+
 def test_mixed_maps_are_skipped_with_the_reason(tmp_path: Path, capsys) -> None:
     make_run(tmp_path, "a", env="map10")
     make_run(tmp_path, "b", env="map10", seed=1)

@@ -52,7 +52,8 @@ class Reference:
     label: str
     mean: float
     half_width: float
-    seeds: int
+    count: int
+    over: str  # what ``count`` counts: "episodes" or "evaluation seeds"
 
 
 def confidence_half_width(values: np.ndarray, level: float = 0.95) -> np.ndarray:
@@ -122,7 +123,7 @@ def plot_curves(
             if label not in curves:
                 continue
             c = curves[label]
-            ax.plot(c.steps, c.mean, color=colours[label], label=f"{label} ({c.seeds})", lw=1.4)
+            ax.plot(c.steps, c.mean, color=colours[label], label=f"{label} ({c.seeds} seeds)", lw=1.4)
             ax.fill_between(
                 c.steps, c.mean - c.half_width, c.mean + c.half_width, color=colours[label], alpha=0.2
             )
@@ -130,7 +131,7 @@ def plot_curves(
         for k, ref in enumerate(lines):
             grey = str(0.15 + 0.25 * k)  # black, grey, light grey: apart from the methods' colours
             style = ("--", ":", "-.")[k % 3]
-            ax.axhline(ref.mean, color=grey, ls=style, lw=1.2, label=f"{ref.label} ({ref.seeds})")
+            ax.axhline(ref.mean, color=grey, ls=style, lw=1.2, label=f"{ref.label} ({ref.count} {ref.over})")
             ax.axhspan(ref.mean - ref.half_width, ref.mean + ref.half_width, color=grey, alpha=0.12, lw=0)
         _zoom(ax, [curves[label] for label in labels if label in curves], [r.mean for r in lines])
         ax.set_title(name)
@@ -140,7 +141,7 @@ def plot_curves(
         ax.axis("off")
     handles, names = axes.flat[0].get_legend_handles_labels()
     fig.legend(handles, names, loc="lower center", ncol=min(len(names), 5), fontsize=8, frameon=False)
-    fig.suptitle(title + "  (mean over seeds, 95 % confidence band; seeds in brackets)", fontsize=10)
+    fig.suptitle(title + "  (mean and 95 % confidence band; in brackets what the mean is over)", fontsize=10)
     fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(names) - 1) // 5), 1, 0.96))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)

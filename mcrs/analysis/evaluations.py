@@ -94,6 +94,8 @@ def heuristic_references(
             if len(values):
                 half = float(confidence_half_width(values[:, None])[0])
                 out.setdefault(panel, []).append(
-                    Reference(f"{policy} (heuristic)", float(values.mean()), half, len(values))
+                    Reference(
+                        f"{policy} (heuristic)", float(values.mean()), half, len(values), "evaluation seeds"
+                    )
                 )
     return out

@@ -19,6 +19,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
+- ``evaluations.md``: when the paths hold evaluations only, the heuristics and trained policies evaluated
+  by ``mcrs-eval``;
 - ``report.md``: all of it, plus every run that was skipped and why;
 - with ``--marl-eval out.json``: every training run's evaluations (all maps) in marl-eval's JSON
   (mcrs.analysis.marl_eval).
@@ -190,11 +192,7 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
 
 def _references_caption(references: dict[str, list[Reference]]) -> str:
     """Which heuristics the figure draws as horizontal lines, or why none (no evaluation of this map)."""
-    drawn = {
-        f"{r.label.split(' (')[0]} ({r.seeds} evaluation seeds)": None
-        for rs in references.values()
-        for r in rs
-    }
+    drawn = {f"{r.label.split(' (')[0]} ({r.count} {r.over})": None for rs in references.values() for r in rs}
     if not drawn:
         return (
             "No heuristic lines: no heuristic evaluation of this map and R_c was given "
@@ -399,6 +397,7 @@ def main(argv: list[str] | None = None) -> int:
             report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
     if not runs.training and not has_ranges:  # evaluations only: their table
         rows = heuristic_rows(runs.evaluations, None) + trained_rows(runs.evaluations)
+        (report.out / "evaluations.md").write_text(_final_table(rows) + "\n")
         report.add(
             "Evaluations",
             "Heuristics: mean ± std over evaluation seeds. Trained policies: each trained run counts by its "

@@ -50,6 +50,9 @@ NOT_A_SETTING = (
     "train.collector",
     "train.collector_workers",
     "train.save_replay",
+    "train.checkpoint_minutes",
+    "train.keep_checkpoints",
+    "overwrite",
 )
 #: Short names of the swept fields in labels (the paper's symbols).
 SHORT_NAMES = {
@@ -335,6 +338,30 @@ def budget_fields() -> frozenset[str]:
     return frozenset(out)
 
 
+@functools.cache
+def default_fields(algo: str, env: str) -> dict[str, Any] | None:
+    """The flattened config ``mcrs-train algo=<algo> env=<env>`` runs with today; None for an algorithm
+    or map the packaged presets do not have."""
+    from mcrs.experiment.config import ConfigError, as_dictconfig, compose
+
+    try:
+        config = compose(f"algo={algo}", f"env={env}")
+    except ConfigError:
+        return None
+    return flatten(OmegaConf.to_container(as_dictconfig(config), resolve=True))  # as config.yaml holds it
+
+
+def comparable_config(run: TrainingRun) -> dict[str, Any]:
+    """The run's settings as today's config names them: a field the run's code did not have yet takes
+    today's default (a feature added later, off by default), and a field today's config no longer has
+    is left out. So runs recorded by different versions of the code compare on what they share."""
+    config = flatten(run.config)
+    defaults = default_fields(run.algo_name, run.env_name)
+    if defaults is None:
+        return config
+    return {name: config.get(name, default) for name, default in defaults.items()}
+
+
 def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
     """Per algorithm name, the settings that differ between its runs (the swept ones, e.g. delta).
 
@@ -343,7 +370,7 @@ def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
     """
     by_algo: dict[str, list[dict[str, Any]]] = {}
     for run in runs:
-        by_algo.setdefault(run.algo_name, []).append(flatten(run.config))
+        by_algo.setdefault(run.algo_name, []).append(comparable_config(run))
     budget = budget_fields()
     out = {}
     for algo, configs in by_algo.items():
@@ -379,7 +406,8 @@ def run_labels(runs: list[TrainingRun]) -> dict[Path, str]:
     fields = label_fields(runs)
     labels = {}
     for run in runs:
-        parts = [f"{_short(n)}={_format(run.setting(n))}" for n in fields[run.algo_name]]
+        config = comparable_config(run)
+        parts = [f"{_short(n)}={_format(config.get(n))}" for n in fields[run.algo_name]]
         labels[run.path] = " ".join([run.algo_name, *parts])
     return labels
 

@@ -40,6 +40,39 @@ class RunInterrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM outside the training loop (while the run is built, or while its report is written), raised
+    where Ctrl-C's ``KeyboardInterrupt`` would be, so both stop the same way; ``exit_code`` is 143."""
+
+    signal_name = "SIGTERM"
+    exit_code = 128 + signal.SIGTERM
+
+
+def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    raise Terminated()
+
+
+class TerminateAsInterrupt:
+    """While active (a context manager), SIGTERM raises :class:`Terminated` instead of killing the process
+    without a word; :class:`StopSignals` takes over inside the training loop. Outside the main thread it
+    does nothing."""
+
+    def __init__(self) -> None:
+        self._previous: object | None = None
+
+    def __enter__(self) -> TerminateAsInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)  # type: ignore[arg-type]
+            self._previous = None
+
+
 class StopSignals:
     """While active (a context manager), SIGINT and SIGTERM set :attr:`signum` instead of stopping the
     process; the previous handlers come back on exit. Outside the main thread (where Python cannot

@@ -1,0 +1,185 @@
+"""``mcrs-results``: the tables of docs/RESULTS.md, regenerated from the committed records.
+
+    mcrs-results check            # exit 1 and a diff when a table differs from what the records give
+    mcrs-results update           # rewrite those tables in place
+    mcrs-results check docs/OTHER.md
+
+A generated table sits between two HTML comments (invisible on GitHub), the first naming the table file
+and the ``mcrs-report`` command that writes it::
+
+    <!-- table final.md of: mcrs-report results/records/baselines/campaign --env map20 -->
+    | method | seeds | ... |
+    <!-- end table -->
+
+Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
+the document's ``docs/``), so the paths are the committed records'. Hand-written tables are left alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import difflib
+import io
+import os
+import re
+import shlex
+import sys
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcrs.analysis import report
+
+BLOCK = re.compile(
+    r"<!-- table (?P<file>[\w.-]+\.md) of: mcrs-report (?P<args>[^\n]*?) -->\n(?P<body>.*?)<!-- end table -->",
+    re.S,
+)
+
+
+class DocTableError(Exception):
+    """A generated table that cannot be made: its line and why."""
+
+
+@dataclass(frozen=True)
+class Table:
+    """One generated table of a document: where it is, what makes it, what the document holds now."""
+
+    line: int
+    file: str
+    args: tuple[str, ...]
+    body: str
+    start: int  # offsets of ``body`` in the document
+    end: int
+
+
+def find_tables(text: str) -> list[Table]:
+    """The generated tables of ``text``, in order. Refuses a ``--out`` (the tool chooses the folder)."""
+    tables = []
+    for match in BLOCK.finditer(text):
+        line = text.count("\n", 0, match.start()) + 1
+        try:
+            args = tuple(shlex.split(match["args"]))
+        except ValueError as error:
+            raise DocTableError(f"line {line}: the mcrs-report command cannot be read: {error}") from None
+        if "--out" in args:
+            raise DocTableError(
+                f"line {line}: leave --out out of the command; the table is made in a temporary folder"
+            )
+        tables.append(Table(line, match["file"], args, match["body"], match.start("body"), match.end("body")))
+    return tables
+
+
+def _root(doc: Path) -> Path:
+    """The folder the commands run in: the repository root for a document under ``docs/``."""
+    folder = doc.resolve().parent
+    return folder.parent if folder.name == "docs" else folder
+
+
+@contextlib.contextmanager
+def _inside(folder: Path) -> Iterator[None]:
+    """Run in ``folder`` and come back (``contextlib.chdir`` is Python 3.11+)."""
+    before = Path.cwd()
+    os.chdir(folder)
+    try:
+        yield
+    finally:
+        os.chdir(before)
+
+
+def generate(tables: list[Table], root: Path) -> dict[Table, str]:
+    """Each table as ``mcrs-report`` writes it now (each distinct command runs once, quietly)."""
+    made: dict[tuple[str, ...], Path] = {}
+    out: dict[Table, str] = {}
+    with tempfile.TemporaryDirectory(prefix="mcrs-results-") as tmp, _inside(root):
+        for table in tables:
+            if table.args not in made:
+                folder = Path(tmp) / str(len(made))
+                try:
+                    with contextlib.redirect_stdout(io.StringIO()):
+                        report.main([*table.args, "--out", str(folder)])
+                except SystemExit as error:
+                    raise DocTableError(
+                        f"line {table.line}: mcrs-report {shlex.join(table.args)}: {error}"
+                    ) from None
+                made[table.args] = folder
+            path = made[table.args] / table.file
+            if not path.is_file():
+                written = sorted(p.name for p in made[table.args].glob("*.md") if p.name != "report.md")
+                raise DocTableError(
+                    f"line {table.line}: mcrs-report {shlex.join(table.args)} writes no {table.file}; "
+                    f"it writes: {', '.join(written) or 'no table'}"
+                )
+            out[table] = path.read_text()
+    return out
+
+
+def check(doc: Path) -> list[str]:
+    """A unified diff per table of ``doc`` that differs from what the records give (empty: all agree)."""
+    text = doc.read_text()
+    diffs = []
+    for table, fresh in generate(find_tables(text), _root(doc)).items():
+        if fresh != table.body:
+            lines = difflib.unified_diff(
+                table.body.splitlines(keepends=True),
+                fresh.splitlines(keepends=True),
+                f"{doc}:{table.line} ({table.file}, as committed)",
+                f"mcrs-report {shlex.join(table.args)}",
+            )
+            diffs.append("".join(lines))
+    return diffs
+
+
+def update(doc: Path) -> int:
+    """Rewrite every generated table of ``doc`` from the records (atomically); how many changed."""
+    text = doc.read_text()
+    tables = find_tables(text)
+    fresh = generate(tables, _root(doc))
+    changed = 0
+    for table in reversed(tables):  # from the end, so the earlier offsets stay valid
+        if fresh[table] != table.body:
+            text = text[: table.start] + fresh[table] + text[table.end :]
+            changed += 1
+    if changed:
+        partial = doc.with_name(f".{doc.name}.partial")
+        partial.write_text(text)
+        os.replace(partial, doc)
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="mcrs-results",
+        description="Check or rewrite the generated tables of a results document from the committed records.",
+    )
+    parser.add_argument("action", choices=["check", "update"])
+    parser.add_argument(
+        "doc", nargs="?", type=Path, default=Path("docs/RESULTS.md"), help="default: docs/RESULTS.md"
+    )
+    args = parser.parse_args(argv)
+    if not args.doc.is_file():
+        raise SystemExit(f"mcrs-results: error: doc={args.doc}: no such file")
+    try:
+        if args.action == "update":
+            changed = update(args.doc)
+            print(
+                f"{args.doc}: {changed} of {len(find_tables(args.doc.read_text()))} generated tables rewritten"
+            )
+            return 0
+        diffs = check(args.doc)
+    except DocTableError as error:
+        raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
+    n = len(find_tables(args.doc.read_text()))
+    if diffs:
+        print("\n".join(diffs))
+        print(
+            f"{args.doc}: {len(diffs)} of {n} generated tables differ from the records (mcrs-results update)"
+        )
+        return 1
+    print(f"{args.doc}: all {n} generated tables agree with the records")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

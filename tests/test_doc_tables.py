@@ -1,0 +1,79 @@
+"""``mcrs-results``: the generated tables of a results document are what ``mcrs-report`` makes of the
+committed records, checked and rewritten in place; docs/RESULTS.md itself agrees with the records."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from mcrs.analysis.doc_tables import DocTableError, check, find_tables, main, update
+
+RECORDS = Path("results/records/heuristics/map20")  # three greedy/lawnmower/random evaluations, committed
+COMMAND = f"mcrs-report {RECORDS} --env map20"
+
+
+def _repo(
+    tmp_path: Path, body: str = "| stale |\n", file: str = "evaluations.md", command: str = COMMAND
+) -> Path:
+    """A copy of the heuristic records and a document under docs/ with one generated table."""
+    shutil.copytree(RECORDS, tmp_path / RECORDS)
+    doc = tmp_path / "docs" / "R.md"
+    doc.parent.mkdir()
+    doc.write_text(
+        f"# R\n\nbefore\n\n<!-- table {file} of: {command} -->\n{body}<!-- end table -->\n\nafter\n"
+    )
+    return doc
+
+
+def test_update_writes_the_records_table_and_check_then_agrees(tmp_path: Path) -> None:
+    doc = _repo(tmp_path)
+    assert check(doc)  # the stale body differs
+    assert update(doc) == 1
+    text = doc.read_text()
+    (table,) = find_tables(text)
+    assert "| greedy (heuristic)" in table.body and "306.61 ± 2.00" in table.body
+    assert text.startswith("# R\n\nbefore\n\n<!-- table evaluations.md") and text.endswith(
+        "<!-- end table -->\n\nafter\n"
+    )
+    assert check(doc) == [] and update(doc) == 0
+
+
+def test_check_names_the_line_and_shows_the_changed_number(tmp_path: Path, capsys) -> None:
+    doc = _repo(tmp_path)
+    update(doc)
+    doc.write_text(doc.read_text().replace("306.61", "399.99"))
+    (diff,) = check(doc)
+    assert f"{doc}:5 (evaluations.md, as committed)" in diff
+    assert "-| greedy (heuristic)" in diff and "399.99" in diff and "+| greedy (heuristic)" in diff
+    assert main(["check", str(doc)]) == 1
+    assert "1 of 1 generated tables differ" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("file", "command", "says"),
+    [
+        ("evaluations.md", f"{COMMAND} --out x", "leave --out out"),
+        ("final.md", COMMAND, "writes no final.md; it writes: evaluations.md"),
+        ("evaluations.md", "mcrs-report results/none --env map20", "no readable runs"),
+    ],
+)
+def test_a_table_that_cannot_be_made_is_one_line_and_the_document_is_untouched(
+    tmp_path: Path, file: str, command: str, says: str
+) -> None:
+    doc = _repo(tmp_path, file=file, command=command)
+    before = doc.read_text()
+    with pytest.raises(DocTableError, match=f"line 5: .*{says}"):
+        update(doc)
+    assert doc.read_text() == before
+    with pytest.raises(SystemExit, match=f"mcrs-results: error: .*{says}"):
+        main(["update", str(doc)])
+
+
+def test_results_md_agrees_with_the_committed_records() -> None:
+    """The issue's proof: every generated table of docs/RESULTS.md is what mcrs-report makes of the
+    committed records alone (no run directories)."""
+    doc = Path("docs/RESULTS.md")
+    assert len(find_tables(doc.read_text())) >= 7
+    assert check(doc) == []
