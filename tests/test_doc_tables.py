@@ -77,3 +77,8 @@ def test_results_md_agrees_with_the_committed_records() -> None:
     doc = Path("docs/RESULTS.md")
     assert len(find_tables(doc.read_text())) >= 7
     assert check(doc) == []
+
+
+def test_a_missing_document_is_one_line(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match=r"^mcrs-results: error: .*nope\.md: .*No such file"):
+        main(["check", str(tmp_path / "nope.md")])

@@ -158,19 +158,14 @@ def main(argv: list[str] | None = None) -> int:
         "doc", nargs="?", type=Path, default=Path("docs/RESULTS.md"), help="default: docs/RESULTS.md"
     )
     args = parser.parse_args(argv)
-    if not args.doc.is_file():
-        raise SystemExit(f"mcrs-results: error: doc={args.doc}: no such file")
     try:
+        n = len(find_tables(args.doc.read_text()))
         if args.action == "update":
-            changed = update(args.doc)
-            print(
-                f"{args.doc}: {changed} of {len(find_tables(args.doc.read_text()))} generated tables rewritten"
-            )
+            print(f"{args.doc}: {update(args.doc)} of {n} generated tables rewritten")
             return 0
         diffs = check(args.doc)
-    except DocTableError as error:
+    except (DocTableError, OSError, UnicodeDecodeError) as error:
         raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
-    n = len(find_tables(args.doc.read_text()))
     if diffs:
         print("\n".join(diffs))
         print(
