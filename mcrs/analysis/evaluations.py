@@ -25,6 +25,17 @@ def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> d
     return {name: by_policy[name] for name in names}
 
 
+def heuristic_samples(
+    evaluations: list[EvaluationRow], comm_range: float | None, name: str
+) -> dict[str, np.ndarray]:
+    """Per heuristic (``greedy (heuristic)``), its evaluation seeds' means of metric ``name``
+    (``episode_reward``): the samples its mean and spread are taken over."""
+    return {
+        f"{policy} (heuristic)": np.array([g.means[name] for g in group if name in g.means])
+        for policy, group in _heuristics(evaluations, comm_range).items()
+    }
+
+
 def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
     """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
     rows = []
@@ -32,7 +43,7 @@ def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -
         row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
-            values = np.array([g.means[name] for g in group if name in g.means])
+            values = heuristic_samples(evaluations, comm_range, name)[f"{policy} (heuristic)"]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
