@@ -71,6 +71,17 @@ def test_a_table_that_cannot_be_made_is_one_line_and_the_document_is_untouched(
         main(["update", str(doc)])
 
 
+def test_a_hand_made_table_or_image_fails_the_check(tmp_path: Path, capsys) -> None:
+    doc = _repo(tmp_path)
+    update(doc)
+    assert check(doc) == []
+    doc.write_text(doc.read_text() + "\n| a | b |\n|---|---|\n| 1 | 2 |\n\n![old](results/old.png)\n")
+    assert [d.split(": a table")[0] for d in check(doc)] == [f"{doc}:15", f"{doc}:19"]
+    assert main(["check", str(doc)]) == 1
+    out = capsys.readouterr().out
+    assert "2 tables or figures are not generated" in out and "differ from the records" not in out
+
+
 RANGES = Path("results/records/comm_range/map20")  # greedy at R_c 0..10, 3 evaluation seeds, committed
 
 

@@ -19,7 +19,8 @@ to the document) is what the command draws::
     <!-- end figure -->
 
 Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
-the document's ``docs/``), so the paths are the committed records'. Hand-written tables are left alone.
+the document's ``docs/``), so the paths are the committed records'. A table or image outside these
+blocks is not made from the records: ``check`` names its line and fails (``update`` leaves it alone).
 """
 
 from __future__ import annotations
@@ -145,10 +146,28 @@ def generate(tables: list[Table], root: Path) -> dict[Table, str | bytes]:
     return out
 
 
+def hand_made(text: str) -> list[int]:
+    """The lines of tables and images outside the generated blocks (the first line of each table)."""
+    lines = []
+    blocks = [(m.start(), m.end()) for m in BLOCK.finditer(text)]
+    offset, previous = 0, ""
+    for number, line in enumerate(text.splitlines(keepends=True), start=1):
+        inside = any(start <= offset < end for start, end in blocks)
+        starts_table = line.startswith("|") and not previous.startswith("|")
+        if not inside and (starts_table or IMAGE.search(line)):
+            lines.append(number)
+        offset, previous = offset + len(line), line
+    return lines
+
+
 def check(doc: Path) -> list[str]:
-    """A unified diff per table of ``doc`` that differs from what the records give (empty: all agree)."""
+    """A unified diff per table of ``doc`` that differs from what the records give, and a line per table
+    or image not made from them (empty: all agree)."""
     text = doc.read_text()
-    diffs = []
+    diffs = [
+        f"{doc}:{line}: a table or figure outside the generated blocks: not made from the records\n"
+        for line in hand_made(text)
+    ]
     for table, fresh in generate(find_tables(text), _root(doc)).items():
         if isinstance(fresh, bytes):
             image = doc.parent / table.image
@@ -208,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        n = len(find_tables(args.doc.read_text()))
+        text = args.doc.read_text()
+        n, hand = len(find_tables(text)), len(hand_made(text))
         if args.action == "update":
             print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
             return 0
@@ -217,10 +237,15 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
     if diffs:
         print("\n".join(diffs))
-        print(
-            f"{args.doc}: {len(diffs)} of {n} generated tables and figures differ from the records "
-            "(mcrs-results update)"
-        )
+        if len(diffs) > hand:
+            print(
+                f"{args.doc}: {len(diffs) - hand} of {n} generated tables and figures differ from the records "
+                "(mcrs-results update)"
+            )
+        if hand:
+            print(
+                f"{args.doc}: {hand} tables or figures are not generated from the records (make them blocks)"
+            )
         return 1
     print(f"{args.doc}: all {n} generated tables and figures agree with the records")
     return 0
