@@ -86,7 +86,7 @@ def test_verdicts_of_all_and_any() -> None:
     found = verdict(q, {"a": good, "b": bad, "greedy (heuristic)": greedy})
     assert (
         found.word == "reproduced"
-        and found.why.startswith("a significantly higher")
+        and found.why.startswith("significantly higher: a (p = 0.0")
         and "no runs of x" in found.why
     )
     none = verdict(q, {"a": samples("a", 0, 1, 2), "b": bad, "greedy (heuristic)": greedy})
@@ -183,3 +183,27 @@ def test_a_bad_claims_file_is_one_line(tmp_path: Path) -> None:
         SystemExit, match=r"mcrs-report: error: --claims: .*map10\[0\]: missing field 'source'"
     ):
         report_main([str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--claims", str(bad)])
+
+
+def test_a_pattern_claim_on_evaluations_of_trained_policies(tmp_path: Path) -> None:
+    """``trained *`` stands for every trained policy of an evaluation-only report; each trained run is
+    one number (its mean over the evaluation seeds)."""
+    evals = tmp_path / "evals"
+    for seed in range(3):
+        make_evaluation(evals, f"greedy_{seed}", "greedy", 5.0, seed, found=4 + 0.1 * seed)  # 40, 41, 42
+        for run, found in (("qmix_seed0", 5.0), ("qmix_seed1", 5.2)):  # 50 and 52 on every seed
+            make_evaluation(evals, f"{run}_{seed}", f"outputs/x/{run}", 5.0, seed, found=found)
+    claims = tmp_path / "claims.yaml"
+    entry = {"claim": "a trained policy beats greedy", "source": "ours", "paper": "-", "ours": True}
+    entry |= {"metric": "episode_reward", "quantifier": "any", "above": ["trained *"]}
+    claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
+    out = tmp_path / "report"
+    assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
+    (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
+    assert "on the same fixed episodes: trained qmix 51.00 ± 1.41 (2)" in row[3]
+    assert row[4].strip().startswith("**yes**: significantly higher: trained qmix (p = ")
+
+    entry["above"] = ["trained vdn*"]  # matches nothing: the pattern is reported as not run
+    claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
+    assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
+    assert "**not run**: no runs of trained vdn*" in (out / "claims.md").read_text()

@@ -10,7 +10,8 @@ three seeds that overlap decide nothing, and one seed never decides.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import re
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import yaml
 from scipy import stats
 
 from mcrs.analysis.curves import Curve
-from mcrs.analysis.evaluations import heuristic_samples
+from mcrs.analysis.evaluations import heuristic_samples, trained_samples
 from mcrs.analysis.runs import EvaluationRow
 from mcrs.analysis.tables import markdown
 
@@ -155,17 +156,34 @@ def method_samples(
     evaluations: list[EvaluationRow],
     comm_range: float | None,
     budget: int,
-) -> dict[str, Samples]:
-    """The numbers of every method the claim names that the report has (training runs or heuristics)."""
+) -> tuple[Claim, dict[str, Samples]]:
+    """The claim with its label patterns (``trained *``) replaced by the methods they match, and the
+    numbers of every method it names that the report has: training runs (per seed, over the window),
+    heuristics (per evaluation seed) and trained policies evaluated on fixed episodes (per trained run:
+    their final checkpoints, so every window is theirs)."""
     found: dict[str, Samples] = {}
-    metric_curves = curves.get(claim.metric, {})
-    heuristics = heuristic_samples(evaluations, comm_range, claim.metric)
-    for label in (*claim.above, *claim.below):
-        if label in metric_curves:
-            found[label] = window_samples(metric_curves[label], claim.window, budget)
-        elif label in heuristics:
-            found[label] = Samples(label, heuristics[label])
-    return found
+    for label, curve in curves.get(claim.metric, {}).items():
+        found[label] = window_samples(curve, claim.window, budget)
+    for label, values in heuristic_samples(evaluations, comm_range, claim.metric).items():
+        found[label] = Samples(label, values)
+    for label, values in trained_samples(evaluations, claim.metric).items():
+        found.setdefault(label, Samples(label, values))
+    above, below = _expand(claim.above, found), _expand(claim.below, found)
+    resolved = replace(claim, above=above, below=below)
+    return resolved, {m: found[m] for m in (*above, *below) if m in found}
+
+
+def _expand(labels: tuple[str, ...], found: dict[str, Samples]) -> tuple[str, ...]:
+    """Each label as it is, or, with ``*`` in it (any text), the methods it matches in report order (the
+    pattern itself when none does: "no runs of")."""
+    out: list[str] = []
+    for label in labels:
+        if "*" not in label:
+            out.append(label)
+            continue
+        pattern = re.compile("^" + ".*".join(map(re.escape, label.split("*"))) + "$")
+        out += [m for m in found if pattern.match(m) and m not in out] or [label]
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------- verdicts
@@ -227,7 +245,8 @@ def verdict(claim: Claim, samples: dict[str, Samples]) -> Verdict:
     later = f"; {unfinished}" if unfinished else ""
     winners = [m for m, v in state.items() if v == "holds"]
     if winners:
-        return Verdict("reproduced", f"{', '.join(winners)} significantly {claim.better}{later}", compared)
+        won = ", ".join(f"{m} (p = {max(p for _, _, p in outcomes[m]):.3f})" for m in winners)
+        return Verdict("reproduced", f"significantly {claim.better}: {won}{later}", compared)
     summary = "; ".join(_summary(m, outcomes[m], state[m]) for m in candidates)
     word = "not reproduced" if all(v == "reversed" for v in state.values()) else "not shown"
     return Verdict(word, f"{summary}{later}", compared)
@@ -263,15 +282,17 @@ def claims_table(
     evaluations: list[EvaluationRow],
     comm_range: float | None,
     budget: int,
+    window_text: str | None = None,
 ) -> str:
     """Markdown: source, claim, the paper's numbers, ours (mean ± std (seeds) per method over the
-    window), and the verdict with its reason."""
+    window, or ``window_text`` where there is none: evaluations of final checkpoints), and the verdict
+    with its reason."""
     rows = []
     for claim in claims:
-        samples = method_samples(claim, curves, evaluations, comm_range, budget)
+        claim, samples = method_samples(claim, curves, evaluations, comm_range, budget)
         result = verdict(claim, samples)
         word = OUR_WORDS.get(result.word, result.word) if claim.ours else result.word
         ours = "; ".join(s.text() for s in result.compared) or "-"
-        what = f"{claim.metric.replace('_', ' ')}, {WINDOW_TEXT[claim.window]}"
+        what = f"{claim.metric.replace('_', ' ')}, {window_text or WINDOW_TEXT[claim.window]}"
         rows.append([claim.source, claim.claim, claim.paper, f"{what}: {ours}", f"**{word}**: {result.why}"])
     return markdown(["source", "claim", "paper", "ours (mean ± std (seeds))", "verdict"], rows, left=5)

@@ -76,6 +76,16 @@ def _run_stem(policy: str) -> str:
     return re.sub(r"_?seed\d+$", "", name) or name
 
 
+def trained_samples(evaluations: list[EvaluationRow], name: str) -> dict[str, np.ndarray]:
+    """Per trained method (``trained qmix``), each of its runs' mean of metric ``name`` over its
+    evaluation seeds: the samples its mean and spread are taken over."""
+    out = {}
+    for method, runs in _trained_groups(evaluations).items():
+        per_run = [[g.means[name] for g in group if name in g.means] for group in runs.values()]
+        out[method] = np.array([np.mean(v) for v in per_run if v and np.isfinite(np.mean(v))])
+    return out
+
+
 def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
     """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
     mean and std over the runs (training seeds)."""
@@ -84,8 +94,7 @@ def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
         row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
-            per_run = [np.mean([g.means[name] for g in group if name in g.means]) for group in runs.values()]
-            values = np.array([v for v in per_run if np.isfinite(v)])
+            values = trained_samples(evaluations, name)[method]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)

@@ -426,6 +426,10 @@ def main(argv: list[str] | None = None) -> int:
             "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
             + _final_table(rows),
         )
+        if report.claims:
+            md = claims_table(report.claims, {}, runs.evaluations, None, 0, "on the same fixed episodes")
+            (report.out / "claims.md").write_text(md + "\n")
+            report.add("The claims, checked", md)
     path = report.write()
     print(f"\nreport: {path}", flush=True)
     return 0
