@@ -18,7 +18,7 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   in the paper's layout when delta was swept;
 - ``claims.md``: the paper's claims about this map (``--claims``, default
   ``mcrs/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
-  noise, one seed) or not run (mcrs.analysis.claims);
+  noise, one seed) or not run (mcrs.analysis.claims); for evaluations only, the claims of ``--claims``;
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
@@ -426,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
             "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
             + _final_table(rows),
         )
-        if report.claims:
+        if report.claims and args.claims is not None:  # the paper's claims are about training curves
             md = claims_table(report.claims, {}, runs.evaluations, None, 0, "on the same fixed episodes")
             (report.out / "claims.md").write_text(md + "\n")
             report.add("The claims, checked", md)
