@@ -248,7 +248,9 @@ def verdict(claim: Claim, samples: dict[str, Samples]) -> Verdict:
         won = ", ".join(f"{m} (p = {max(p for _, _, p in outcomes[m]):.3f})" for m in winners)
         return Verdict("reproduced", f"significantly {claim.better}: {won}{later}", compared)
     summary = "; ".join(_summary(m, outcomes[m], state[m]) for m in candidates)
-    word = "not reproduced" if all(v == "reversed" for v in state.values()) else "not shown"
+    # "no method does" needs every method of the claim finished: one still running might
+    every_one_worse = all(v == "reversed" for v in state.values()) and not unfinished
+    word = "not reproduced" if every_one_worse else "not shown"
     return Verdict(word, f"{summary}{later}", compared)
 
 
