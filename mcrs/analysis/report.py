@@ -378,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="YAML",
-        help="the paper's claims to check, per map (default: mcrs/analysis/paper_claims.yaml)",
+        help="the claims to check, per map (default: the paper's, mcrs/analysis/paper_claims.yaml)",
     )
     parser.add_argument(
         "--marl-eval",
