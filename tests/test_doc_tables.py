@@ -48,7 +48,7 @@ def test_check_names_the_line_and_shows_the_changed_number(tmp_path: Path, capsy
     assert f"{doc}:5 (evaluations.md, as committed)" in diff
     assert "-| greedy (heuristic)" in diff and "399.99" in diff and "+| greedy (heuristic)" in diff
     assert main(["check", str(doc)]) == 1
-    assert "1 of 1 generated tables differ" in capsys.readouterr().out
+    assert "1 of 1 generated tables and figures differ" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
@@ -69,6 +69,43 @@ def test_a_table_that_cannot_be_made_is_one_line_and_the_document_is_untouched(
     assert doc.read_text() == before
     with pytest.raises(SystemExit, match=f"mcrs-results: error: .*{says}"):
         main(["update", str(doc)])
+
+
+def test_a_hand_made_table_or_image_fails_the_check(tmp_path: Path, capsys) -> None:
+    doc = _repo(tmp_path)
+    update(doc)
+    assert check(doc) == []
+    doc.write_text(doc.read_text() + "\n| a | b |\n|---|---|\n| 1 | 2 |\n\n![old](results/old.png)\n")
+    assert [d.split(": a table")[0] for d in check(doc)] == [f"{doc}:15", f"{doc}:19"]
+    assert main(["check", str(doc)]) == 1
+    out = capsys.readouterr().out
+    assert "2 tables or figures are not generated" in out and "differ from the records" not in out
+
+
+RANGES = Path("results/records/comm_range/map20")  # greedy at R_c 0..10, 3 evaluation seeds, committed
+
+
+def test_a_generated_figure_is_drawn_from_the_records_and_checked(tmp_path: Path, capsys) -> None:
+    shutil.copytree(RANGES, tmp_path / RANGES)
+    doc = tmp_path / "docs" / "R.md"
+    doc.parent.mkdir()
+    text = (
+        f"# R\n\n<!-- figure comm_range.png of: mcrs-report {RANGES} --env map20 -->\n"
+        "![R_c](results/rc.png)\n<!-- end figure -->\n"
+    )
+    doc.write_text(text)
+    image = doc.parent / "results" / "rc.png"
+    (diff,) = check(doc)
+    assert "figure results/rc.png is missing" in diff
+    assert update(doc) == 1
+    assert image.read_bytes().startswith(b"\x89PNG") and doc.read_text() == text  # the text stays
+    assert check(doc) == [] and update(doc) == 0  # drawn again, the same bytes
+    image.write_bytes(image.read_bytes()[:-10])
+    assert main(["check", str(doc)]) == 1
+    assert "figure results/rc.png differs from the comm_range.png" in capsys.readouterr().out
+    doc.write_text(text.replace("![R_c](results/rc.png)", "no image here"))
+    with pytest.raises(DocTableError, match=r"line 3: a figure block needs an image line"):
+        update(doc)
 
 
 def test_results_md_agrees_with_the_committed_records() -> None:

@@ -149,11 +149,15 @@ def plot_curves(
     return path
 
 
+ZOOM_FROM = 0.05  # the y limits ignore the first 5 % of the steps (the untrained policy's evaluations)
+
+
 def _zoom(ax, curves: list[Curve], levels: list[float] | None = None) -> None:
-    """Y limits from the means after step 0 and the reference ``levels``: the untrained policy's first
-    evaluation (a reward of -200 on map10) would otherwise flatten every learning curve. Bands may be
-    clipped."""
-    later = [c.mean[c.steps > 0] for c in curves if (c.steps > 0).any()]
+    """Y limits from the means after the first ``ZOOM_FROM`` of the steps and the reference ``levels``:
+    the first evaluations (a reward of -200 on map10 and map20) would otherwise flatten every learning
+    curve. Bands may be clipped."""
+    last = max((int(c.steps[-1]) for c in curves), default=0)
+    later = [c.mean[c.steps > ZOOM_FROM * last] for c in curves if (c.steps > ZOOM_FROM * last).any()]
     if not later:
         return
     later += [np.array(levels)] if levels else []

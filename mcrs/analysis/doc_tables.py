@@ -1,7 +1,7 @@
-"""``mcrs-results``: the tables of docs/RESULTS.md, regenerated from the committed records.
+"""``mcrs-results``: the tables and figures of docs/RESULTS.md, regenerated from the committed records.
 
-    mcrs-results check            # exit 1 and a diff when a table differs from what the records give
-    mcrs-results update           # rewrite those tables in place
+    mcrs-results check            # exit 1 and a diff when a table (or figure) differs from the records'
+    mcrs-results update           # rewrite those tables in place, and the figures' image files
     mcrs-results check docs/OTHER.md
 
 A generated table sits between two HTML comments (invisible on GitHub), the first naming the table file
@@ -11,8 +11,16 @@ and the ``mcrs-report`` command that writes it::
     | method | seeds | ... |
     <!-- end table -->
 
+A generated figure is the same with ``figure`` and a PNG, around the image line; the image file (relative
+to the document) is what the command draws::
+
+    <!-- figure learning_curves.png of: mcrs-report results/records/baselines/campaign --env map20 -->
+    ![learning curves, map20](results/map20_learning_curves.png)
+    <!-- end figure -->
+
 Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
-the document's ``docs/``), so the paths are the committed records'. Hand-written tables are left alone.
+the document's ``docs/``), so the paths are the committed records'. A table or image outside these
+blocks is not made from the records: ``check`` names its line and fails (``update`` leaves it alone).
 """
 
 from __future__ import annotations
@@ -33,9 +41,11 @@ from pathlib import Path
 from mcrs.analysis import report
 
 BLOCK = re.compile(
-    r"<!-- table (?P<file>[\w.-]+\.md) of: mcrs-report (?P<args>[^\n]*?) -->\n(?P<body>.*?)<!-- end table -->",
+    r"<!-- (?P<kind>table|figure) (?P<file>[\w.-]+\.(?:md|png)) of: mcrs-report (?P<args>[^\n]*?) -->\n"
+    r"(?P<body>.*?)<!-- end (?P=kind) -->",
     re.S,
 )
+IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)\s]+\.png)\)")
 
 
 class DocTableError(Exception):
@@ -44,7 +54,8 @@ class DocTableError(Exception):
 
 @dataclass(frozen=True)
 class Table:
-    """One generated table of a document: where it is, what makes it, what the document holds now."""
+    """One generated table (or figure) of a document: where it is, what makes it, what the document holds
+    now (a figure: its image line, whose file is ``image``)."""
 
     line: int
     file: str
@@ -52,6 +63,8 @@ class Table:
     body: str
     start: int  # offsets of ``body`` in the document
     end: int
+    kind: str = "table"
+    image: str = ""  # a figure's image path, relative to the document
 
 
 def find_tables(text: str) -> list[Table]:
@@ -67,7 +80,23 @@ def find_tables(text: str) -> list[Table]:
             raise DocTableError(
                 f"line {line}: leave --out out of the command; the table is made in a temporary folder"
             )
-        tables.append(Table(line, match["file"], args, match["body"], match.start("body"), match.end("body")))
+        if (match["kind"] == "table") != match["file"].endswith(".md"):
+            raise DocTableError(f"line {line}: a table is a .md file and a figure a .png: {match['file']}")
+        image = IMAGE.search(match["body"]) if match["kind"] == "figure" else None
+        if match["kind"] == "figure" and image is None:
+            raise DocTableError(f"line {line}: a figure block needs an image line ![...](<path>.png)")
+        tables.append(
+            Table(
+                line,
+                match["file"],
+                args,
+                match["body"],
+                match.start("body"),
+                match.end("body"),
+                match["kind"],
+                image["path"] if image else "",
+            )
+        )
     return tables
 
 
@@ -88,10 +117,11 @@ def _inside(folder: Path) -> Iterator[None]:
         os.chdir(before)
 
 
-def generate(tables: list[Table], root: Path) -> dict[Table, str]:
-    """Each table as ``mcrs-report`` writes it now (each distinct command runs once, quietly)."""
+def generate(tables: list[Table], root: Path) -> dict[Table, str | bytes]:
+    """Each table as ``mcrs-report`` writes it now, and each figure's PNG bytes (each distinct command
+    runs once, quietly)."""
     made: dict[tuple[str, ...], Path] = {}
-    out: dict[Table, str] = {}
+    out: dict[Table, str | bytes] = {}
     with tempfile.TemporaryDirectory(prefix="mcrs-results-") as tmp, _inside(root):
         for table in tables:
             if table.args not in made:
@@ -106,20 +136,48 @@ def generate(tables: list[Table], root: Path) -> dict[Table, str]:
                 made[table.args] = folder
             path = made[table.args] / table.file
             if not path.is_file():
-                written = sorted(p.name for p in made[table.args].glob("*.md") if p.name != "report.md")
+                suffix = Path(table.file).suffix
+                written = sorted(p.name for p in made[table.args].glob(f"*{suffix}") if p.name != "report.md")
                 raise DocTableError(
                     f"line {table.line}: mcrs-report {shlex.join(table.args)} writes no {table.file}; "
-                    f"it writes: {', '.join(written) or 'no table'}"
+                    f"it writes: {', '.join(written) or 'no ' + table.kind}"
                 )
-            out[table] = path.read_text()
+            out[table] = path.read_bytes() if table.kind == "figure" else path.read_text()
     return out
 
 
+def hand_made(text: str) -> list[int]:
+    """The lines of tables and images outside the generated blocks (the first line of each table)."""
+    lines = []
+    blocks = [(m.start(), m.end()) for m in BLOCK.finditer(text)]
+    offset, previous = 0, ""
+    for number, line in enumerate(text.splitlines(keepends=True), start=1):
+        inside = any(start <= offset < end for start, end in blocks)
+        starts_table = line.startswith("|") and not previous.startswith("|")
+        if not inside and (starts_table or IMAGE.search(line)):
+            lines.append(number)
+        offset, previous = offset + len(line), line
+    return lines
+
+
 def check(doc: Path) -> list[str]:
-    """A unified diff per table of ``doc`` that differs from what the records give (empty: all agree)."""
+    """A unified diff per table of ``doc`` that differs from what the records give, and a line per table
+    or image not made from them (empty: all agree)."""
     text = doc.read_text()
-    diffs = []
+    diffs = [
+        f"{doc}:{line}: a table or figure outside the generated blocks: not made from the records\n"
+        for line in hand_made(text)
+    ]
     for table, fresh in generate(find_tables(text), _root(doc)).items():
+        if isinstance(fresh, bytes):
+            image = doc.parent / table.image
+            if not image.is_file() or image.read_bytes() != fresh:
+                state = "differs from" if image.is_file() else "is missing; it should be"
+                diffs.append(
+                    f"{doc}:{table.line}: figure {table.image} {state} the {table.file} of "
+                    f"mcrs-report {shlex.join(table.args)}\n"
+                )
+            continue
         if fresh != table.body:
             lines = difflib.unified_diff(
                 table.body.splitlines(keepends=True),
@@ -132,14 +190,24 @@ def check(doc: Path) -> list[str]:
 
 
 def update(doc: Path) -> int:
-    """Rewrite every generated table of ``doc`` from the records (atomically); how many changed."""
+    """Rewrite every generated table of ``doc``, and every generated figure's image, from the records
+    (each file atomically, and nothing when one cannot be made); how many changed."""
     text = doc.read_text()
     tables = find_tables(text)
     fresh = generate(tables, _root(doc))
     changed = 0
     for table in reversed(tables):  # from the end, so the earlier offsets stay valid
-        if fresh[table] != table.body:
-            text = text[: table.start] + fresh[table] + text[table.end :]
+        made = fresh[table]
+        if isinstance(made, bytes):
+            image = doc.parent / table.image
+            if not image.is_file() or image.read_bytes() != made:
+                image.parent.mkdir(parents=True, exist_ok=True)
+                partial = image.with_name(f".{image.name}.partial")
+                partial.write_bytes(made)
+                os.replace(partial, image)
+                changed += 1
+        elif made != table.body:
+            text = text[: table.start] + made + text[table.end :]
             changed += 1
     if changed:
         partial = doc.with_name(f".{doc.name}.partial")
@@ -159,20 +227,27 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        n = len(find_tables(args.doc.read_text()))
+        text = args.doc.read_text()
+        n, hand = len(find_tables(text)), len(hand_made(text))
         if args.action == "update":
-            print(f"{args.doc}: {update(args.doc)} of {n} generated tables rewritten")
+            print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
             return 0
         diffs = check(args.doc)
     except (DocTableError, OSError, UnicodeDecodeError) as error:
         raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
     if diffs:
         print("\n".join(diffs))
-        print(
-            f"{args.doc}: {len(diffs)} of {n} generated tables differ from the records (mcrs-results update)"
-        )
+        if len(diffs) > hand:
+            print(
+                f"{args.doc}: {len(diffs) - hand} of {n} generated tables and figures differ from the records "
+                "(mcrs-results update)"
+            )
+        if hand:
+            print(
+                f"{args.doc}: {hand} tables or figures are not generated from the records (make them blocks)"
+            )
         return 1
-    print(f"{args.doc}: all {n} generated tables agree with the records")
+    print(f"{args.doc}: all {n} generated tables and figures agree with the records")
     return 0
 
 

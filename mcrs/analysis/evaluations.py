@@ -25,6 +25,17 @@ def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> d
     return {name: by_policy[name] for name in names}
 
 
+def heuristic_samples(
+    evaluations: list[EvaluationRow], comm_range: float | None, name: str
+) -> dict[str, np.ndarray]:
+    """Per heuristic (``greedy (heuristic)``), its evaluation seeds' means of metric ``name``
+    (``episode_reward``): the samples its mean and spread are taken over."""
+    return {
+        f"{policy} (heuristic)": np.array([g.means[name] for g in group if name in g.means])
+        for policy, group in _heuristics(evaluations, comm_range).items()
+    }
+
+
 def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
     """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
     rows = []
@@ -32,7 +43,7 @@ def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -
         row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
-            values = np.array([g.means[name] for g in group if name in g.means])
+            values = heuristic_samples(evaluations, comm_range, name)[f"{policy} (heuristic)"]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
@@ -65,6 +76,16 @@ def _run_stem(policy: str) -> str:
     return re.sub(r"_?seed\d+$", "", name) or name
 
 
+def trained_samples(evaluations: list[EvaluationRow], name: str) -> dict[str, np.ndarray]:
+    """Per trained method (``trained qmix``), each of its runs' mean of metric ``name`` over its
+    evaluation seeds: the samples its mean and spread are taken over."""
+    out = {}
+    for method, runs in _trained_groups(evaluations).items():
+        per_run = [[g.means[name] for g in group if name in g.means] for group in runs.values()]
+        out[method] = np.array([np.mean(v) for v in per_run if v and np.isfinite(np.mean(v))])
+    return out
+
+
 def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
     """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
     mean and std over the runs (training seeds)."""
@@ -73,8 +94,7 @@ def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
         row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
         for metric in FINAL_METRICS:
             name = metric.split("/")[-1]
-            per_run = [np.mean([g.means[name] for g in group if name in g.means]) for group in runs.values()]
-            values = np.array([v for v in per_run if np.isfinite(v)])
+            values = trained_samples(evaluations, name)[method]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)

@@ -16,6 +16,9 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   ``mcrs-eval`` at the same R_c as extra rows;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
   in the paper's layout when delta was swept;
+- ``claims.md``: the paper's claims about this map (``--claims``, default
+  ``mcrs/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
+  noise, one seed) or not run (mcrs.analysis.claims); for evaluations only, the claims of ``--claims``;
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
@@ -39,6 +42,7 @@ import numpy as np
 
 from mcrs.analysis import comm_range as cr
 from mcrs.analysis import tsne
+from mcrs.analysis.claims import Claim, ClaimsError, claims_table, default_claims_path, load_claims
 from mcrs.analysis.curves import (
     CURVE_METRICS,
     FINAL_METRICS,
@@ -86,8 +90,9 @@ def step_labels(steps: list[int]) -> list[str]:
 class Report:
     """Collects the sections of ``report.md`` while the figures and tables are written."""
 
-    def __init__(self, out: Path, env_name: str, runs: Runs) -> None:
+    def __init__(self, out: Path, env_name: str, runs: Runs, claims: list[Claim] | None = None) -> None:
         self.out, self.env_name, self.runs = out, env_name, runs
+        self.claims = claims or []
         self.sections: list[str] = []
         out.mkdir(parents=True, exist_ok=True)
 
@@ -177,6 +182,12 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         f"\n\n{final_md}",
     )
     _report_milestones(report, groups, panels["episode reward"], order)
+    if report.claims:
+        by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
+        budget = max(int(c.steps[-1]) for c in panels["episode reward"].values())
+        md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget)
+        (report.out / "claims.md").write_text(md + "\n")
+        report.add("The paper's claims, checked", md)
     q_tot = aggregate(groups, Q_TOT, [])
     if q_tot:
         png = plot_curves(
@@ -363,6 +374,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tsne-samples", type=int, default=20_000, help="states in the t-SNE (paper: 20000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the t-SNE and of its sample")
     parser.add_argument(
+        "--claims",
+        type=Path,
+        default=None,
+        metavar="YAML",
+        help="the claims to check, per map (default: the paper's, mcrs/analysis/paper_claims.yaml)",
+    )
+    parser.add_argument(
         "--marl-eval",
         type=Path,
         default=None,
@@ -386,7 +404,11 @@ def main(argv: list[str] | None = None) -> int:
         reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
         where = f"map {args.env}" if args.env else "the paths"
         raise SystemExit(f"mcrs-report: error: no readable runs of {where} ({reasons})")
-    report = Report(args.out, env_name, runs)
+    try:
+        claims = load_claims(args.claims or default_claims_path(), env_name)
+    except ClaimsError as error:
+        raise SystemExit(f"mcrs-report: error: --claims: {error}") from None
+    report = Report(args.out, env_name, runs, claims)
     if runs.training:
         report_training(report)
     has_ranges = report_comm_range(report)
@@ -404,6 +426,10 @@ def main(argv: list[str] | None = None) -> int:
             "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
             + _final_table(rows),
         )
+        if report.claims and args.claims is not None:  # the paper's claims are about training curves
+            md = claims_table(report.claims, {}, runs.evaluations, None, 0, "on the same fixed episodes")
+            (report.out / "claims.md").write_text(md + "\n")
+            report.add("The claims, checked", md)
     path = report.write()
     print(f"\nreport: {path}", flush=True)
     return 0

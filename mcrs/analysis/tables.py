@@ -17,18 +17,19 @@ def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None) -> 
     return f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 
-def markdown(header: list[str], rows: list[list[str]]) -> str:
-    """A markdown table aligned as text: the first column left, the others right."""
+def markdown(header: list[str], rows: list[list[str]], left: int = 1) -> str:
+    """A markdown table aligned as text: the first ``left`` columns (text) left, the others (numbers)
+    right."""
     widths = [max(len(str(row[k])) for row in [header, *rows]) for k in range(len(header))]
 
     def line(cells: list[str]) -> str:
         padded = [
-            str(c).ljust(w) if k == 0 else str(c).rjust(w)
+            str(c).ljust(w) if k < left else str(c).rjust(w)
             for k, (c, w) in enumerate(zip(cells, widths, strict=True))
         ]
         return "| " + " | ".join(padded) + " |"
 
-    rule = "|" + "|".join("-" * (w + 1) + (":" if k else "-") for k, w in enumerate(widths)) + "|"
+    rule = "|" + "|".join("-" * (w + 1) + (":" if k >= left else "-") for k, w in enumerate(widths)) + "|"
     return "\n".join([line(header), rule, *(line(row) for row in rows)])
 
 

@@ -1,0 +1,214 @@
+"""The paper's claims judged on runs (mcrs.analysis.claims): the windows, the test, the verdicts, the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy import stats
+
+from mcrs.analysis.claims import (
+    Claim,
+    ClaimsError,
+    Samples,
+    compare,
+    default_claims_path,
+    load_claims,
+    verdict,
+    window_samples,
+)
+from mcrs.analysis.curves import Curve
+from mcrs.analysis.report import ALGO_ORDER
+from mcrs.analysis.report import main as report_main
+from tests.test_report import make_evaluation, make_run
+
+STEPS = list(range(0, 110_000, 10_000))  # 0 .. 100k: "end" is 90k and 100k, "start" is 10k .. 30k
+
+
+def claim(**fields: object) -> Claim:
+    base = dict(
+        claim="a beats b",
+        source="fig. 0",
+        paper="-",
+        metric="episode_reward",
+        better="higher",
+        window="end",
+        above=("a",),
+        below=("b",),
+    )
+    return Claim(**{**base, **fields})
+
+
+def samples(label: str, *values: float, complete: bool = True) -> Samples:
+    return Samples(label, np.array(values, dtype=float), complete)
+
+
+def test_windows_average_each_seed_over_its_evaluations() -> None:
+    steps = np.array(STEPS)
+    values = np.stack([np.arange(11.0), 10 * np.arange(11.0)])  # two seeds
+    curve = Curve("a", steps, values.mean(0), values.std(0, ddof=1), np.zeros(11), values)
+    end = window_samples(curve, "end", budget=100_000)
+    assert end.values.tolist() == [9.5, 95.0] and end.complete  # 90k and 100k
+    start = window_samples(curve, "start", budget=100_000)
+    assert start.values.tolist() == [2.0, 20.0]  # 10k, 20k, 30k: step 0 (untrained) is left out
+    short = window_samples(curve, "end", budget=200_000)  # a run stopped at half the budget
+    assert not short.complete and len(short.values) == 0
+
+
+def test_compare_is_welchs_test_in_the_claims_direction() -> None:
+    a, b = samples("a", 10, 11, 12), samples("b", 1, 2, 3)
+    outcome, p = compare(a, b, "higher")
+    assert outcome == "holds" and p == pytest.approx(
+        stats.ttest_ind([10, 11, 12], [1, 2, 3], equal_var=False).pvalue
+    )
+    assert compare(a, b, "lower")[0] == "reversed"  # fewer collisions is better: a has more
+    assert compare(samples("a", 1, 5, 9), samples("b", 2, 4, 6), "higher")[0] == "noise"
+    assert compare(samples("a", 100.0), b, "higher") == ("few", pytest.approx(np.nan, nan_ok=True))
+
+
+def test_verdicts_of_all_and_any() -> None:
+    good, bad, wide = samples("a", 10, 11, 12), samples("b", 1, 2, 3), samples("c", 0, 6, 12)
+    assert verdict(claim(), {"a": good, "b": bad}).word == "reproduced"
+    flipped = verdict(claim(), {"a": bad.__class__("a", bad.values), "b": good.__class__("b", good.values)})
+    assert flipped.word == "not reproduced" and "b significantly higher than a" in flipped.why
+    assert verdict(claim(below=("c",)), {"a": good, "c": wide}).word == "not shown"
+    one = verdict(claim(), {"a": samples("a", 50.0), "b": bad})
+    assert one.word == "not shown" and "one seed of a" in one.why
+    assert verdict(claim(), {"a": good}).word == "not run"  # b has no runs
+    partial = verdict(claim(), {"a": samples("a", 10, 11, complete=False), "b": bad})
+    assert partial.word == "not run" and "a not run to the end" in partial.why
+
+    # any: one learner beating the heuristic is enough, a partial one does not count
+    greedy = samples("greedy (heuristic)", 5, 6, 7)
+    q = claim(quantifier="any", above=("a", "b", "x"), below=("greedy (heuristic)",))
+    found = verdict(q, {"a": good, "b": bad, "greedy (heuristic)": greedy})
+    assert (
+        found.word == "reproduced"
+        and found.why.startswith("significantly higher: a (p = 0.0")
+        and "no runs of x" in found.why
+    )
+    none = verdict(q, {"a": samples("a", 0, 1, 2), "b": bad, "greedy (heuristic)": greedy})
+    assert none.word == "not shown" and "no runs of x" in none.why  # x might still do it
+    q_run = claim(quantifier="any", above=("a", "b"), below=("greedy (heuristic)",))
+    assert (
+        verdict(q_run, {"a": samples("a", 0, 1, 2), "b": bad, "greedy (heuristic)": greedy}).word
+        == "not reproduced"
+    )
+    mixed = verdict(q, {"a": samples("a", 0, 1, 2), "b": samples("b", 9.0), "greedy (heuristic)": greedy})
+    assert mixed.word == "not shown" and "b: one seed" in mixed.why
+
+
+def test_claims_file_errors_name_the_field(tmp_path: Path) -> None:
+    path = tmp_path / "claims.yaml"
+    entry = {
+        "claim": "x",
+        "source": "s",
+        "paper": "p",
+        "metric": "episode_reward",
+        "above": ["a"],
+        "below": ["b"],
+    }
+    path.write_text(yaml.safe_dump({"map10": [entry]}))
+    assert load_claims(path, "map10")[0].window == "end"
+    assert load_claims(path, "map15") == []  # no claims about that map
+    for bad, message in (
+        ({**entry, "window": "middle"}, "window='middle'; allowed: end, start"),
+        ({**entry, "better": "more"}, "better='more'; allowed: higher, lower"),
+        ({**entry, "colour": 1}, "unknown field(s) colour"),
+        ({k: v for k, v in entry.items() if k != "below"}, "missing field 'below'"),
+        ({**entry, "above": []}, "'above' must be a non-empty list"),
+    ):
+        path.write_text(yaml.safe_dump({"map10": [bad]}))
+        with pytest.raises(ClaimsError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            load_claims(path, "map10")
+
+
+def test_the_papers_claims_name_real_methods() -> None:
+    """A typo in paper_claims.yaml would silently read as "not run"."""
+    known = {*ALGO_ORDER, "greedy (heuristic)", "lawnmower (heuristic)", "random (heuristic)"}
+    for env in ("map10", "map15", "map20"):
+        claims = load_claims(default_claims_path(), env)
+        assert claims, env
+        for c in claims:
+            for label in (*c.above, *c.below):
+                assert label.split(" ")[0] in known or label in known, (env, label)
+
+
+def test_report_writes_the_claims_table(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    for seed in range(3):  # qmix clearly above greedy at the end; vdn level with it
+        make_run(runs, f"qmix_{seed}", seed=seed, steps=STEPS, reward=[0.0] * 9 + [50.0 + seed, 52.0 + seed])
+        make_run(
+            runs, f"vdn_{seed}", algo="vdn", seed=seed, steps=STEPS, reward=[0.0] * 9 + [30.0 + 9 * seed] * 2
+        )
+        make_evaluation(runs, f"greedy_{seed}", "greedy", 5.0, seed, found=4 + 0.1 * seed)  # reward 40-42
+    claims = tmp_path / "claims.yaml"
+    common = {"source": "ours", "paper": "-", "metric": "episode_reward"}
+    claims.write_text(
+        yaml.safe_dump(
+            {
+                "map10": [
+                    {
+                        **common,
+                        "claim": "qmix beats greedy",
+                        "above": ["qmix"],
+                        "below": ["greedy (heuristic)"],
+                        "ours": True,
+                    },
+                    {
+                        **common,
+                        "claim": "vdn beats greedy",
+                        "above": ["vdn"],
+                        "below": ["greedy (heuristic)"],
+                    },
+                    {**common, "claim": "emc beats qmix", "above": ["emc"], "below": ["qmix"]},
+                ]
+            }
+        )
+    )
+    out = tmp_path / "report"
+    assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
+    rows = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
+    verdicts = {r[1].strip(): r[4].strip() for r in rows}
+    assert verdicts["qmix beats greedy"].startswith("**yes**: every comparison significant")  # our question
+    assert verdicts["vdn beats greedy"].startswith(
+        "**not shown**: vdn against greedy (heuristic) within noise"
+    )
+    assert verdicts["emc beats qmix"] == "**not run**: no runs of emc"
+    assert "qmix 52.00 ± 1.00 (3)" in rows[0][3]  # (50 + 52) / 2 + seed, averaged over the seeds
+
+
+def test_a_bad_claims_file_is_one_line(tmp_path: Path) -> None:
+    make_run(tmp_path / "runs", "qmix_0")
+    bad = tmp_path / "claims.yaml"
+    bad.write_text("map10: [{claim: x}]")
+    with pytest.raises(
+        SystemExit, match=r"mcrs-report: error: --claims: .*map10\[0\]: missing field 'source'"
+    ):
+        report_main([str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--claims", str(bad)])
+
+
+def test_a_pattern_claim_on_evaluations_of_trained_policies(tmp_path: Path) -> None:
+    """``trained *`` stands for every trained policy of an evaluation-only report; each trained run is
+    one number (its mean over the evaluation seeds)."""
+    evals = tmp_path / "evals"
+    for seed in range(3):
+        make_evaluation(evals, f"greedy_{seed}", "greedy", 5.0, seed, found=4 + 0.1 * seed)  # 40, 41, 42
+        for run, found in (("qmix_seed0", 5.0), ("qmix_seed1", 5.2)):  # 50 and 52 on every seed
+            make_evaluation(evals, f"{run}_{seed}", f"outputs/x/{run}", 5.0, seed, found=found)
+    claims = tmp_path / "claims.yaml"
+    entry = {"claim": "a trained policy beats greedy", "source": "ours", "paper": "-", "ours": True}
+    entry |= {"metric": "episode_reward", "quantifier": "any", "above": ["trained *"]}
+    claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
+    out = tmp_path / "report"
+    assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
+    (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
+    assert "on the same fixed episodes: trained qmix 51.00 ± 1.41 (2)" in row[3]
+    assert row[4].strip().startswith("**yes**: significantly higher: trained qmix (p = ")
+
+    entry["above"] = ["trained vdn*"]  # matches nothing: the pattern is reported as not run
+    claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
+    assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
+    assert "**not run**: no runs of trained vdn*" in (out / "claims.md").read_text()
