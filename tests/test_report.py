@@ -376,3 +376,16 @@ def test_marl_eval_export_has_marl_evals_structure(tmp_path: Path) -> None:
     assert run1["absolute_metrics"]["episode_reward"] == [31.0]
     assert "step_count" not in run1["absolute_metrics"]
     assert list(data["mcrs"]["map10"]["vdn"]["run_0"]) == ["step_0", "step_1", "absolute_metrics"]
+
+
+def test_a_seed_stopped_short_is_left_out_of_its_method_until_resumed(tmp_path: Path) -> None:
+    """A campaign run stopped at a session's end must not drag its finished seeds back to its steps."""
+    for seed in range(2):
+        make_run(tmp_path, f"qmix_{seed}", seed=seed, reward=[0, 10, 20, 30 + seed])
+    make_run(tmp_path, "qmix_2", seed=2, steps=STEPS[:2], reward=[0, 5])  # stopped at 10k
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out)]) == 0
+    (row,) = read_csv(out / "final.csv")
+    assert row["seeds"] == "2" and row["env_steps"] == "30000"
+    assert float(row["episode_reward_mean"]) == pytest.approx(30.5)
+    assert "stopped at 10,000 env steps, short of its method's 30,000" in (out / "report.md").read_text()

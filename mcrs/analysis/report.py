@@ -150,9 +150,33 @@ def _final_table(rows: list[dict[str, object]]) -> str:
     return markdown(header, table)
 
 
+def _drop_short_seeds(groups: dict[str, list[TrainingRun]], skipped: list[Skipped]) -> None:
+    """Leave out of a method the seeds that stopped short of its longest one (a campaign's run stopped
+    at a session's end): averaged on the steps every seed logged, one seed stopped at 10k steps would
+    hide the finished ones. They are listed as skipped until they are resumed."""
+    for label, members in groups.items():
+        last = {}
+        for run in members:
+            found = run.scalar("eval/episode_reward")
+            last[run.path] = int(found[0][-1]) if found is not None and len(found[0]) else 0
+        longest = max(last.values())
+        kept = [run for run in members if last[run.path] >= longest]
+        for run in members:
+            if last[run.path] < longest:
+                skipped.append(
+                    Skipped(
+                        run.path,
+                        f"{label}: stopped at {last[run.path]:,} env steps, short of its "
+                        f"method's {longest:,}: left out until it is resumed",
+                    )
+                )
+        groups[label] = kept
+
+
 def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     runs = report.runs
     groups, order = _groups(runs.training)
+    _drop_short_seeds(groups, runs.skipped)
     finals = {m: aggregate(groups, m, runs.skipped if m in CURVE_METRICS else []) for m in FINAL_METRICS}
     panels = {name: finals[metric] for metric, name in CURVE_METRICS.items()}
     order = [label for label in order if label in panels["episode reward"]]
