@@ -5,7 +5,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from mcrs.analysis.curves import Curve, Reference, plot_curves
+from mcrs.analysis.curves import Curve, Reference, _zoom, plot_curves
 
 
 def test_legend_says_seeds_for_learners_and_episodes_for_heuristics(tmp_path: Path, monkeypatch) -> None:
@@ -26,3 +26,16 @@ def test_legend_says_seeds_for_learners_and_episodes_for_heuristics(tmp_path: Pa
     assert "seeds in brackets" not in fig._suptitle.get_text()
     monkeypatch.undo()
     plt.close(fig)
+
+
+def test_y_limits_ignore_the_untrained_first_evaluations() -> None:
+    """A map20 run's evaluation at 10k steps (-250) must not flatten curves that live around 300."""
+    steps = np.arange(0, 1_010_000, 10_000)
+    mean = np.full(len(steps), 300.0)
+    mean[:2] = [-1000.0, -250.0]  # step 0 and 10k: inside the first 5 % of the steps
+    curve = Curve("qmix", steps, mean, np.zeros(len(steps)), np.zeros(len(steps)), mean[None])
+    fig, ax = plt.subplots()
+    _zoom(ax, [curve], [250.0])
+    low, high = ax.get_ylim()
+    plt.close(fig)
+    assert 250.0 > low > 200.0 and 300.0 < high < 310.0  # the reference level and the curve, a margin

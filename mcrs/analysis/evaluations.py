@@ -39,11 +39,12 @@ def heuristic_samples(
 def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
     """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
     rows = []
+    names = [metric.split("/")[-1] for metric in FINAL_METRICS]
+    samples = {name: heuristic_samples(evaluations, comm_range, name) for name in names}
     for policy, group in _heuristics(evaluations, comm_range).items():
         row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
-        for metric in FINAL_METRICS:
-            name = metric.split("/")[-1]
-            values = heuristic_samples(evaluations, comm_range, name)[f"{policy} (heuristic)"]
+        for name in names:
+            values = samples[name][f"{policy} (heuristic)"]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
@@ -90,11 +91,12 @@ def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
     """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
     mean and std over the runs (training seeds)."""
     rows = []
+    names = [metric.split("/")[-1] for metric in FINAL_METRICS]
+    samples = {name: trained_samples(evaluations, name) for name in names}
     for method, runs in _trained_groups(evaluations).items():
         row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
-        for metric in FINAL_METRICS:
-            name = metric.split("/")[-1]
-            values = trained_samples(evaluations, name)[method]
+        for name in names:
+            values = samples[name][method]
             row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
             row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
