@@ -272,3 +272,99 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         with pytest.raises(SystemExit, match="another mcrs-campaign run uses"):
             campaign_main(["run", *args, "--hours", "3"])
+
+
+EVALUATION = """
+evaluations:
+  shield:
+    of: [figa]
+    heuristics: [greedy]
+    episodes: 2
+    seeds: [0, 1]
+    variants:
+      "on": [env.no_fly_shield=true]
+      "off": [env.no_fly_shield=false]
+"""
+
+
+def test_the_section6_file_evaluates_figure_7_with_and_without_the_shield() -> None:
+    from mcrs.campaign.evaluations import load_evaluations
+    from mcrs.campaign.matrix import DEFAULT_MATRIX
+
+    _, titles = load_matrix()
+    (shield,) = load_evaluations(DEFAULT_MATRIX, set(titles))
+    assert (shield.name, shield.of, shield.heuristics, shield.episodes) == (
+        "shield",
+        ("fig7",),
+        ("greedy",),
+        32,
+    )
+    assert dict(shield.variants) == {"on": ("env.no_fly_shield=true",), "off": ("env.no_fly_shield=false",)}
+
+
+def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS + EVALUATION)
+    finished, unfinished = load_matrix(matrix)[0]
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    assert campaign_main(["run", *args, "--hours", "1", "--only", finished.id, "--no-evaluate"]) == 0
+    assert read_record(finished.record_path(records))["status"] == "finished"
+    assert not records.joinpath("shield").exists()  # --no-evaluate: trained and recorded only
+    capsys.readouterr()
+    assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[0] == f"not evaluated: {unfinished.id}: no record of a finished run"
+    assert [line.split(":")[0] for line in plan[1:]] == [
+        "evaluate shield/on greedy",
+        f"evaluate shield/on {finished.id}",
+        "evaluate shield/off greedy",
+        f"evaluate shield/off {finished.id}",
+    ]
+    assert "env=map10 env.comm_range=0 env.no_fly_shield=false episodes=2 seed=0,1 figures=false" in plan[-1]
+    assert not records.joinpath("shield").exists()  # a dry run runs nothing
+    assert campaign_main(["evaluate", *args]) == 0
+    out = capsys.readouterr().out
+    assert "evaluations: 4 run, 0 failed, 1 points not evaluated" in out
+    for variant, shield in (("on", True), ("off", False)):
+        folder = records / "shield" / variant / "eval" / "map10"
+        names = sorted(p.name for p in folder.glob("*.json"))
+        assert names == [
+            "greedy_rc5_seed0.json",
+            "greedy_rc5_seed1.json",
+            f"trained-qmix-{finished.name}_rc0_seed0.json",  # at the R_c it was trained with
+            f"trained-qmix-{finished.name}_rc0_seed1.json",
+        ], names
+        for path in folder.glob("*.json"):
+            record = read_record(path)
+            assert record["config"]["env"]["no_fly_shield"] is shield and record["config"]["episodes"] == 2
+        trained = read_record(folder / f"trained-qmix-{finished.name}_rc0_seed1.json")
+        assert trained["policy"] == str(finished.run_dir(outputs)) and trained["rows"][0]["seed"] == 1
+    # The shield keeps the UAVs out of the no-fly zones: no violation with it, on the same episodes.
+    on = read_record(records / "shield/on/eval/map10" / f"trained-qmix-{finished.name}_rc0_seed0.json")
+    assert on["rows"][0]["means"]["no_fly_violations"] == 0
+    assert campaign_main(["evaluate", *args]) == 0  # everything recorded: nothing runs again
+    out = capsys.readouterr().out
+    assert "evaluations: 0 run, 0 failed, 1 points not evaluated" in out
+    assert f"recorded: shield/off {finished.id}" in out
+    # `run` evaluates each run that finishes, as the file asks
+    assert campaign_main(["run", *args, "--hours", "1", "--only", unfinished.id]) == 0
+    out = capsys.readouterr().out
+    assert f"evaluated shield/on {unfinished.id}:" in out and f"evaluated shield/off {unfinished.id}:" in out
+    assert "greedy" not in out  # already recorded on this map
+    for variant in ("on", "off"):
+        folder = records / "shield" / variant / "eval" / "map10"
+        assert len(list(folder.glob(f"trained-qmix-{unfinished.name}_rc2_seed[01].json"))) == 2
+    with pytest.raises(SystemExit, match=r"--evaluation=nope: allowed values are shield"):
+        campaign_main(["evaluate", *args, "--evaluation", "nope"])
+    matrix.write_text(TWO_POINTS + EVALUATION.replace("of: [figa]", "of: [fig7]"))
+    with pytest.raises(
+        SystemExit, match=r"evaluation shield: of=\['fig7'\]: name figures of the file \(figa\)"
+    ):
+        campaign_main(["evaluate", *args])
+    matrix.write_text(TWO_POINTS + EVALUATION.replace("episodes: 2", "episodes: 0"))
+    with pytest.raises(SystemExit, match=r"evaluation shield: episodes=0: a whole number >= 1"):
+        campaign_main(["evaluate", *args])
+    matrix.write_text(TWO_POINTS + EVALUATION.replace('"on"', "on"))
+    with pytest.raises(SystemExit, match=r"evaluation shield: variant True: not a name \(YAML reads"):
+        campaign_main(["evaluate", *args])

@@ -2,6 +2,7 @@
 
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
+    mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
 
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from mcrs.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs.analysis.tables import markdown
+from mcrs.campaign.evaluations import Evaluation, evaluate, load_evaluations
 from mcrs.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs.campaign.progress import STATES
 from mcrs.campaign.runner import Campaign, CampaignBusy
@@ -49,6 +51,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
     run.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
     run.add_argument("--keep-replay", action="store_true", help="do not prune finished runs' last.pt")
+    run.add_argument(
+        "--no-evaluate", action="store_true", help="do not run the file's evaluations of finished runs"
+    )
+    evaluation = sub.add_parser(
+        "evaluate", help="run the campaign file's evaluations of finished policies not yet recorded"
+    )
+    matrix_options(evaluation)
+    evaluation.add_argument(
+        "--evaluation", action="append", default=[], help="only these evaluations (default: all)"
+    )
+    evaluation.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
     record = sub.add_parser("record", help="record mcrs-train runs or mcrs-eval results")
     record.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     record.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
@@ -91,11 +104,33 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.hours <= 0:
         raise SystemExit(f"mcrs-campaign: error: --hours={args.hours}: must be > 0")
     points, total = _points(args)
-    campaign = Campaign(points, args.outputs, args.records, total, args.jobs, prune=not args.keep_replay)
+    evaluations = [] if args.no_evaluate else _evaluations(args)
+    campaign = Campaign(
+        points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations
+    )
     if args.dry_run:
         print("\n".join(campaign.dry_run(args.hours)))
         return 0
     return campaign.run(args.hours)
+
+
+def _evaluations(args: argparse.Namespace) -> list[Evaluation]:
+    """The campaign file's evaluations, only those named by ``--evaluation`` if given."""
+    _, titles = load_matrix(args.matrix)
+    evaluations = load_evaluations(args.matrix, set(titles))
+    names = [e.name for e in evaluations]
+    chosen = getattr(args, "evaluation", [])
+    unknown = [n for n in chosen if n not in names]
+    if unknown:
+        raise MatrixError(
+            f"--evaluation={','.join(unknown)}: allowed values are {', '.join(names) or 'none'}"
+        )
+    return [e for e in evaluations if not chosen or e.name in chosen]
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    points, _ = _points(args)
+    return evaluate(_evaluations(args), points, args.outputs, args.records, args.dry_run)
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -156,9 +191,14 @@ def cmd_report(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"status": cmd_status, "run": cmd_run, "record": cmd_record, "report": cmd_report}[
-            args.command
-        ](args)
+        commands = {
+            "status": cmd_status,
+            "run": cmd_run,
+            "evaluate": cmd_evaluate,
+            "record": cmd_record,
+            "report": cmd_report,
+        }
+        return commands[args.command](args)
     except (MatrixError, CampaignBusy) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None
 

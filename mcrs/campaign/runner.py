@@ -4,7 +4,9 @@ resumed first, no new start that the time budget cannot hold, a record of every 
 Each child runs in its own session (process group), with one torch thread, its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
 exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
-recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them.
+recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them. A run that
+finishes is then evaluated as the campaign file's ``evaluations:`` ask (mcrs.campaign.evaluations),
+while the other jobs go on.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from mcrs.analysis.records import (
     write_record,
 )
 from mcrs.analysis.runs import read_record
+from mcrs.campaign.evaluations import Evaluation, plan, run_pending
 from mcrs.campaign.matrix import Point
 from mcrs.campaign.progress import Progress, progress
 from mcrs.experiment import checkpoint as ckpt
@@ -75,9 +78,11 @@ class Campaign:
         total_env_steps: int,
         jobs: int = 2,
         prune: bool = True,
+        evaluations: list[Evaluation] | None = None,
     ) -> None:
         self.points, self.outputs, self.records = points, outputs, records
         self.total, self.jobs, self.prune = total_env_steps, jobs, prune
+        self.evaluations = evaluations or []
         self.stop_signal: int | None = None
 
     def status(self) -> list[Progress]:
@@ -264,12 +269,16 @@ class Campaign:
             _print(f"not recorded: {point.id}: {error}")
             return
         _print(f"{outcome} {path} ({record['status']} at {record['checkpoint_env_steps']} env steps)")
-        if self.prune and record["status"] == "finished":
+        if record["status"] != "finished":
+            return
+        if self.prune:
             before, after = ckpt.prune_bulk(run_dir)
             if after < before:
                 _print(
                     f"pruned {ckpt.checkpoint_path(run_dir)}: {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB"
                 )
+        if self.evaluations and self.stop_signal is None:
+            run_pending(plan(self.evaluations, [point], self.records)[0], self.outputs, self.records)
 
     def _stop(self, running: list[Job]) -> None:
         for job in running:

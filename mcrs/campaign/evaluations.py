@@ -1,0 +1,232 @@
+"""Evaluations of the campaign's finished policies (``mcrs-campaign evaluate``).
+
+A question asked of trained policies after training, such as "does the no-fly shield at test time make
+a learner beat the greedy heuristic?", is a named entry under ``evaluations:`` of the campaign file: the
+figures whose finished points it evaluates, the heuristics evaluated beside them, the episodes and
+evaluation seeds, and its variants (each a list of ``mcrs-eval`` overrides). Each (variant, policy) is
+one ``mcrs-eval -m`` over the seeds on the point's map; each seed's result is recorded under
+
+    <records>/<evaluation>/<variant>/eval/<map>/<policy>_rc<R_c>_seed<k>.json
+
+(mcrs.analysis.records.evaluation_record_path), so what is already recorded is skipped and the committed
+records alone make the evaluation's tables (``mcrs-report <records>/<evaluation>/<variant>/eval/<map>``).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from mcrs.analysis.records import RecordError, make_record, write_record
+from mcrs.analysis.runs import is_heuristic_policy, read_record
+from mcrs.campaign.matrix import MatrixError, Point
+from mcrs.experiment import checkpoint as ckpt
+
+EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One ``evaluations:`` entry of the campaign file."""
+
+    name: str
+    title: str
+    of: tuple[str, ...]  # figures whose finished points are evaluated
+    heuristics: tuple[str, ...]
+    episodes: int
+    seeds: tuple[int, ...]
+    variants: tuple[tuple[str, tuple[str, ...]], ...]  # (variant, its mcrs-eval overrides)
+
+
+@dataclass(frozen=True)
+class EvaluationJob:
+    """One ``mcrs-eval -m`` over an evaluation's seeds: one policy, one variant, one map."""
+
+    evaluation: Evaluation
+    variant: str
+    overrides: tuple[str, ...]
+    env: str
+    policy: str  # a heuristic's name or a finished run's directory
+    label: str  # the point id, or the heuristic's name
+    settings: tuple[str, ...] = ()  # the point's swept env fields: evaluated where it was trained
+
+    @property
+    def run_name(self) -> str:
+        """The name records of this policy carry: the heuristic, or the run directory's name."""
+        return self.policy if is_heuristic_policy(self.policy) else Path(self.policy).name
+
+    def records_dir(self, records: Path) -> Path:
+        return records / self.evaluation.name / self.variant
+
+    def recorded(self, records: Path) -> bool:
+        """Whether every evaluation seed already has its record (any R_c: the map's own)."""
+        folder = self.records_dir(records) / "eval" / self.env
+        prefix = self.run_name if is_heuristic_policy(self.policy) else f"*-{self.run_name}"
+        return all(any(folder.glob(f"{prefix}_rc*_seed{seed}.json")) for seed in self.evaluation.seeds)
+
+    def sweep_dir(self, outputs: Path) -> Path:
+        return outputs / "evaluations" / self.evaluation.name / self.variant / self.label.replace("/", "_")
+
+    def command(self, outputs: Path) -> list[str]:
+        seeds = ",".join(str(s) for s in self.evaluation.seeds)
+        return [
+            sys.executable,
+            "-m",
+            "mcrs.evaluate",
+            "-m",
+            f"policy={self.policy}",
+            f"env={self.env}",
+            *self.settings,
+            *self.overrides,
+            f"episodes={self.evaluation.episodes}",
+            f"seed={seeds}",
+            "figures=false",
+            f"hydra.sweep.dir={self.sweep_dir(outputs)}",
+        ]
+
+
+def _as_tuple(value: Any) -> tuple[Any, ...]:
+    return tuple(value) if isinstance(value, (list, tuple)) else (value,)
+
+
+def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
+    """The ``evaluations:`` entries of the campaign file ``path`` (none: an empty list)."""
+    spec = OmegaConf.to_container(OmegaConf.load(path)).get("evaluations") or {}
+    out = []
+    for name, entry in spec.items():
+        where = f"{path}: evaluation {name}"
+        unknown = set(entry) - EVALUATION_KEYS
+        if unknown:
+            raise MatrixError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(EVALUATION_KEYS)}")
+        of = tuple(str(f) for f in _as_tuple(entry.get("of", ())))
+        bad = [f for f in of if f not in figures]
+        if not of or bad:
+            raise MatrixError(
+                f"{where}: of={list(of)}: name figures of the file ({', '.join(sorted(figures))})"
+            )
+        variants = entry.get("variants") or {}
+        if not isinstance(variants, dict) or not variants:
+            raise MatrixError(
+                f"{where}: variants: a mapping of names to mcrs-eval overrides, e.g. {{on: [...]}}"
+            )
+        for variant in variants:
+            if not isinstance(variant, str):
+                raise MatrixError(
+                    f"{where}: variant {variant!r}: not a name (YAML reads a bare on/off/yes/no as true/false: "
+                    "quote it)"
+                )
+        episodes = entry.get("episodes", 32)
+        if not isinstance(episodes, int) or episodes < 1:
+            raise MatrixError(f"{where}: episodes={episodes!r}: a whole number >= 1")
+        out.append(
+            Evaluation(
+                name=str(name),
+                title=str(entry.get("title", name)),
+                of=of,
+                heuristics=tuple(str(h) for h in _as_tuple(entry.get("heuristics", ()))),
+                episodes=episodes,
+                seeds=tuple(int(s) for s in _as_tuple(entry.get("seeds", (0,)))),
+                variants=tuple(
+                    (str(v), tuple(str(o) for o in _as_tuple(ov or ()))) for v, ov in variants.items()
+                ),
+            )
+        )
+    return out
+
+
+def plan(
+    evaluations: list[Evaluation], points: list[Point], records: Path
+) -> tuple[list[EvaluationJob], list[str]]:
+    """The jobs for the selected points (a point counts once it has a record of a finished run whose
+    directory is still here) and each map's heuristics; and a line for each point left out, saying why."""
+    jobs: list[EvaluationJob] = []
+    left_out: list[str] = []
+    for evaluation in evaluations:
+        chosen = [p for p in points if set(p.figures) & set(evaluation.of)]
+        policies: list[tuple[str, str, str, tuple[str, ...]]] = []  # (map, policy, label, settings)
+        for env in dict.fromkeys(p.env for p in chosen):
+            policies += [(env, h, h, ()) for h in evaluation.heuristics]
+        for point in chosen:
+            record_path = point.record_path(records)
+            record = read_record(record_path) if record_path.is_file() else None
+            if record is None or record.get("status") != "finished":
+                left_out.append(f"not evaluated: {point.id}: no record of a finished run")
+                continue
+            run_dir = Path(record["run_dir"])
+            if not ckpt.checkpoint_path(run_dir).is_file():
+                left_out.append(f"not evaluated: {point.id}: its run directory {run_dir} is not here")
+                continue
+            settings = tuple(f"{k}={v}" for k, v in point.settings if k.startswith("env."))
+            policies.append((point.env, str(run_dir), point.id, settings))
+        for variant, overrides in evaluation.variants:
+            jobs += [EvaluationJob(evaluation, variant, overrides, *policy) for policy in policies]
+    return jobs, left_out
+
+
+def run_job(job: EvaluationJob, outputs: Path, records: Path) -> list[str]:
+    """Run one job and record each seed's result; returns the lines to print. The sweep folder is this
+    job's own: an earlier attempt's is replaced."""
+    sweep = job.sweep_dir(outputs)
+    if sweep.exists():
+        shutil.rmtree(sweep)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    done = subprocess.run(job.command(outputs), capture_output=True, text=True, env=env)
+    if done.returncode != 0:
+        tail = (done.stdout + done.stderr).strip().splitlines()[-5:]
+        raise RecordError(f"mcrs-eval exited {done.returncode}:\n  " + "\n  ".join(tail))
+    lines = []
+    for result in sorted(p.parent for p in sweep.glob("*/metrics.csv")):
+        path, record = make_record(result, job.records_dir(records))
+        lines.append(f"  {write_record(path, record)} {path}")
+    if len(lines) != len(job.evaluation.seeds):
+        raise RecordError(f"{sweep}: {len(lines)} results for {len(job.evaluation.seeds)} seeds")
+    return lines
+
+
+def run_pending(
+    jobs: list[EvaluationJob], outputs: Path, records: Path, dry_run: bool = False
+) -> tuple[int, int]:
+    """Run each job not yet recorded, one at a time (a failure is printed, the others still run);
+    returns (run, failed). A dry run prints the commands instead."""
+    ran = failed = 0
+    for job in jobs:
+        what = f"{job.evaluation.name}/{job.variant} {job.label}"
+        if job.recorded(records):
+            continue
+        if dry_run:
+            print(f"evaluate {what}: {shlex.join(job.command(outputs))}", flush=True)
+            continue
+        try:
+            lines = run_job(job, outputs, records)
+        except (RecordError, ckpt.CheckpointError) as error:
+            print(f"failed: {what}: {error}", flush=True)
+            failed += 1
+            continue
+        ran += 1
+        print(f"evaluated {what}:", *lines, sep="\n", flush=True)
+    return ran, failed
+
+
+def evaluate(
+    evaluations: list[Evaluation], points: list[Point], outputs: Path, records: Path, dry_run: bool = False
+) -> int:
+    """``mcrs-campaign evaluate``: every job of the selected points not yet recorded; 0, or 1 if one
+    failed."""
+    jobs, left_out = plan(evaluations, points, records)
+    for line in left_out:
+        print(line, flush=True)
+    for job in jobs:
+        if job.recorded(records):
+            print(f"recorded: {job.evaluation.name}/{job.variant} {job.label}", flush=True)
+    ran, failed = run_pending(jobs, outputs, records, dry_run)
+    if not dry_run:
+        print(f"evaluations: {ran} run, {failed} failed, {len(left_out)} points not evaluated", flush=True)
+    return 1 if failed else 0
