@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrs.analysis.doc_tables import DocTableError, check, find_tables, main, update
+from mcrs.analysis.doc_tables import DocTableError, check, find_blocks, main, update
 
 RECORDS = Path("results/records/heuristics/map20")  # three greedy/lawnmower/random evaluations, committed
 COMMAND = f"mcrs-report {RECORDS} --env map20"
@@ -32,7 +32,7 @@ def test_update_writes_the_records_table_and_check_then_agrees(tmp_path: Path) -
     assert check(doc)  # the stale body differs
     assert update(doc) == 1
     text = doc.read_text()
-    (table,) = find_tables(text)
+    (table,) = find_blocks(text)
     assert "| greedy (heuristic)" in table.body and "306.61 ± 2.00" in table.body
     assert text.startswith("# R\n\nbefore\n\n<!-- table evaluations.md") and text.endswith(
         "<!-- end table -->\n\nafter\n"
@@ -112,7 +112,7 @@ def test_results_md_agrees_with_the_committed_records() -> None:
     """The issue's proof: every generated table of docs/RESULTS.md is what mcrs-report makes of the
     committed records alone (no run directories)."""
     doc = Path("docs/RESULTS.md")
-    assert len(find_tables(doc.read_text())) >= 7
+    assert len(find_blocks(doc.read_text())) >= 7
     assert check(doc) == []
 
 

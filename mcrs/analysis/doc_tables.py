@@ -53,8 +53,8 @@ class DocTableError(Exception):
 
 
 @dataclass(frozen=True)
-class Table:
-    """One generated table (or figure) of a document: where it is, what makes it, what the document holds
+class Block:
+    """One generated table or figure of a document: where it is, what makes it, what the document holds
     now (a figure: its image line, whose file is ``image``)."""
 
     line: int
@@ -67,9 +67,9 @@ class Table:
     image: str = ""  # a figure's image path, relative to the document
 
 
-def find_tables(text: str) -> list[Table]:
-    """The generated tables of ``text``, in order. Refuses a ``--out`` (the tool chooses the folder)."""
-    tables = []
+def find_blocks(text: str) -> list[Block]:
+    """The generated tables and figures of ``text``, in order. Refuses a ``--out`` (the tool chooses the folder)."""
+    blocks = []
     for match in BLOCK.finditer(text):
         line = text.count("\n", 0, match.start()) + 1
         try:
@@ -85,8 +85,8 @@ def find_tables(text: str) -> list[Table]:
         image = IMAGE.search(match["body"]) if match["kind"] == "figure" else None
         if match["kind"] == "figure" and image is None:
             raise DocTableError(f"line {line}: a figure block needs an image line ![...](<path>.png)")
-        tables.append(
-            Table(
+        blocks.append(
+            Block(
                 line,
                 match["file"],
                 args,
@@ -97,7 +97,7 @@ def find_tables(text: str) -> list[Table]:
                 image["path"] if image else "",
             )
         )
-    return tables
+    return blocks
 
 
 def _root(doc: Path) -> Path:
@@ -117,32 +117,32 @@ def _inside(folder: Path) -> Iterator[None]:
         os.chdir(before)
 
 
-def generate(tables: list[Table], root: Path) -> dict[Table, str | bytes]:
+def generate(blocks: list[Block], root: Path) -> dict[Block, str | bytes]:
     """Each table as ``mcrs-report`` writes it now, and each figure's PNG bytes (each distinct command
     runs once, quietly)."""
     made: dict[tuple[str, ...], Path] = {}
-    out: dict[Table, str | bytes] = {}
+    out: dict[Block, str | bytes] = {}
     with tempfile.TemporaryDirectory(prefix="mcrs-results-") as tmp, _inside(root):
-        for table in tables:
-            if table.args not in made:
+        for block in blocks:
+            if block.args not in made:
                 folder = Path(tmp) / str(len(made))
                 try:
                     with contextlib.redirect_stdout(io.StringIO()):
-                        report.main([*table.args, "--out", str(folder)])
+                        report.main([*block.args, "--out", str(folder)])
                 except SystemExit as error:
                     raise DocTableError(
-                        f"line {table.line}: mcrs-report {shlex.join(table.args)}: {error}"
+                        f"line {block.line}: mcrs-report {shlex.join(block.args)}: {error}"
                     ) from None
-                made[table.args] = folder
-            path = made[table.args] / table.file
+                made[block.args] = folder
+            path = made[block.args] / block.file
             if not path.is_file():
-                suffix = Path(table.file).suffix
-                written = sorted(p.name for p in made[table.args].glob(f"*{suffix}") if p.name != "report.md")
+                suffix = Path(block.file).suffix
+                written = sorted(p.name for p in made[block.args].glob(f"*{suffix}") if p.name != "report.md")
                 raise DocTableError(
-                    f"line {table.line}: mcrs-report {shlex.join(table.args)} writes no {table.file}; "
-                    f"it writes: {', '.join(written) or 'no ' + table.kind}"
+                    f"line {block.line}: mcrs-report {shlex.join(block.args)} writes no {block.file}; "
+                    f"it writes: {', '.join(written) or 'no ' + block.kind}"
                 )
-            out[table] = path.read_bytes() if table.kind == "figure" else path.read_text()
+            out[block] = path.read_bytes() if block.kind == "figure" else path.read_text()
     return out
 
 
@@ -168,22 +168,22 @@ def check(doc: Path) -> list[str]:
         f"{doc}:{line}: a table or figure outside the generated blocks: not made from the records\n"
         for line in hand_made(text)
     ]
-    for table, fresh in generate(find_tables(text), _root(doc)).items():
+    for block, fresh in generate(find_blocks(text), _root(doc)).items():
         if isinstance(fresh, bytes):
-            image = doc.parent / table.image
+            image = doc.parent / block.image
             if not image.is_file() or image.read_bytes() != fresh:
                 state = "differs from" if image.is_file() else "is missing; it should be"
                 diffs.append(
-                    f"{doc}:{table.line}: figure {table.image} {state} the {table.file} of "
-                    f"mcrs-report {shlex.join(table.args)}\n"
+                    f"{doc}:{block.line}: figure {block.image} {state} the {block.file} of "
+                    f"mcrs-report {shlex.join(block.args)}\n"
                 )
             continue
-        if fresh != table.body:
+        if fresh != block.body:
             lines = difflib.unified_diff(
-                table.body.splitlines(keepends=True),
+                block.body.splitlines(keepends=True),
                 fresh.splitlines(keepends=True),
-                f"{doc}:{table.line} ({table.file}, as committed)",
-                f"mcrs-report {shlex.join(table.args)}",
+                f"{doc}:{block.line} ({block.file}, as committed)",
+                f"mcrs-report {shlex.join(block.args)}",
             )
             diffs.append("".join(lines))
     return diffs
@@ -193,21 +193,21 @@ def update(doc: Path) -> int:
     """Rewrite every generated table of ``doc``, and every generated figure's image, from the records
     (each file atomically, and nothing when one cannot be made); how many changed."""
     text = doc.read_text()
-    tables = find_tables(text)
-    fresh = generate(tables, _root(doc))
+    blocks = find_blocks(text)
+    fresh = generate(blocks, _root(doc))
     changed = 0
-    for table in reversed(tables):  # from the end, so the earlier offsets stay valid
-        made = fresh[table]
+    for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
+        made = fresh[block]
         if isinstance(made, bytes):
-            image = doc.parent / table.image
+            image = doc.parent / block.image
             if not image.is_file() or image.read_bytes() != made:
                 image.parent.mkdir(parents=True, exist_ok=True)
                 partial = image.with_name(f".{image.name}.partial")
                 partial.write_bytes(made)
                 os.replace(partial, image)
                 changed += 1
-        elif made != table.body:
-            text = text[: table.start] + made + text[table.end :]
+        elif made != block.body:
+            text = text[: block.start] + made + text[block.end :]
             changed += 1
     if changed:
         partial = doc.with_name(f".{doc.name}.partial")
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         text = args.doc.read_text()
-        n, hand = len(find_tables(text)), len(hand_made(text))
+        n, hand = len(find_blocks(text)), len(hand_made(text))
         if args.action == "update":
             print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
             return 0
