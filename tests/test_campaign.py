@@ -365,6 +365,9 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     matrix.write_text(TWO_POINTS + EVALUATION.replace("episodes: 2", "episodes: 0"))
     with pytest.raises(SystemExit, match=r"evaluation shield: episodes=0: a whole number >= 1"):
         campaign_main(["evaluate", *args])
+    matrix.write_text(TWO_POINTS + EVALUATION.replace("seeds: [0, 1]", "seeds: [zero]"))
+    with pytest.raises(SystemExit, match=r"evaluation shield: seeds=\['zero'\]: whole numbers >= 0"):
+        campaign_main(["evaluate", *args])
     matrix.write_text(TWO_POINTS + EVALUATION.replace('"on"', "on"))
     with pytest.raises(SystemExit, match=r"evaluation shield: variant True: not a name \(YAML reads"):
         campaign_main(["evaluate", *args])

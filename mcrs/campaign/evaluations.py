@@ -103,6 +103,8 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
     out = []
     for name, entry in spec.items():
         where = f"{path}: evaluation {name}"
+        if not isinstance(entry, dict):
+            raise MatrixError(f"{where}: a mapping with keys {sorted(EVALUATION_KEYS)}")
         unknown = set(entry) - EVALUATION_KEYS
         if unknown:
             raise MatrixError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(EVALUATION_KEYS)}")
@@ -115,7 +117,7 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
         variants = entry.get("variants") or {}
         if not isinstance(variants, dict) or not variants:
             raise MatrixError(
-                f"{where}: variants: a mapping of names to mcrs-eval overrides, e.g. {{on: [...]}}"
+                f'{where}: variants: a mapping of names to mcrs-eval overrides, e.g. {{"on": [...]}}'
             )
         for variant in variants:
             if not isinstance(variant, str):
@@ -123,9 +125,11 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                     f"{where}: variant {variant!r}: not a name (YAML reads a bare on/off/yes/no as true/false: "
                     "quote it)"
                 )
-        episodes = entry.get("episodes", 32)
+        episodes, seeds = entry.get("episodes", 32), _as_tuple(entry.get("seeds", (0,)))
         if not isinstance(episodes, int) or episodes < 1:
             raise MatrixError(f"{where}: episodes={episodes!r}: a whole number >= 1")
+        if not seeds or not all(isinstance(s, int) and s >= 0 for s in seeds):
+            raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers >= 0")
         out.append(
             Evaluation(
                 name=str(name),
@@ -133,7 +137,7 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                 of=of,
                 heuristics=tuple(str(h) for h in _as_tuple(entry.get("heuristics", ()))),
                 episodes=episodes,
-                seeds=tuple(int(s) for s in _as_tuple(entry.get("seeds", (0,)))),
+                seeds=tuple(seeds),
                 variants=tuple(
                     (str(v), tuple(str(o) for o in _as_tuple(ov or ()))) for v, ov in variants.items()
                 ),
