@@ -347,6 +347,11 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     out = capsys.readouterr().out
     assert "evaluations: 0 run, 0 failed, 1 points not evaluated" in out
     assert f"recorded: shield/off {finished.id}" in out
+    assert campaign_main(["status", *args]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "evaluation shield: 4 of 4 (policy, variant) evaluations recorded, 1 points not evaluable yet" in out
+    )
     # `run` evaluates each run that finishes, as the file asks
     assert campaign_main(["run", *args, "--hours", "1", "--only", unfinished.id]) == 0
     out = capsys.readouterr().out

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from mcrs.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs.analysis.tables import markdown
-from mcrs.campaign.evaluations import Evaluation, evaluate, load_evaluations
+from mcrs.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs.campaign.progress import STATES
 from mcrs.campaign.runner import Campaign, CampaignBusy
@@ -95,6 +95,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     print(
         f"\n{len(states)} points ({total:,} env steps each): " + ", ".join(f"{counts[k]} {k}" for k in STATES)
     )
+    for line in summary(_evaluations(args), points, args.records):
+        print(line)
     return 0
 
 

@@ -175,6 +175,21 @@ def plan(
     return jobs, left_out
 
 
+def summary(evaluations: list[Evaluation], points: list[Point], records: Path) -> list[str]:
+    """A line per evaluation for ``mcrs-campaign status``: how many of its evaluations are recorded."""
+    lines = []
+    for evaluation in evaluations:
+        jobs, left_out = plan([evaluation], points, records)
+        if not jobs and not left_out:
+            continue  # none of its figures is selected
+        done = sum(job.recorded(records) for job in jobs)
+        lines.append(
+            f"evaluation {evaluation.name}: {done} of {len(jobs)} (policy, variant) evaluations recorded, "
+            f"{len(left_out)} points not evaluable yet (mcrs-campaign evaluate --dry-run lists them)"
+        )
+    return lines
+
+
 def run_job(job: EvaluationJob, outputs: Path, records: Path) -> list[str]:
     """Run one job and record each seed's result; returns the lines to print. The sweep folder is this
     job's own: an earlier attempt's is replaced."""
