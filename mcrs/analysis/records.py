@@ -250,6 +250,12 @@ def evaluation_record(eval_dir: Path) -> dict[str, Any]:
     }
 
 
+def evaluation_record_name(policy: str, comm_range: str, seed: int | str) -> str:
+    """``greedy_rc5_seed0.json``, ``trained-qmix-<run dir name>_rc5_seed0.json``: the one naming rule
+    (``comm_range`` may be a glob's ``*``)."""
+    return f"{policy}_rc{comm_range}_seed{seed}.json"
+
+
 def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
     row = record["rows"][0]
     policy = record["policy"]
@@ -257,7 +263,8 @@ def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
         run = Path(policy)
         run = run.parent.parent if run.suffix == ".pt" else run
         policy = f"{(row['label'] or 'trained').replace(' ', '-')}-{run.name}"
-    return root / record["study"] / row["env"] / f"{policy}_rc{row['comm_range']:g}_seed{row['seed']}.json"
+    name = evaluation_record_name(policy, f"{row['comm_range']:g}", row["seed"])
+    return root / record["study"] / row["env"] / name
 
 
 def _threads(setting: object) -> object:

@@ -25,7 +25,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mcrs.analysis.records import RecordError, make_record, write_record
+from mcrs.analysis.records import RecordError, evaluation_record_name, make_record, write_record
 from mcrs.analysis.runs import is_heuristic_policy, read_record
 from mcrs.campaign.matrix import MatrixError, Point
 from mcrs.experiment import checkpoint as ckpt
@@ -70,7 +70,9 @@ class EvaluationJob:
         """Whether every evaluation seed already has its record (any R_c: the map's own)."""
         folder = self.records_dir(records) / "eval" / self.env
         prefix = self.run_name if is_heuristic_policy(self.policy) else f"*-{self.run_name}"
-        return all(any(folder.glob(f"{prefix}_rc*_seed{seed}.json")) for seed in self.evaluation.seeds)
+        return all(
+            any(folder.glob(evaluation_record_name(prefix, "*", seed))) for seed in self.evaluation.seeds
+        )
 
     def sweep_dir(self, outputs: Path) -> Path:
         return outputs / "evaluations" / self.evaluation.name / self.variant / self.label.replace("/", "_")
