@@ -93,7 +93,8 @@ def policy_names(policy: str) -> list[str]:
 def episode_metrics(
     env_config: EnvConfig, policy_name: str, episodes: int, seed: int, max_batch: int = MAX_BATCH
 ) -> dict[str, torch.Tensor]:
-    """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``."""
+    """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``, on the
+    CPU whatever the env's device (callers turn them into numpy arrays, CSV rows and figures)."""
     if episodes < 1:
         raise ValueError(f"episodes={episodes}: must be >= 1")
     batch = min(episodes, max_batch)
@@ -108,7 +109,7 @@ def episode_metrics(
             td = env.reset()
             for _ in range(cfg.max_steps):
                 td = env.step(policy(td).select(ACTION))["next"]
-            chunks.append(td.get("metrics").clone())
+            chunks.append(td.get("metrics").to("cpu").clone())  # clone: a CPU env reuses its buffers
     metrics = torch.cat(chunks)[:episodes]
     return {name: metrics.get(name) for name in METRICS}
 

@@ -1,5 +1,7 @@
 """Test-session settings."""
 
+from pathlib import Path
+
 import torch
 from hypothesis import settings
 
@@ -69,7 +71,8 @@ def pytest_collection_modifyitems(config, items) -> None:
         seen_tests.add(name)
         if item.path.name in SLOW_MODULES or name in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
-    whole_run = {"test_training.py", "test_env.py"} <= seen_modules  # only a full collection can judge
+    every_module = {path.name for path in Path(__file__).parent.glob("test_*.py")}
+    whole_run = every_module <= seen_modules  # only a collection of every module can judge
     stale = (SLOW_MODULES - seen_modules) | (SLOW_TESTS - seen_tests) if whole_run else set()
     if stale:
         raise pytest.UsageError(f"tests/conftest.py names slow tests that do not exist: {sorted(stale)}")

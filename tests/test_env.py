@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from mcrs.env import MCRSCore, MCRSEnv, scenario
+from tests.device_helpers import available_devices
 
 TABLE_2 = {  # map: (N, state dim, obs dim)
     "map10": (4, 226, 36),
@@ -367,11 +368,7 @@ def test_bad_scene_is_refused():
         scene_core([[1, 1], [1, 1]], [], [])
 
 
-def devices() -> list[str]:
-    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
-@pytest.mark.parametrize("device", devices())
+@pytest.mark.parametrize("device", available_devices())
 def test_runs_on_every_available_device(device):
     env = MCRSEnv("map10", num_envs=5, device=device)
     env.set_seed(0)

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from mcrs.env import METRICS, scenario
 from mcrs.env.config import from_mapping
 from mcrs.evaluate import CONFIG_DIR, episode_metrics, evaluate_policy, format_table, policy_names, run
+from tests.device_helpers import available_devices
 
 TINY = ["episodes=2", "figures=false", "env.max_steps=5"]
 
@@ -39,6 +40,16 @@ def test_episode_metrics_chunks_and_single_episode() -> None:
     assert evaluate_policy(cfg, "greedy", episodes=1, seed=0)["coverage"][1] == 0.0
     with pytest.raises(ValueError, match="episodes"):
         episode_metrics(cfg, "random", episodes=0, seed=0)
+
+
+@pytest.mark.parametrize("device", available_devices())
+def test_episode_metrics_come_back_on_the_cpu_from_any_env_device(device: str) -> None:
+    """CSV rows, numpy statistics and figures are made from them: an env on CUDA must not leak its device."""
+    cfg = scenario("map10", max_steps=6, device=device)
+    values = episode_metrics(cfg, "greedy", episodes=3, seed=0)
+    assert all(v.device.type == "cpu" and v.shape == (3,) for v in values.values())
+    assert values["uncertainty"].numpy().max() < cfg.n_cells  # a numpy view works
+    assert evaluate_policy(cfg, "greedy", episodes=3, seed=0)["coverage"][0] > 0
 
 
 def test_format_table_is_aligned_markdown() -> None:

@@ -10,10 +10,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from PIL import Image
 
 from mcrs.evaluate import METRIC_LABELS
 from mcrs.policies import POLICIES
+from tests.device_helpers import available_devices
 from tests.train_helpers import TINY, TINY_MEMORY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,13 +33,14 @@ def test_the_makefile_runs_the_quickstart_budget() -> None:
     assert "$(BIN)/mcrs-train budget=quickstart $(ARGS)" in makefile
 
 
-def test_quickstart_writes_table_curve_and_gif(tmp_path: Path) -> None:
+@pytest.mark.parametrize("device", available_devices())
+def test_quickstart_writes_table_curve_and_gif(device: str, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     steps = 120
     command = [
         sys.executable, "-m", "mcrs.train", "budget=quickstart", *TINY, *TINY_MEMORY,
         f"train.total_env_steps={steps}", f"train.checkpoint_interval={steps}", "train.eval_interval=40",
-        "train.eps_anneal_steps=80", "train.eval_episodes=3", f"hydra.run.dir={run_dir}",
+        "train.eps_anneal_steps=80", "train.eval_episodes=3", f"hydra.run.dir={run_dir}", f"device={device}",
     ]  # fmt: skip
     env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
     done = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
