@@ -352,6 +352,24 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     assert (
         "evaluation shield: 4 of 4 (policy, variant) evaluations recorded, 1 points not evaluable yet" in out
     )
+    # A fresh clone has the records, not the run directories: what is recorded still counts.
+    moved = tmp_path / "moved"
+    finished.run_dir(outputs).rename(moved)
+    assert campaign_main(["status", *args]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "evaluation shield: 4 of 4 (policy, variant) evaluations recorded, 1 points not evaluable yet" in out
+    )
+    off = records / "shield/off/eval/map10" / f"trained-qmix-{finished.name}_rc0_seed1.json"
+    off.unlink()  # a variant to evaluate again, and no run directory to evaluate
+    assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"not evaluated: {finished.id}: its run directory {finished.run_dir(outputs)} is not here" in out
+    assert f"recorded: shield/on {finished.id}" in out and f"shield/off {finished.id}" not in out
+    moved.rename(finished.run_dir(outputs))
+    assert campaign_main(["evaluate", *args]) == 0  # back: the variant missing a seed runs again
+    assert "evaluations: 1 run, 0 failed, 1 points not evaluated" in capsys.readouterr().out
+    assert off.is_file()
     # `run` evaluates each run that finishes, as the file asks
     assert campaign_main(["run", *args, "--hours", "1", "--only", unfinished.id]) == 0
     out = capsys.readouterr().out

@@ -151,8 +151,9 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
 def plan(
     evaluations: list[Evaluation], points: list[Point], records: Path
 ) -> tuple[list[EvaluationJob], list[str]]:
-    """The jobs for the selected points (a point counts once it has a record of a finished run whose
-    directory is still here) and each map's heuristics; and a line for each point left out, saying why."""
+    """The jobs for the selected points and each map's heuristics, and a line for each point left out,
+    saying why. A point counts once it has a record of a finished run; its run directory is needed only
+    for a variant not recorded yet (a fresh clone has the records, not the runs)."""
     jobs: list[EvaluationJob] = []
     left_out: list[str] = []
     for evaluation in evaluations:
@@ -166,15 +167,22 @@ def plan(
             if record is None or record.get("status") != "finished":
                 left_out.append(f"not evaluated: {point.id}: no record of a finished run")
                 continue
-            run_dir = Path(record["run_dir"])
-            if not ckpt.checkpoint_path(run_dir).is_file():
-                left_out.append(f"not evaluated: {point.id}: its run directory {run_dir} is not here")
-                continue
             settings = tuple(f"{k}={v}" for k, v in point.settings if k.startswith("env."))
-            policies.append((point.env, str(run_dir), point.id, settings))
+            policies.append((point.env, record["run_dir"], point.id, settings))
+        gone: dict[str, str] = {}  # point id -> its missing run directory, for a variant still to run
         for variant, overrides in evaluation.variants:
-            jobs += [EvaluationJob(evaluation, variant, overrides, *policy) for policy in policies]
+            for policy in policies:
+                job = EvaluationJob(evaluation, variant, overrides, *policy)
+                if job.recorded(records) or is_heuristic_policy(job.policy) or _runnable(job.policy):
+                    jobs.append(job)
+                else:
+                    gone[job.label] = job.policy
+        left_out += [f"not evaluated: {p}: its run directory {d} is not here" for p, d in gone.items()]
     return jobs, left_out
+
+
+def _runnable(run_dir: str) -> bool:
+    return ckpt.checkpoint_path(Path(run_dir)).is_file()
 
 
 def summary(evaluations: list[Evaluation], points: list[Point], records: Path) -> list[str]:
