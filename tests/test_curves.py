@@ -28,6 +28,30 @@ def test_legend_says_seeds_for_learners_and_episodes_for_heuristics(tmp_path: Pa
     plt.close(fig)
 
 
+def test_a_legend_of_long_labels_stays_inside_the_figure(tmp_path: Path, monkeypatch) -> None:
+    kept = []
+    monkeypatch.setattr(plt, "close", kept.append)
+    values = np.array([[1.0, 2.0], [1.5, 2.5]])
+    labels = [f"cnn_semu lambda={v}" for v in (0.01, 0.05, 0.1, 0.5, 1.0)]
+    curves = {
+        label: Curve(label, np.array([0, 10]), values.mean(0), values.std(0), np.zeros(2), values)
+        for label in labels
+    }
+    references = [
+        Reference(f"{h} (heuristic)", 2.0, 0.1, 3, "evaluation seeds") for h in ("random", "greedy")
+    ]
+    plot_curves(
+        {"reward": curves, "uncertainty": curves}, tmp_path / "c.png", "map10", labels, {"reward": references}
+    )
+    (fig,) = kept
+    (legend,) = fig.legends
+    box = legend.get_window_extent(fig.canvas.get_renderer())
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox.width)
+    assert len(legend.get_texts()) == 7 and legend._ncols < 5  # fewer columns than short labels get
+    monkeypatch.undo()
+    plt.close(fig)
+
+
 def test_y_limits_ignore_the_untrained_first_evaluations() -> None:
     """A map20 run's evaluation at 10k steps (-250) must not flatten curves that live around 300."""
     steps = np.arange(0, 1_010_000, 10_000)

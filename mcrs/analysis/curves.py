@@ -98,6 +98,18 @@ def aggregate(groups: dict[str, list[TrainingRun]], metric: str, skipped: list[S
     return curves
 
 
+def _legend(fig, handles: list, names: list[str], most: int = 5) -> int:
+    """The figure's legend below the panels, in as many columns (up to ``most``) as fit its width: long
+    labels (``cnn_semu lambda=0.01 (3 seeds)``) would run off the sides. Returns the column count."""
+    renderer = fig.canvas.get_renderer()
+    for ncol in range(min(len(names), most), 0, -1):
+        legend = fig.legend(handles, names, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
+        if ncol == 1 or legend.get_window_extent(renderer).width <= 0.98 * fig.bbox.width:
+            return ncol
+        legend.remove()
+    return 1
+
+
 def plot_curves(
     panels: dict[str, dict[str, Curve]],
     path: Path,
@@ -140,9 +152,9 @@ def plot_curves(
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     handles, names = axes.flat[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="lower center", ncol=min(len(names), 5), fontsize=8, frameon=False)
+    ncol = _legend(fig, handles, names)
     fig.suptitle(title + "  (mean and 95 % confidence band; in brackets what the mean is over)", fontsize=10)
-    fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(names) - 1) // 5), 1, 0.96))
+    fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(names) - 1) // ncol), 1, 0.96))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
