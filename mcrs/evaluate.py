@@ -53,7 +53,7 @@ class EvalConfig:
     """The ``mcrs-eval`` config (``conf/eval.yaml``): Hydra refuses unknown keys and wrong types with it."""
 
     env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario (conf/env/ presets)
-    policy: str = "greedy"  # random | lawnmower | greedy | all | a checkpoint or mcrs-train run directory
+    policy: str = "greedy"  # random | lawnmower | greedy | coverage | all | a checkpoint or run directory
     episodes: int = 32  # K episodes, run as batches of K environments (the env's num_envs)
     seed: int = 0  # seeds the environments and the policy's generator
     figures: bool = True  # scene.png, uncertainty_contours.png, episode.gif

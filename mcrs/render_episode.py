@@ -32,7 +32,7 @@ class RenderConfig:
 
     env: Any = MISSING  # the env group (conf/env/), validated by mcrs.env.config.from_mapping
     policy: str = (
-        "greedy"  # random | lawnmower | greedy | a checkpoint (.pt file or mcrs-train run directory)
+        "greedy"  # random | lawnmower | greedy | coverage | a checkpoint (.pt file or run directory)
     )
     seed: int = 0  # the episode's and the policy's seed
     uav: int = 0  # the UAV of the uncertainty contours

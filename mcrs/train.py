@@ -59,7 +59,15 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
         raise ConfigError(
             f"resume={cfg.resume}: not an mcrs-train run directory (needs config.yaml and checkpoints/{ckpt.LAST})"
         )
-    saved = ckpt.current_config(_read_run_config(saved_path))
+    raw = _read_run_config(saved_path)
+    saved = ckpt.current_config(raw)
+    legacy = ckpt.legacy_values(raw)
+    if legacy:  # nothing saved is reinterpreted: the run goes on under the rules it was trained with
+        print(
+            f"mcrs-train: {saved_path} was written before {', '.join(v.split('=')[0] for v in legacy)} "
+            f"existed: resuming it as it was trained ({', '.join(legacy)})",
+            flush=True,
+        )
     current = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
     conflicts = []

@@ -21,6 +21,9 @@ from mcrs.experiment import checkpoint as ckpt
 from tests.test_report import read_csv
 from tests.train_helpers import compose_config
 
+NEAR_MATRIX = Path(__file__).resolve().parents[1] / "mcrs" / "campaign" / "section6_near.yaml"
+OLD_TASK = ("env.safety_rule=near", "algo.time_limit=bootstrap")
+
 TWO_POINTS = """
 budget: smoke
 seeds: [0]
@@ -33,8 +36,33 @@ figures:
 """
 
 
-def test_section6_matrix_and_its_shared_points() -> None:
+def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
     points, titles = load_matrix()
+    assert list(titles) == ["fig7", "table4", "fig6", "fig8"]
+    assert len(points) == 21 + 9 + 18 + 6 and len({p.id for p in points}) == len(points)
+    assert all(p.budget == "campaign" for p in points)
+    assert all(p.overrides == () for p in points)  # the defaults: safety_rule=enter, time_limit=terminal
+    fig7 = select(points, ["fig7"])
+    assert sorted({p.algo for p in fig7}) == sorted(
+        ["qmix", "vdn", "qplex", "emc", "emu", "semu", "cnn_semu"]
+    )
+    assert {p.env for p in fig7} == {"map20"} and {p.seed for p in fig7} == {0, 1, 2}
+    table4 = select(points, ["table4"])
+    deltas = {(p.algo, dict(p.settings).get("algo.memory.delta")) for p in table4}
+    assert deltas == {(a, d) for a in ("emc", "semu", "cnn_semu") for d in (None, 0.13)}
+    fig6 = select(points, ["fig6", "seed0"])
+    assert [p.id for p in fig6] == [
+        f"baselines/{m}_{a}_seed0" for m in ("map10", "map15") for a in ("qmix", "qplex", "cnn_semu")
+    ]
+    fig8 = select(points, ["fig8", "seed0"])
+    assert sorted(p.algo for p in fig8) == ["cnn_semu", "emu", "emu_370", "emu_change", "qmix"]
+    cfg = compose_config("algo=emu", "env=map20", tiny=False)
+    assert cfg.algo.incentive_threshold == 365.0 and cfg.env.safety_rule == "enter"
+    assert str(cfg.algo.time_limit) == "terminal"
+
+
+def test_section6_near_matrix_keeps_the_old_task_for_every_point() -> None:
+    points, titles = load_matrix(NEAR_MATRIX)
     assert list(titles) == ["fig7", "table4", "fig5", "fig10", "fig6"]
     assert len(points) == 21 + 9 + 30 + 15 + 9 and len({p.id for p in points}) == len(points)
     assert all(p.budget == "campaign" for p in points)
@@ -71,7 +99,8 @@ def test_section6_matrix_and_its_shared_points() -> None:
         "baselines/map15_cnn_semu_seed0",
     ]
     (emu,) = select(points, ["emu", "seed0"])
-    assert emu.overrides == ("algo.incentive_threshold=305",)
+    assert emu.overrides == (*OLD_TASK, "algo.incentive_threshold=305")
+    assert all(p.overrides[:2] == OLD_TASK for p in points)
 
 
 def test_bad_filters_and_files_are_one_line_errors(tmp_path: Path, capsys) -> None:
@@ -287,12 +316,11 @@ evaluations:
 """
 
 
-def test_the_section6_file_evaluates_figure_7_with_and_without_the_shield() -> None:
+def test_the_section6_near_file_evaluates_figure_7_with_and_without_the_shield() -> None:
     from mcrs.campaign.evaluations import load_evaluations
-    from mcrs.campaign.matrix import DEFAULT_MATRIX
 
-    _, titles = load_matrix()
-    (shield,) = load_evaluations(DEFAULT_MATRIX, set(titles))
+    _, titles = load_matrix(NEAR_MATRIX)
+    (shield,) = load_evaluations(NEAR_MATRIX, set(titles))
     assert (shield.name, shield.of, shield.heuristics, shield.episodes) == (
         "shield",
         ("fig7",),
@@ -300,6 +328,39 @@ def test_the_section6_file_evaluates_figure_7_with_and_without_the_shield() -> N
         32,
     )
     assert dict(shield.variants) == {"on": ("env.no_fly_shield=true",), "off": ("env.no_fly_shield=false",)}
+
+
+def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations(
+    tmp_path: Path, capsys
+) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(
+        TWO_POINTS + "overrides:\n  all: [env.safety_rule=near]\n  qmix: [algo.double_q=false]\n" + EVALUATION
+    )
+    points, _ = load_matrix(matrix)
+    assert all(p.overrides == ("env.safety_rule=near", "algo.double_q=false") for p in points)
+    assert "env.safety_rule=near" in points[0].train_command(tmp_path)
+    records = tmp_path / "records"
+    finished = points[0]
+    ckpt.checkpoint_path(tmp_path / "run").parent.mkdir(parents=True)
+    ckpt.checkpoint_path(tmp_path / "run").write_bytes(b"")  # a run directory the dry run could evaluate
+    finished.record_path(records).parent.mkdir(parents=True)
+    finished.record_path(records).write_text(
+        json.dumps(
+            {
+                "format": RECORD_FORMAT,
+                "version": RECORD_VERSION,
+                "kind": "training",
+                "status": "finished",
+                "run_dir": str(tmp_path / "run"),
+            }
+        )
+    )
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "o"), "--records", str(records)]
+    capsys.readouterr()
+    assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
+    commands = [line for line in capsys.readouterr().out.splitlines() if line.startswith("evaluate ")]
+    assert commands and all("env.safety_rule=near" in line for line in commands)
 
 
 def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Path, capsys) -> None:

@@ -27,5 +27,9 @@ def test_a_checkpoint_from_before_the_callbacks_is_mapped_to_todays_layout() -> 
 
 def test_a_saved_config_loses_the_env_runtime_fields_only() -> None:
     saved = {"env": {"name": "map10", "width": 10, "num_envs": 32, "device": "cpu"}, "seed": 3}
-    assert ckpt.current_config(saved) == {"env": {"name": "map10", "width": 10}, "seed": 3}
+    # ... and gains the fields it predates, at the value it was made under (safety_rule: near).
+    assert ckpt.current_config(saved) == {
+        "env": {"name": "map10", "width": 10, "safety_rule": "near"},
+        "seed": 3,
+    }
     assert ckpt.current_config({"seed": 3}) == {"seed": 3}

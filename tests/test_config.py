@@ -26,6 +26,7 @@ OVERRIDES = {
     "sight_range": ("3.5", 3.5),
     "no_fly_safety": ("1.5", 1.5),
     "uav_safety": ("2", 2.0),
+    "safety_rule": ("near", "near"),
     "m_f": ("0.7", 0.7),
     "m_e": ("0.6", 0.6),
     "p_detect": ("0.9", 0.9),

@@ -10,7 +10,9 @@ import pytest
 
 from mcrs.analysis.doc_tables import DocTableError, check, find_blocks, main, update
 
-RECORDS = Path("results/records/heuristics/map20")  # three greedy/lawnmower/random evaluations, committed
+RECORDS = Path(
+    "results/records/near/heuristics/map20"
+)  # three greedy/lawnmower/random evaluations, committed
 COMMAND = f"mcrs-report {RECORDS} --env map20"
 
 
@@ -82,7 +84,7 @@ def test_a_hand_made_table_or_image_fails_the_check(tmp_path: Path, capsys) -> N
     assert "2 tables or figures are not generated" in out and "differ from the records" not in out
 
 
-RANGES = Path("results/records/comm_range/map20")  # greedy at R_c 0..10, 3 evaluation seeds, committed
+RANGES = Path("results/records/near/comm_range/map20")  # greedy at R_c 0..10, 3 evaluation seeds, committed
 
 
 def test_a_generated_figure_is_drawn_from_the_records_and_checked(tmp_path: Path, capsys) -> None:

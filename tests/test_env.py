@@ -165,19 +165,39 @@ def test_discovery_weight_scales_the_reward():
     assert result.reward_terms[0, 1].item() == 2.5
 
 
-def test_no_fly_and_collision_penalties():
-    # No-fly zone at (5, 5). UAV 0 at (5, 6) is at distance 1 (penalised), UAV 1 at (6, 6) at sqrt 2 (not).
-    core, _ = scene_core([[4, 6], [7, 7], [0, 0]], [[5, 5]], [[9, 9]], comm_range=0.0)
+@pytest.mark.parametrize("rule", ["enter", "near"])
+def test_a_uav_beside_a_zone_pays_only_under_near(rule):
+    # No-fly zone at (5, 5). UAV 0 ends at (5, 6), beside it (distance 1 = d1); UAV 1 at (6, 6) (sqrt 2).
+    core, _ = scene_core([[4, 6], [7, 7], [0, 0]], [[5, 5]], [[9, 9]], comm_range=0.0, safety_rule=rule)
     result = core.step(torch.tensor([[1, 4, 1]]))  # -> (5, 6), (6, 6), (1, 0)
     r3, r4 = result.reward_terms[0, 2:].tolist()
-    assert r3 == -1.0
-    assert r4 == -1.0  # (5, 6) and (6, 6) are 1 apart
-    assert result.metrics["no_fly_violations"].item() == 1 and result.metrics["collisions"].item() == 1
-    # Standing on the zone and next to it: two (UAV, zone) pairs; weights scale the penalties.
-    core, _ = scene_core([[5, 4], [4, 6], [0, 0]], [[5, 5]], [[9, 9]], w_no_fly=2.0, w_collision=3.0)
+    charged = 1.0 if rule == "near" else 0.0  # enter: only distances < d1 = 1, i.e. the zone's own cell
+    assert r3 == -charged and r4 == -charged  # (5, 6) and (6, 6) side by side: a collision under near only
+    assert result.metrics["no_fly_violations"].item() == charged
+    assert result.metrics["collisions"].item() == charged
+
+
+def test_the_default_rule_is_the_papers_enter():
+    assert scenario("map20").safety_rule == "enter"
+    assert scenario("map10", safety_rule="near").violates(torch.tensor([1.0]), 1.0).item()
+    assert not scenario("map10").violates(torch.tensor([1.0]), 1.0).item()
+
+
+@pytest.mark.parametrize("rule", ["enter", "near"])
+def test_a_uav_in_a_zone_and_co_located_uavs_pay_under_both_rules(rule):
+    # UAV 0 ends on the zone (5, 5); UAV 1 too (so both are co-located); UAV 2 ends at (1, 0), far away.
+    core, _ = scene_core(
+        [[5, 4], [4, 6], [0, 0]], [[5, 5]], [[9, 9]], w_no_fly=2.0, w_collision=3.0, safety_rule=rule
+    )
     result = core.step(torch.tensor([[3, 5, 1]]))  # -> (5, 5), (5, 5), (1, 0)
     r3, r4 = result.reward_terms[0, 2:].tolist()
-    assert r3 == -4.0 and r4 == -3.0
+    assert r3 == -4.0 and r4 == -3.0  # two (UAV, zone) pairs and one UAV pair; weights scale them
+    assert result.metrics["no_fly_violations"].item() == 2 and result.metrics["collisions"].item() == 1
+
+
+def test_safety_rule_is_validated_by_name():
+    with pytest.raises(ValueError, match=r"safety_rule='inside': must be one of \['enter', 'near'\]"):
+        scenario("map10", safety_rule="inside")
 
 
 @pytest.mark.parametrize(

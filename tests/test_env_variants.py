@@ -168,9 +168,11 @@ class SlowReference:
                 self.discovered[e] |= above
                 targets_found = len(self.discovered[e] & set(target_cells))
                 false = len(self.discovered[e] - set(target_cells))
-            no_fly = sum(math.dist(u, z) <= cfg.no_fly_safety for u in self.uav[e] for z in self.no_fly[e])
+            no_fly = sum(
+                _charged(cfg, math.dist(u, z), cfg.no_fly_safety) for u in self.uav[e] for z in self.no_fly[e]
+            )
             close = sum(
-                math.dist(self.uav[e][i], self.uav[e][j]) <= cfg.uav_safety
+                _charged(cfg, math.dist(self.uav[e][i], self.uav[e][j]), cfg.uav_safety)
                 for i in range(self.N)
                 for j in range(i + 1, self.N)
             )
@@ -184,6 +186,11 @@ class SlowReference:
             ):
                 self.metrics.setdefault(name, [0.0] * self.E)[e] = float(value)
         return terms
+
+
+def _charged(cfg: EnvConfig, distance: float, safe: float) -> bool:
+    """r3/r4 by the rule's words: enter charges distances < d, near distances <= d."""
+    return distance < safe if cfg.safety_rule == "enter" else distance <= safe
 
 
 def compare_with_reference(cfg: EnvConfig, steps: int, seed: int) -> MCRSCore:
@@ -260,9 +267,13 @@ def test_variant_matches_the_slow_reference_on_larger_maps(name, variant):
     compare_with_reference(variant_config(name, variant), steps=24, seed=5)
 
 
-def test_the_reference_agrees_with_the_paper_defaults():
-    """With every variant off the reference is the paper: it must match the core (and its oracle tests)."""
-    compare_with_reference(scenario("map10", num_envs=2, expose_beliefs=True), steps=30, seed=2)
+@pytest.mark.parametrize("rule", ["enter", "near"])
+def test_the_reference_agrees_with_the_paper_defaults(rule):
+    """With every variant off the reference is the paper: it must match the core (and its oracle tests),
+    under either penalty rule."""
+    compare_with_reference(
+        scenario("map10", num_envs=2, expose_beliefs=True, safety_rule=rule), steps=30, seed=2
+    )
 
 
 def test_a_tight_budget_slows_the_spread_of_knowledge():

@@ -20,7 +20,7 @@ from tests.device_helpers import available_devices
 TINY = ["episodes=2", "figures=false", "env.max_steps=5"]
 
 
-@pytest.mark.parametrize("policy", ["random", "lawnmower", "greedy"])
+@pytest.mark.parametrize("policy", ["random", "lawnmower", "greedy", "coverage"])
 def test_evaluate_policy_returns_every_metric(policy: str) -> None:
     cfg = scenario("map10", max_steps=20)
     result = evaluate_policy(cfg, policy, episodes=5, seed=1)
@@ -65,7 +65,7 @@ def test_format_table_is_aligned_markdown() -> None:
 
 
 def test_policy_names() -> None:
-    assert policy_names("all") == ["random", "lawnmower", "greedy"]
+    assert policy_names("all") == ["random", "lawnmower", "greedy", "coverage"]
     assert policy_names("greedy") == ["greedy"]
     with pytest.raises(
         ValueError, match=r"unknown policy 'bogus'; allowed: .*greedy.*lawnmower.*random.*all"
@@ -96,12 +96,12 @@ def test_hydra_config_composes_with_overrides() -> None:
 def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
     cfg = _compose(["policy=all", "env.max_steps=4", "episodes=3", "figures=true"])
     results = run(cfg, tmp_path)
-    assert list(results) == ["random", "lawnmower", "greedy"]
+    assert list(results) == ["random", "lawnmower", "greedy", "coverage"]
     printed = capsys.readouterr().out
     assert "| policy" in printed and "| greedy" in printed and "false discoveries" in printed
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["policy"] for r in rows] == ["random", "lawnmower", "greedy"]
+    assert [r["policy"] for r in rows] == ["random", "lawnmower", "greedy", "coverage"]
     assert {(r["env"], r["comm_range"], r["seed"]) for r in rows} == {
         ("map10", "5", "0")
     }  # mcrs-report groups
@@ -109,7 +109,7 @@ def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
         results["greedy"]["episode_reward"][0], rel=1e-5
     )
     with open(tmp_path / "episodes.csv") as f:
-        assert len(list(csv.DictReader(f))) == 3 * 3
+        assert len(list(csv.DictReader(f))) == 4 * 3
     assert "| lawnmower" in (tmp_path / "summary.md").read_text()
     for policy in results:
         for name in ("scene.png", "uncertainty_contours.png", "episode.gif"):

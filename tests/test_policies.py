@@ -37,7 +37,7 @@ def test_full_episodes_use_only_allowed_actions(name: str, policy: str) -> None:
 
 def test_registry_and_unknown_name() -> None:
     cfg = scenario("map10")
-    assert set(POLICIES) == {"random", "lawnmower", "greedy"}
+    assert set(POLICIES) == {"random", "lawnmower", "greedy", "coverage"}
     for name, cls in POLICIES.items():
         assert isinstance(make_policy(name, cfg, 0), cls)
     with pytest.raises(ValueError, match=r"unknown policy 'nope'.*greedy.*lawnmower.*random"):
@@ -181,8 +181,8 @@ def test_greedy_picks_the_highest_unknown_allowed_move() -> None:
     assert MOVES[action] == (1, 0)
 
 
-def test_greedy_avoids_visible_no_fly_zone_and_uav() -> None:
-    cfg = scenario("map10")
+def test_greedy_avoids_visible_no_fly_zone_and_uav_under_near() -> None:
+    cfg = scenario("map10", safety_rule="near")
     values = torch.full((8,), 0.2)
     values[SURROUNDING.index((1, 0))] = 1.0  # right is by far the most informative...
     values[SURROUNDING.index((1, 1))] = 0.6
@@ -193,6 +193,19 @@ def test_greedy_avoids_visible_no_fly_zone_and_uav() -> None:
     assert MOVES[action] not in {(1, 0), (1, 1), (0, 1)}
     # Invisible entities (all-zero features) are ignored: right again.
     assert MOVES[GreedyPolicy(cfg, 0)(_greedy_td(cfg, values)).get(ACTION)[0, 0].item()] == (1, 0)
+
+
+def test_greedy_avoids_only_entering_a_zone_or_a_uav_cell_under_enter() -> None:
+    cfg = scenario("map10")  # the default: safety_rule=enter
+    values = torch.full((8,), 0.2)
+    values[SURROUNDING.index((1, 0))] = 1.0
+    values[SURROUNDING.index((1, 1))] = 0.6
+    td = _greedy_td(cfg, values, zones=[(1, (2, 0))])  # right ends beside the zone: not charged
+    assert MOVES[GreedyPolicy(cfg, 0)(td).get(ACTION)[0, 0].item()] == (1, 0)
+    td = _greedy_td(cfg, values, zones=[(1, (1, 0))])  # right ends in the zone: charged
+    assert MOVES[GreedyPolicy(cfg, 0)(td).get(ACTION)[0, 0].item()] == (1, 1)
+    td = _greedy_td(cfg, values, uavs=[(1, (1, 0))])  # a UAV on the right cell: only that move is charged
+    assert MOVES[GreedyPolicy(cfg, 0)(td).get(ACTION)[0, 0].item()] == (1, 1)
 
 
 def test_greedy_breaks_ties_randomly_but_reproducibly() -> None:

@@ -50,6 +50,20 @@ def test_episode_layout(batch) -> None:
     assert ("agents", "rnn_hidden") not in ep.keys(include_nested=True)  # acting state is not stored
 
 
+def test_time_limit_terminal_marks_the_horizon_terminated(batch) -> None:
+    bootstrapped = episodes_from_rollout(batch, time_limit="bootstrap")
+    terminal = episodes_from_rollout(batch, time_limit="terminal")
+    assert not bootstrapped["terminated"].any()  # MCRS episodes end by the time limit only: truncated
+    assert terminal["terminated"][:, T - 1].all() and not terminal["terminated"][:, : T - 1].any()
+    assert not terminal["terminated"][:, T].any()  # the padding row is never a transition
+    assert torch.equal(terminal["done"], bootstrapped["done"])
+    # A feed-forward cut (whole_episodes=False) is not a time limit: it is never terminal.
+    cut = episodes_from_rollout(batch[:, : T - 2], whole_episodes=False, time_limit="terminal")
+    assert not cut["terminated"].any()
+    with pytest.raises(ValueError, match=r"time_limit='never': must be one of \['terminal', 'bootstrap'\]"):
+        episodes_from_rollout(batch, time_limit="never")
+
+
 def test_misaligned_batches_are_refused(batch) -> None:
     with pytest.raises(ValueError, match="frames_per_batch"):
         episodes_from_rollout(batch[:, :-1])

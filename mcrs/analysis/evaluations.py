@@ -12,7 +12,7 @@ import numpy as np
 from mcrs.analysis.curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
 from mcrs.analysis.runs import EvaluationRow
 
-HEURISTIC_ORDER = ("random", "lawnmower", "greedy")
+HEURISTIC_ORDER = ("random", "lawnmower", "greedy", "coverage")
 
 
 def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> dict[str, list[EvaluationRow]]:

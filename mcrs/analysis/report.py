@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -433,6 +434,11 @@ def main(argv: list[str] | None = None) -> int:
     except ClaimsError as error:
         raise SystemExit(f"mcrs-report: error: --claims: {error}") from None
     report = Report(args.out, env_name, runs, claims)
+    legacy = Counter(value for run in runs.training for value in run.legacy)
+    for value, count in sorted(legacy.items()):  # nothing recorded is reinterpreted: say how it is read
+        print(
+            f"mcrs-report: {count} run(s) predate {value.split('=')[0]}: read as made ({value})", flush=True
+        )
     if runs.training:
         report_training(report)
     has_ranges = report_comm_range(report)

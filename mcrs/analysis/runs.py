@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from mcrs.experiment.checkpoint import current_config, legacy_values
 from mcrs.experiment.logging import flatten_config
 
 #: The Hydra configs (mcrs/conf links to the repo's conf/).
@@ -84,6 +85,11 @@ class TrainingRun:
     config: dict[str, Any]
     scalars: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
     _cache: dict[str, tuple[np.ndarray, np.ndarray] | None] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        # A record or run made before a field existed is read as it was made (env.safety_rule=near, ...).
+        self.legacy = legacy_values(self.config)
+        self.config = current_config(self.config)
 
     @property
     def env_name(self) -> str:

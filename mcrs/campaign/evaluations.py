@@ -160,7 +160,10 @@ def plan(
         chosen = [p for p in points if set(p.figures) & set(evaluation.of)]
         policies: list[tuple[str, str, str, tuple[str, ...]]] = []  # (map, policy, label, settings)
         for env in dict.fromkeys(p.env for p in chosen):
-            policies += [(env, h, h, ()) for h in evaluation.heuristics]
+            # The heuristics share the scenario overrides that every point of the map has (a penalty rule).
+            on_map = [{o for o in p.overrides if o.startswith("env.")} for p in chosen if p.env == env]
+            shared = tuple(sorted(set.intersection(*on_map)))
+            policies += [(env, h, h, shared) for h in evaluation.heuristics]
         for point in chosen:
             record_path = point.record_path(records)
             record = read_record(record_path) if record_path.is_file() else None
@@ -168,6 +171,7 @@ def plan(
                 left_out.append(f"not evaluated: {point.id}: no record of a finished run")
                 continue
             settings = tuple(f"{k}={v}" for k, v in point.settings if k.startswith("env."))
+            settings += tuple(o for o in point.overrides if o.startswith("env."))
             policies.append((point.env, record["run_dir"], point.id, settings))
         gone: dict[str, str] = {}  # point id -> its missing run directory, for a variant still to run
         for variant, overrides in evaluation.variants:

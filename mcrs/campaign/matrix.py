@@ -104,6 +104,10 @@ def budget_steps(budget: str) -> int:
     return int(OmegaConf.load(path).train.total_env_steps)
 
 
+#: The key of ``overrides`` whose overrides every point gets (before its algorithm's own).
+ALL_POINTS = "all"
+
+
 def _as_list(value: Any) -> list[Any]:
     return list(value) if isinstance(value, (list, tuple)) else [value]
 
@@ -142,7 +146,8 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
             for env in _as_list(fig["env"]):
                 for algo in _as_list(fig["algo"]):
                     for combo in combos:
-                        point = Point(experiment, env, algo, seed, budget, combo, overrides.get(algo, ()))
+                        fixed = (*overrides.get(ALL_POINTS, ()), *overrides.get(algo, ()))
+                        point = Point(experiment, env, algo, seed, budget, combo, fixed)
                         points.setdefault(point, []).append(name)
     for name, fig in figures.items():  # a figure's `also`: points of another figure that serve it too
         for other, algos in (fig.get("also") or {}).items():

@@ -22,6 +22,14 @@ PRESETS = SCENARIOS + VARIANT_PRESETS
 RUNTIME_FIELDS = ("num_envs", "device")
 INVALID_ACTION_MODES = ("raise", "clip")
 TARGET_MOTIONS = ("static", "random_walk")
+#: How r3 and r4 read the safe distances d1 and d2 (docs/ENVIRONMENT.md, "Reward"): ``enter`` (the paper's
+#: reward text, section 4.3: a UAV *in* a zone, UAVs *closer than* d) charges distances < d; ``near`` (the
+#: reading of constraints (16)-(17) this project used before the field existed) charges distances <= d,
+#: i.e. a zone's four neighbours and side-by-side UAVs too on the unit grid.
+SAFETY_RULES = ("enter", "near")
+#: Fields added to the scenario after records and checkpoints were made, with the value that such a saved
+#: config meant: a config saved before ``safety_rule`` existed was trained and judged under ``near``.
+LEGACY_SCENARIO_VALUES = {"safety_rule": "near"}
 #: evidence_decay's bound on max_steps * -ln(1 - decay): (1 - decay)^max_steps stays a normal float32.
 MAX_DECAY_EXPONENT = 80.0
 
@@ -42,6 +50,7 @@ class EnvConfig:
     sight_range: float = 4.0
     no_fly_safety: float = 1.0
     uav_safety: float = 1.0
+    safety_rule: str = "enter"  # enter (< d: the paper's reward text) | near (<= d: the old reading)
     m_f: float = 0.8
     m_e: float = 0.8
     p_detect: float = 0.8
@@ -81,6 +90,14 @@ class EnvConfig:
     def state_dim(self) -> int:
         return 2 * self.n_cells + 2 * self.n_uavs + 2 * self.n_no_fly + 2 * self.n_targets
 
+    def violates(self, squared: Any, distance: float) -> Any:
+        """Which squared distances (a tensor) break the safe ``distance`` under :attr:`safety_rule`.
+
+        Squared distances of integer cells are exact in float32, so both comparisons are exact.
+        """
+        limit = distance**2
+        return squared < limit if self.safety_rule == "enter" else squared <= limit
+
     @property
     def rounds_per_step(self) -> int:
         """Exchange rounds per step; ``flood`` needs at most N - 1 rounds to cross any component."""
@@ -110,6 +127,14 @@ class EnvConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def with_legacy_values(env: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """A saved scenario (``config["env"]`` of a record, checkpoint or run) with the fields it predates set
+    to what it meant (:data:`LEGACY_SCENARIO_VALUES`), and a ``"field=value"`` line for each one set, so
+    that the caller can say so. Nothing already saved is changed."""
+    missing = {k: v for k, v in LEGACY_SCENARIO_VALUES.items() if k not in env}
+    return {**env, **missing}, [f"{k}={v}" for k, v in missing.items()]
 
 
 def _plain(values: Any) -> dict[str, Any]:
@@ -194,6 +219,11 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
     rounds = cfg.comm_rounds
     if not (rounds == "flood" or (_is_int(rounds) and rounds >= 1)):
         errors.append(f"comm_rounds={rounds!r}: must be an integer >= 1 or 'flood'")
+    if cfg.safety_rule not in SAFETY_RULES:
+        errors.append(
+            f"safety_rule={cfg.safety_rule!r}: must be one of {list(SAFETY_RULES)} (enter: distances < d are "
+            "penalised, the paper's reward; near: distances <= d, the stricter old reading)"
+        )
     if cfg.invalid_action not in INVALID_ACTION_MODES:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
     for name in ("expose_beliefs", "no_fly_shield"):

@@ -140,7 +140,7 @@ class MCRSCore:
         self.dynamic = c.dynamic
         # dynamic: the targets found (current cell's m(F) >= tau) at least once in the episode.
         self.found_once = torch.zeros(E, c.n_targets, dtype=torch.bool, device=dev) if self.dynamic else None
-        # no_fly_shield: per env, the moves from each cell that end farther than d1 from every zone.
+        # no_fly_shield: per env, the moves from each cell that r3 would not charge (config.violates).
         self._safe_moves = (
             safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
         )
@@ -393,17 +393,18 @@ class MCRSCore:
         return Geometry.of(self.uav_pos, self.no_fly_pos)
 
     def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
-        """(UAV, no-fly zone) pairs within d1 and UAV pairs i < j within d2, per environment."""
+        """(UAV, no-fly zone) pairs closer than d1 and UAV pairs i < j closer than d2 (``safety_rule``
+        ``near``: within), per environment."""
         c = self.config
-        no_fly = (geometry.no_fly_squared <= c.no_fly_safety**2).sum((-1, -2)).to(torch.float32)
-        close = (geometry.uav_squared <= c.uav_safety**2) & self._pair_upper
+        no_fly = c.violates(geometry.no_fly_squared, c.no_fly_safety).sum((-1, -2)).to(torch.float32)
+        close = c.violates(geometry.uav_squared, c.uav_safety) & self._pair_upper
         return no_fly, close.sum((-1, -2)).to(torch.float32)
 
     def _uav_cells(self) -> torch.Tensor:
         return self.uav_pos[..., 0] * self.config.height + self.uav_pos[..., 1]
 
     def _action_mask(self, cell: torch.Tensor | None = None) -> torch.Tensor:
-        """``[E, N, 8]``: on-grid moves, less those ending within d1 of a zone under ``no_fly_shield``."""
+        """``[E, N, 8]``: on-grid moves, less those that r3 would charge under ``no_fly_shield``."""
         cell = self._uav_cells() if cell is None else cell
         unshielded = self._mask_of_cell[cell]
         return unshielded if self._safe_moves is None else shielded_mask(self._safe_moves, cell, unshielded)

@@ -1,6 +1,8 @@
 """The no-fly safety shield (scenario option ``no_fly_shield``): mask the moves that would cost r3.
 
-Reward term r3 charges ``w_no_fly`` for every (UAV, zone) pair within ``no_fly_safety`` (d1) after a move.
+Reward term r3 charges ``w_no_fly`` for every (UAV, zone) pair closer than ``no_fly_safety`` (d1) after a
+move (``safety_rule``: ``enter``, the default, charges distances < d1, i.e. the zone's own cell at d1 = 1;
+``near`` charges distances <= d1). The shield masks exactly the moves that r3 would charge.
 The shield removes such moves from the action mask, so that every policy that respects the mask (learners,
 their exploration, the heuristics) cannot take them. Zones are static within an episode, so the table of
 safe moves is built once per environment when its episode starts; each step is then one gather.
@@ -17,10 +19,10 @@ from mcrs.env.config import EnvConfig
 def safe_move_table(
     no_fly_pos: torch.Tensor, moves: torch.Tensor, mask_of_cell: torch.Tensor, config: EnvConfig
 ) -> torch.Tensor:
-    """``[M, C, 8]`` bool: move ``a`` from cell ``c`` stays on the grid and ends farther than d1 from every zone.
+    """``[M, C, 8]`` bool: move ``a`` from cell ``c`` stays on the grid and ends where r3 charges nothing.
 
     ``no_fly_pos`` is ``[M, Z, 2]`` (cells ``(x, y)``), ``moves`` ``[8, 2]``, ``mask_of_cell`` ``[C, 8]``
-    (on-grid moves); d1 is ``config.no_fly_safety``. Squared distances of integer cells are exact, as in the reward's ``<= d1**2`` test.
+    (on-grid moves); d1 is ``config.no_fly_safety``, compared by ``config.violates`` as the reward does.
     """
     cells, height, d1 = mask_of_cell.shape[0], config.height, config.no_fly_safety
     cell = torch.arange(cells, device=no_fly_pos.device)
@@ -28,7 +30,7 @@ def safe_move_table(
     destination = xy.unsqueeze(1) + moves  # [C, 8, 2], off-grid entries are masked anyway
     offset = destination.view(1, cells, -1, 1, 2) - no_fly_pos.view(no_fly_pos.shape[0], 1, 1, -1, 2)
     squared = offset.pow(2).sum(-1)  # [M, C, 8, Z]
-    near = (squared <= d1**2).any(-1)  # exact: integers compared with a float threshold
+    near = config.violates(squared, d1).any(-1)  # exact: integers compared with a float threshold
     return mask_of_cell.unsqueeze(0) & ~near
 
 

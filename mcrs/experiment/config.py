@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
+from mcrs.experiment.replay import TIME_LIMITS
 from mcrs.memory.delta import DELTA_RULES
 from mcrs.memory.index import SHAPES
 from mcrs.models.embeddings import EMBEDDINGS
@@ -57,6 +58,7 @@ Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn 
 Incentive = _choices("Incentive", ValueFactorisationLoss.INCENTIVES)
 DeltaRule = _choices("DeltaRule", DELTA_RULES)
 Neighbourhood = _choices("Neighbourhood", SHAPES)
+TimeLimit = _choices("TimeLimit", TIME_LIMITS)
 MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
 MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
 MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
@@ -122,6 +124,8 @@ class AlgoConfig:
     gamma: float = 0.99
     td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
     double_q: bool = True
+    # the horizon T in the TD target: terminal (no bootstrap at T, as the memory's returns) | bootstrap
+    time_limit: TimeLimit = TimeLimit.terminal
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     memory_weight: float = 0.0  # lambda of eq. 32: weight of the one-step memory target (0: off)
     incentive: Incentive = (
@@ -248,6 +252,7 @@ def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
     except (ValueError, TypeError) as error:
         errors.append(f"env: {error}")
     _choice(errors, "algo.mixer", a.mixer, Mixer)
+    _choice(errors, "algo.time_limit", a.time_limit, TimeLimit)
     _choice(errors, "train.optimizer", t.optimizer, Optimizer)
     _choice(errors, "logger.backend", lg.backend, LoggerBackend)
     _choice(errors, "logger.wandb_mode", lg.wandb_mode, WandbMode)

@@ -18,6 +18,12 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer
 
+#: How a transition that ends an episode by the time limit (``("next", "truncated")``) enters the TD target
+#: (``algo.time_limit``, docs/MEMORY.md "The horizon"): ``terminal``: T ends the task, no bootstrap, as the
+#: episodic memory's returns H, cut at T, assume; ``bootstrap``: the target bootstraps from s_T (pymarl's
+#: and the EMC/EMU code's convention), so near T it and the memory's target disagree.
+TIME_LIMITS = ("terminal", "bootstrap")
+
 #: Keys read at every step (kept for steps 0..T).
 STEP_KEYS: tuple[NestedKey, ...] = (("agents", "observation"), ("agents", "action_mask"), "state")
 
@@ -36,6 +42,7 @@ def episodes_from_rollout(
     reward_key: NestedKey = "reward",
     *,
     whole_episodes: bool = True,
+    time_limit: str = "bootstrap",
 ) -> TensorDict:
     """Convert a collector batch ``[E, T]`` into the episode layout ``[M, T + 1]``, one item per episode.
 
@@ -49,7 +56,13 @@ def episodes_from_rollout(
     both when ``frames_per_batch = num_envs * max_steps``. ``whole_episodes=False`` (a feed-forward agent):
     rows may start and end mid-episode, as a collector cuts them; the cut transition gets ``done`` but not
     ``terminated``, so its target bootstraps from the stored next step and nothing is thrown away.
+
+    ``time_limit`` (:data:`TIME_LIMITS`): ``"terminal"`` also marks ``terminated`` the transitions the env
+    flags ``("next", "truncated")`` (the horizon T), so their targets do not bootstrap; ``"bootstrap"``
+    keeps them as the env says (truncated, not terminated).
     """
+    if time_limit not in TIME_LIMITS:
+        raise ValueError(f"time_limit={time_limit!r}: must be one of {list(TIME_LIMITS)}")
     if batch.batch_dims != 2:
         raise ValueError(
             f"expected a collector batch [num_envs, T], got batch_size {tuple(batch.batch_size)}"
@@ -57,6 +70,11 @@ def episodes_from_rollout(
     E, T = batch.batch_size
     done = _require(batch, ("next", "done"), "the env's done flags")
     terminated = _require(batch, ("next", "terminated"), "the env's terminated flags")
+    if time_limit == "terminal":
+        truncated = _require(
+            batch, ("next", "truncated"), "the env's truncated flags (time_limit='terminal')"
+        )
+        terminated = terminated | truncated
     ends = done.reshape(E, T, -1).any(-1)  # [E, T]: the transition ends an episode
     if whole_episodes:
         if not bool(ends[:, -1].all()):

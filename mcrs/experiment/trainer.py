@@ -254,7 +254,7 @@ class Experiment:
         self.collector.start_batch(batch_seed(int(self.config.seed), c.iteration))
         batch = self.collector.next_batch(collector_iter)
         self._check_finite(batch)
-        episodes = episodes_from_rollout(batch)
+        episodes = episodes_from_rollout(batch, time_limit=str(self.config.algo.time_limit))
         episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
         episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
         self.replay_store.mark_written(self.replay.extend(episodes))

@@ -365,10 +365,10 @@ def embedding_loss(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Paper eq. 31: ``mean (H - H_hat)^2 + state_weight * mean (s - s_hat)^2``.
 
-    Both terms are means over their values, as EMU's reference computes them (``MSELoss`` on H and on
-    s): the state term is the mean over the batch *and* the state's D values. A sum over the D values
-    (hundreds of belief cells) would make the reconstruction outweigh the return by that factor, and
-    eq. 31 with lambda_1 = 0.1 means the return term to dominate, so that keys carry return semantics.
+    Both terms are means over their values: this project's choice (EMU's code sums both, ``MSELoss
+    (reduction="sum")``, on raw H; docs/MEMORY.md). A sum over the D values (hundreds of belief cells)
+    would make the reconstruction outweigh the return by that factor, and eq. 31 with lambda_1 = 0.1
+    means the return term to dominate, so that keys carry return semantics.
     ``returns`` must already be scaled (see :class:`EmbeddingTrainer`).
     """
     if not embedding.trainable:

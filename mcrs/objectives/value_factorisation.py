@@ -300,6 +300,30 @@ class ValueFactorisationLoss(LossModule):
             self.gamma, self.td_lambda, next_value, reward, done, terminated, time_dim=-2
         )
 
+    @torch.no_grad()
+    def bootstrap_values(
+        self,
+        tensordict: TensorDictBase,
+        inputs: torch.Tensor | TensorDictBase | None = None,
+        greedy_q: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``[B, T+1, 1]``: the target network's ``Q_tot`` at every state under the bootstrap action (double
+        Q: the online net's greedy action ``greedy_q.argmax``), which the TD target of the step before reads."""
+        action_mask = tensordict.get(self.tensor_keys.action_mask, None)
+        state = self.require(tensordict, "state") if self.mixer.needs_state else None
+        inputs = self.agent_inputs(tensordict) if inputs is None else inputs
+        target_q = self.agent_values(tensordict, target=True, inputs=inputs)
+        if action_mask is not None:
+            target_q = mask_unavailable(target_q, action_mask)
+        if greedy_q is None and self.double_q:
+            greedy_q = self.agent_values(tensordict, inputs=inputs)
+            greedy_q = greedy_q if action_mask is None else mask_unavailable(greedy_q, action_mask)
+        chooser = greedy_q if self.double_q else target_q
+        next_actions = chooser.argmax(-1)  # [B, T+1, N]: the bootstrap action at every state
+        next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
+        # QPLEX's learner: the target mixer sees the double-Q actions and the target net's own maxima.
+        return self.mix(next_chosen, state, next_actions, target_q.max(-1).values, target=True)
+
     # ------------------------------------------------------------------ the loss
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
@@ -338,14 +362,7 @@ class ValueFactorisationLoss(LossModule):
             stats["memory_hit_rate"] = hit.sum() / n_valid
 
         with torch.no_grad():
-            target_q = self.agent_values(tensordict, target=True, inputs=inputs)
-            if action_mask is not None:
-                target_q = mask_unavailable(target_q, action_mask)
-            chooser = greedy_q if self.double_q else target_q
-            next_actions = chooser.argmax(-1)  # [B, T+1, N]: the bootstrap action at every state
-            next_chosen = target_q.gather(-1, next_actions.unsqueeze(-1)).squeeze(-1)
-            # QPLEX's learner: the target mixer sees the double-Q actions and the target net's own maxima.
-            next_q_tot = self.mix(next_chosen, state, next_actions, target_q.max(-1).values, target=True)
+            next_q_tot = self.bootstrap_values(tensordict, inputs, greedy_q)
             if self.incentive != "none":  # EMU: r_p = gamma * ratio * max(H(s') - Q_target(s'), 0)
                 gap = (memory_return - next_q_tot[:, 1:]).clamp(min=0.0) * hit
                 if self.incentive == "fixed":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from mcrs.env.config import EnvConfig
 from mcrs.policies.base import Policy
+from mcrs.policies.coverage import CoveragePolicy
 from mcrs.policies.greedy import GreedyPolicy
 from mcrs.policies.lawnmower import LawnmowerPolicy
 from mcrs.policies.random_policy import RandomPolicy
@@ -12,14 +13,15 @@ POLICIES: dict[str, type[Policy]] = {
     "random": RandomPolicy,
     "lawnmower": LawnmowerPolicy,
     "greedy": GreedyPolicy,
+    "coverage": CoveragePolicy,
 }
 
 
 def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
     """Build the named policy for ``env_config``; its random choices follow ``seed``.
 
-    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``) or the path of an ``mcrs-train``
-    checkpoint (a ``.pt`` file or a run directory), whose agent then acts greedily.
+    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``, ``coverage``) or the path of an
+    ``mcrs-train`` checkpoint (a ``.pt`` file or a run directory), whose agent then acts greedily.
     """
     from mcrs.policies.trained import TrainedPolicy, looks_like_checkpoint
 
@@ -32,4 +34,12 @@ def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
     return POLICIES[name](env_config, seed)
 
 
-__all__ = ["POLICIES", "GreedyPolicy", "LawnmowerPolicy", "Policy", "RandomPolicy", "make_policy"]
+__all__ = [
+    "POLICIES",
+    "CoveragePolicy",
+    "GreedyPolicy",
+    "LawnmowerPolicy",
+    "Policy",
+    "RandomPolicy",
+    "make_policy",
+]

@@ -22,8 +22,9 @@ TIE_TOLERANCE = 1e-6
 class GreedyPolicy(Policy):
     """Score of a move = m(U) of its destination - SAFETY_PENALTY * (violations there); best allowed move.
 
-    A violation is a visible no-fly zone within ``no_fly_safety`` (d1) or a visible other UAV within
-    ``uav_safety`` (d2) of the destination, from the relative-position features of the observation.
+    A violation is what r3 or r4 would charge at the destination: a visible no-fly zone closer than
+    ``no_fly_safety`` (d1) or a visible other UAV's current cell closer than ``uav_safety`` (d2) under the
+    scenario's ``safety_rule`` (``near``: within), from the relative-position features of the observation.
     Ties (within 1e-6) are broken uniformly with the policy's seeded generator.
     """
 
@@ -32,11 +33,13 @@ class GreedyPolicy(Policy):
         self.moves = torch.tensor(MOVES, dtype=torch.int64, device=torch.device(config.device))
 
     def _violations(self, features: torch.Tensor, radius: float) -> torch.Tensor:
-        """``[E, N, 8]``: visible entities within ``radius`` of each move's destination."""
+        """``[E, N, 8]``: visible entities that the reward would charge at each move's destination."""
         offset, visible = self.layout.relative_cells(features)  # [E, N, K, 2], [E, N, K]
         moves = self.moves.to(offset.device)
-        gap = (offset.unsqueeze(-3) - moves.view(8, 1, 2)).to(torch.float32).norm(dim=-1)  # [E, N, 8, K]
-        return ((gap <= radius) & visible.unsqueeze(-2)).sum(-1)
+        squared = (
+            (offset.unsqueeze(-3) - moves.view(8, 1, 2)).to(torch.float32).pow(2).sum(-1)
+        )  # [E, N, 8, K]
+        return (self.config.violates(squared, radius) & visible.unsqueeze(-2)).sum(-1)
 
     def scores(self, observation: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]`` move scores; masked moves score -inf."""

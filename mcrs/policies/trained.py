@@ -6,16 +6,19 @@ The recurrent state lives in the policy and restarts wherever ``step_count == 0`
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
 
-from mcrs.env.config import EnvConfig, from_mapping
+from mcrs.env.config import EnvConfig, from_mapping, with_legacy_values
 from mcrs.env.core import N_ACTIONS
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.models.agent import RecurrentAgent
 from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
+
+log = logging.getLogger(__name__)
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -46,7 +49,15 @@ class TrainedPolicy(Policy):
         """Load the agent of ``path``; ``env_config`` must have the map and team it was trained on."""
         path = resolve_checkpoint(path)
         state = ckpt.load(path)
-        trained = from_mapping(state["config"]["env"])
+        saved_env, legacy = with_legacy_values(state["config"]["env"])
+        trained = from_mapping(saved_env)
+        if trained.safety_rule != env_config.safety_rule:  # allowed (a policy judged under either rule): said
+            made = " (saved before the field existed)" if legacy else ""
+            log.warning(
+                "checkpoint %s was trained under safety_rule=%s%s; this environment uses safety_rule=%s "
+                "(pass env.safety_rule=%s to evaluate it under its own rule)",
+                path, trained.safety_rule, made, env_config.safety_rule, trained.safety_rule,
+            )  # fmt: skip
         for field in ("width", "height", "n_uavs", "obs_dim"):
             if getattr(trained, field) != getattr(env_config, field):
                 raise ValueError(

@@ -1,0 +1,131 @@
+"""The penalty rule and the horizon as saved: configs made before ``env.safety_rule`` and
+``algo.time_limit`` existed are read as they were made (and said so); the horizon-gap and reward-bound
+tools compute what their docs say."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import yaml
+from omegaconf import OmegaConf
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.envs import TransformedEnv
+from train_helpers import compose_config
+
+from mcrs.analysis.bound import reading_gains, reward_bound
+from mcrs.analysis.horizon import cut_returns, horizon_gaps
+from mcrs.analysis.runs import TrainingRun
+from mcrs.env import MCRSEnv
+from mcrs.env.config import EnvConfig, scenario, with_legacy_values
+from mcrs.env.core import N_ACTIONS
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import as_typed, compose, validate
+from mcrs.experiment.learner import Learner
+from mcrs.experiment.replay import episodes_from_rollout
+from mcrs.models.acting import make_acting_policy, recurrent_primer
+from mcrs.train import resume_config
+
+
+def tiny_rollout(env_config: EnvConfig, learner: Learner, episodes: int = 3) -> TensorDictBase:
+    """A collector batch ``[episodes, T]`` of whole episodes, acting with ``learner``'s agent."""
+    env = TransformedEnv(
+        MCRSEnv(env_config.replace(num_envs=episodes)),
+        recurrent_primer(episodes, env_config.n_uavs, learner.agent.hidden_dim),
+    )
+    _, exploring, _ = make_acting_policy(learner.agent, N_ACTIONS)
+    collector = Collector(
+        env, exploring, frames_per_batch=episodes * env_config.max_steps, total_frames=-1,
+        trust_policy=True, auto_register_policy_transforms=False,
+    )  # fmt: skip
+    batch = next(iter(collector))
+    collector.shutdown()
+    return batch
+
+
+def saved_before_the_fields() -> dict:
+    """A run's config.yaml as written before 2026-11-26: no env.safety_rule, no algo.time_limit."""
+    config = OmegaConf.to_container(compose_config(), resolve=True, enum_to_str=True)
+    del config["env"]["safety_rule"], config["algo"]["time_limit"]
+    return config
+
+
+def test_defaults_are_the_papers_reward_and_one_horizon():
+    cfg = compose("env=map20")
+    assert cfg.env.safety_rule == "enter" and str(cfg.algo.time_limit) == "terminal"
+
+
+def test_an_old_config_reads_as_near_and_bootstrap_and_says_so():
+    old = saved_before_the_fields()
+    assert ckpt.legacy_values(old) == ["env.safety_rule=near", "algo.time_limit=bootstrap"]
+    current = ckpt.current_config(old)
+    assert current["env"]["safety_rule"] == "near" and current["algo"]["time_limit"] == "bootstrap"
+    assert "safety_rule" not in old["env"]  # the saved dict itself is not rewritten
+    # A config that has the fields keeps them, whatever they are.
+    new = {
+        **old,
+        "env": {**old["env"], "safety_rule": "enter"},
+        "algo": {**old["algo"], "time_limit": "terminal"},
+    }
+    assert ckpt.legacy_values(new) == [] and ckpt.current_config(new)["env"]["safety_rule"] == "enter"
+    assert with_legacy_values({"safety_rule": "enter"}) == ({"safety_rule": "enter"}, [])
+
+
+def test_a_record_made_before_the_field_is_read_as_near():
+    run = TrainingRun(path=None, config=saved_before_the_fields())  # type: ignore[arg-type]
+    assert run.setting("env.safety_rule") == "near" and run.setting("algo.time_limit") == "bootstrap"
+    assert run.legacy == ["env.safety_rule=near", "algo.time_limit=bootstrap"]
+
+
+def test_resuming_an_old_run_keeps_its_rules_and_says_so(tmp_path, capsys):
+    run_dir = tmp_path / "old"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    (run_dir / "checkpoints" / ckpt.LAST).write_bytes(b"")  # resume_config checks it exists; it loads later
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(saved_before_the_fields()))
+    cfg, _ = resume_config(compose_config(f"resume={run_dir}"), [f"resume={run_dir}"])
+    assert cfg.env.safety_rule == "near" and str(cfg.algo.time_limit) == "bootstrap"
+    said = capsys.readouterr().out
+    assert "written before env.safety_rule, algo.time_limit existed" in said
+    assert "env.safety_rule=near, algo.time_limit=bootstrap" in said
+
+
+def test_cut_returns_are_discounted_sums_that_stop_at_t():
+    reward = torch.tensor([[1.0, 2.0, 4.0]])
+    returns = cut_returns(reward, 0.5)
+    assert returns.tolist() == [[1.0 + 0.5 * 2.0 + 0.25 * 4.0, 2.0 + 0.5 * 4.0, 4.0, 0.0]]
+
+
+@pytest.mark.parametrize("time_limit", ["terminal", "bootstrap"])
+def test_horizon_gap_is_zero_at_the_last_step_only_under_terminal(time_limit):
+    cfg = as_typed(compose_config(f"algo.time_limit={time_limit}"))
+    env_config = validate(cfg)
+    torch.manual_seed(0)
+    learner = Learner(cfg.algo, cfg.model, cfg.train, env_config, torch.device("cpu"))
+    with torch.no_grad():  # a non-zero value at s_T, so that bootstrapping there shows
+        for p in learner.loss.target_mixer_params.values(True, True):
+            p.add_(0.5)
+    episodes = episodes_from_rollout(tiny_rollout(env_config, learner), time_limit=time_limit)
+    gaps = horizon_gaps(learner, episodes, cfg.algo.gamma, terminal=time_limit == "terminal")
+    last = gaps["target_gap"][-1].item()
+    next_value = learner.loss.bootstrap_values(episodes)[:, -1, 0].mean().item()
+    if time_limit == "terminal":
+        assert last == 0.0
+    else:
+        assert last == pytest.approx(cfg.algo.gamma * next_value, rel=1e-5) and last != 0.0
+    assert torch.allclose(gaps["target_gap"][:-1], cfg.algo.gamma * gaps["value_gap"][:-1])
+
+
+def test_reading_gains_follow_the_belief_rule():
+    empty, target = reading_gains(scenario("map20"))
+    assert empty[:3].tolist() == pytest.approx([0.8, 0.16, 0.032], rel=1e-5)
+    # A target's second reading takes m(F) from 0.8 to 0.96 >= tau = 0.95: discovered, w2 = 1 more.
+    assert target[:3].tolist() == pytest.approx([0.8, 1.16, 0.032], rel=1e-5)
+
+
+def test_the_bound_takes_the_best_readings_and_is_lower_under_near():
+    enter = reward_bound(scenario("map10"), episodes=8, seed=0)
+    near = reward_bound(scenario("map10", safety_rule="near"), episodes=8, seed=0)
+    assert (near < enter).all()
+    # map10's 200 readings: the first of each of the 97 free cells, the second of the 6 targets, the
+    # second of the 91 other cells, then 6 third readings; no zone cell is worth its -1 under enter.
+    assert enter[0].item() == pytest.approx(0.8 * 97 + 6 * 1.16 + 91 * 0.16 + 6 * 0.032, rel=1e-5)
