@@ -78,7 +78,10 @@ def load_run(run_dir: Path, device: str = "cpu") -> tuple[Learner, TensorDictBas
             f"{run_dir}: its last.pt carries no replay blocks (train.save_replay=false)"
         )
     ReplayStore(ckpt.checkpoint_path(run_dir).parent).load(replay, state["replay_blocks"])
-    return learner, replay.storage.get(torch.arange(len(replay))), cfg
+    # Oldest first: once the ring buffer has wrapped, the oldest episode sits at the writer's cursor.
+    n = len(replay)
+    start = int(replay.writer.state_dict()["_cursor"]) % n if n == replay.storage.max_size else 0
+    return learner, replay.storage.get((torch.arange(n) + start) % n), cfg
 
 
 def table(gaps: dict[str, torch.Tensor]) -> str:
