@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from mcrs.env.config import with_legacy_values
+from mcrs.experiment.untrusted import check_archive
 
 FORMAT = "mcrs-checkpoint"
 VERSION = 1
@@ -93,6 +94,12 @@ def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool 
         raise CheckpointError(f"checkpoint {path} does not exist")
     if path.stat().st_size == 0:
         raise CheckpointError(f"checkpoint {path} cannot be read safely: the file is empty")
+    try:
+        refused = check_archive(path)  # before torch.load: a zip bomb is refused from its directory
+    except OSError as error:
+        raise CheckpointError(f"checkpoint {path} cannot be read: {error.strerror or error}") from None
+    if refused is not None:
+        raise CheckpointError(f"checkpoint {path} cannot be read safely: {refused}")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as error:  # truncated, corrupt or carrying objects that need code to load

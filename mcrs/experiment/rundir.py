@@ -85,6 +85,25 @@ class RunLock:
         self.release()
 
 
+def lock_holder(run_dir: str | Path) -> str | None:
+    """``"process 7438"`` when a live process holds ``run_dir``'s lock, else None (nothing is created:
+    a directory without a lock file has no writer). For tools that must not touch a run in use."""
+    import fcntl
+
+    try:
+        fd = os.open(Path(run_dir) / LOCK, os.O_RDWR)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 200, 0).decode(errors="replace").split()
+        return f"process {holder[0] if holder else 'unknown'}"
+    finally:
+        os.close(fd)  # closing drops a lock taken here
+    return None
+
+
 def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
     """Refuse a run directory that holds anything but Hydra's files, or clear a previous run from it.
 
