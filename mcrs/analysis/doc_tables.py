@@ -184,7 +184,7 @@ def check(doc: Path) -> list[str]:
     ]
     for block, fresh in generate(find_blocks(text), _root(doc)).items():
         if isinstance(fresh, bytes):
-            image = doc.parent / block.image
+            image = _image_path(doc, block)
             if not image.is_file() or image.read_bytes() != fresh:
                 state = "differs from" if image.is_file() else "is missing; it should be"
                 diffs.append(

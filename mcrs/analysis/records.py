@@ -71,12 +71,13 @@ def point_name(env: str, algo: str, seed: int, settings: dict[str, Any]) -> str:
     return "_".join([env, algo, *swept, f"seed{seed}"])
 
 
-def _component(value: Any, what: str) -> str:
-    """A value from a run's files that becomes one path component under the records: a plain name."""
+def _component(value: Any, what: str, source: str = "the run's config.yaml") -> str:
+    """A value from a run's files (``source``) that becomes one path component under the records: a
+    plain name, or a one-line RecordError naming the field and the file."""
     try:
         return plain_name(value, what)
     except UntrustedInput as error:
-        raise RecordError(str(error)) from None
+        raise RecordError(f"{error} (in {source})") from None
 
 
 def under_root(path: Path, root: Path) -> Path:
@@ -89,11 +90,11 @@ def under_root(path: Path, root: Path) -> Path:
 
 
 def training_record_path(root: Path, config: dict[str, Any]) -> Path:
-    experiment = _component(config.get("experiment", "none"), "experiment (the run's config.yaml)")
-    budget = _component(config.get("budget", "none"), "budget (the run's config.yaml)")
+    experiment = _component(config.get("experiment", "none"), "experiment")
+    budget = _component(config.get("budget", "none"), "budget")
     run = TrainingRun(Path(), config)
-    _component(run.env_name, "env.name (the run's config.yaml)")
-    _component(run.algo_name, "algo.name (the run's config.yaml)")
+    _component(run.env_name, "env.name")
+    _component(run.algo_name, "algo.name")
     if (
         isinstance(run.config.get("seed"), bool)
         or not isinstance(run.config.get("seed"), int)
@@ -102,7 +103,8 @@ def training_record_path(root: Path, config: dict[str, Any]) -> Path:
         raise RecordError(f"seed={run.config.get('seed')!r} (the run's config.yaml): not a whole number >= 0")
     settings = {k: run.setting(k) for k in swept_fields(experiment)}
     name = point_name(run.env_name, run.algo_name, run.seed, settings)
-    return under_root(root / experiment / budget / f"{_component(name, 'the point name')}.json", root)
+    file = _component(f"{name}.json", "the point's name")
+    return under_root(root / experiment / budget / file, root)
 
 
 # ---------------------------------------------------------------------------------------- facts
@@ -303,9 +305,9 @@ def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
         run = run.parent.parent if run.suffix == ".pt" else run
         policy = f"{(row['label'] or 'trained').replace(' ', '-')}-{run.name}"
     name = evaluation_record_name(policy, f"{row['comm_range']:g}", row["seed"])
-    study = _component(record["study"], "study (the result's .hydra/hydra.yaml)")
-    env = _component(row["env"], "env (the result's metrics.csv)")
-    return under_root(root / study / env / _component(name, "the record's file name"), root)
+    study = _component(record["study"], "study", "the result's .hydra/hydra.yaml")
+    env = _component(row["env"], "env", "the result's metrics.csv")
+    return under_root(root / study / env / _component(name, "the record's file name", "the result"), root)
 
 
 def _threads(setting: object) -> object:

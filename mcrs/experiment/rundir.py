@@ -18,7 +18,7 @@ import csv
 import os
 import shutil
 import socket
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -247,10 +247,12 @@ def describe_os_error(error: OSError) -> str:
 
 
 @contextlib.contextmanager
-def io_errors(action: str, after: str = ""):
+def io_errors(action: str, after: str | Callable[[], str] = ""):
     """Turn an ``OSError`` inside the block into a one-line :class:`RunDirError` (``action``: what was
-    being done, ``after``: what is still intact)."""
+    being done, ``after``: what is still intact, or a function that says it once the error happened: a
+    save may have written ``last.pt`` before failing on the next file)."""
     try:
         yield
     except OSError as error:
-        raise RunDirError(f"cannot {action}: {describe_os_error(error)}{after}") from None
+        intact = after() if callable(after) else after
+        raise RunDirError(f"cannot {action}: {describe_os_error(error)}{intact}") from None
