@@ -353,6 +353,12 @@ def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations
                 "kind": "training",
                 "status": "finished",
                 "run_dir": str(tmp_path / "run"),
+                # the fields every record has (mcrs.analysis.record_schema refuses a record without them)
+                "total_env_steps": 40,
+                "checkpoint_env_steps": 40,
+                "final_eval": {},
+                "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}, "seed": 0},
+                "scalars": {},
             }
         )
     )
