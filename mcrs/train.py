@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -30,6 +29,7 @@ from mcrs.experiment.config import (
     register_configs,
 )
 from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers
+from mcrs.experiment.untrusted import UntrustedInput, read_yaml
 
 
 def _is_mutable(name: str) -> bool:
@@ -98,17 +98,13 @@ def _first_line(error: BaseException) -> str:
 
 
 def _read_run_config(path: Path) -> dict[str, Any]:
-    """A run's ``config.yaml`` through OmegaConf's safe YAML loader (a ``!!python`` tag is refused,
-    never run); anything unreadable is one :class:`ConfigError` line naming the file."""
+    """A run's ``config.yaml``, bounded before it is parsed (size, depth, no aliases or interpolations:
+    mcrs.experiment.untrusted) and through OmegaConf's safe loader (a ``!!python`` tag is refused, never
+    run); anything unreadable is one :class:`ConfigError` line naming the file."""
     try:
-        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    except OSError as error:
-        raise ConfigError(f"resume: cannot read {path}: {describe_os_error(error)}") from None
-    except yaml.constructor.ConstructorError as error:
-        tag = f" ({error.problem})" if error.problem else ""
-        raise ConfigError(f"resume: {path} is not plain YAML data{tag}: refused without running it") from None
-    except (yaml.YAMLError, OmegaConfBaseException, UnicodeDecodeError) as error:
-        raise ConfigError(f"resume: {path} is not a valid config: {_first_line(error)}") from None
+        saved = read_yaml(path, interpolations=False)
+    except UntrustedInput as error:
+        raise ConfigError(f"resume: {error}") from None
     if not isinstance(saved, dict):
         raise ConfigError(f"resume: {path} is not a valid config: expected a mapping of fields")
     return saved

@@ -44,6 +44,9 @@ SLOW_MODULES = {
 }
 #: Slow tests in otherwise fast modules (``module::test``).
 SLOW_TESTS = {
+    "test_bad_inputs_tools.py::test_resuming_a_finished_run_three_times_leaves_one_final_evaluation_row",
+    "test_bad_inputs_tools.py::test_a_foreign_replay_block_is_refused_on_resume",
+    "test_bad_inputs_tools.py::test_the_issues_2_4_gb_zip_bomb_is_refused_at_once",
     "test_cli_errors.py::test_refused_commands_print_one_line_of_ours_and_leave_no_directory",
     "test_cli_errors.py::test_hydra_full_error_still_gives_hydras_trace",
     "test_doc_tables.py::test_results_md_agrees_with_the_committed_records",

@@ -36,6 +36,16 @@ figures:
 """
 
 
+#: The fields every training record has (mcrs.analysis.record_schema refuses a record without them).
+RECORD_FIELDS = {
+    "total_env_steps": 200,
+    "checkpoint_env_steps": 200,
+    "final_eval": {},
+    "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}, "seed": 0},
+    "scalars": {},
+}
+
+
 def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
     points, titles = load_matrix()
     assert list(titles) == ["fig7", "table4", "fig6", "fig8"]
@@ -135,7 +145,8 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
     outputs, records = tmp_path / "out", tmp_path / "rec"
     done, unrecorded, partial, missing = points
     _fake_run(done.run_dir(outputs), 200)
-    record = {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x"}
+    record = {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x",
+              **RECORD_FIELDS}  # fmt: skip
     write_record(done.record_path(records), {**record, "status": "finished", "checkpoint_env_steps": 200})
     _fake_run(unrecorded.run_dir(outputs), 200)
     _fake_run(partial.run_dir(outputs), 100)
@@ -273,7 +284,7 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
         "status": "finished",
         "checkpoint_env_steps": 100,  # 100 env steps in an hour: a 200-step point needs two
         "sessions": [{"wall_s": 3600.0}],
-        "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}},
+        **{k: v for k, v in RECORD_FIELDS.items() if k not in ("checkpoint_env_steps", "sessions")},
     }
     write_record(records / "comm_range" / "smoke" / "earlier.json", earlier)
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
@@ -294,7 +305,7 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
     assert "campaign: 0 runs ended, 2 not started (time budget)" in out
     # An algorithm with no record of its own is judged by the slowest recorded one on its map.
     write_record(records / "comm_range" / "smoke" / "earlier.json", {**earlier, "config": {
-        "env": {"name": "map10"}, "algo": {"name": "vdn"}}})  # fmt: skip
+        "env": {"name": "map10"}, "algo": {"name": "vdn"}, "seed": 0}})  # fmt: skip
     assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
     assert f"not started: {first.id} needs about 2.00 h, 1.50 h left" in capsys.readouterr().out
     with open(outputs / ".campaign.lock", "a+") as lock:  # a campaign already running here
@@ -353,6 +364,12 @@ def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations
                 "kind": "training",
                 "status": "finished",
                 "run_dir": str(tmp_path / "run"),
+                # the fields every record has (mcrs.analysis.record_schema refuses a record without them)
+                "total_env_steps": 40,
+                "checkpoint_env_steps": 40,
+                "final_eval": {},
+                "config": {"env": {"name": "map10"}, "algo": {"name": "qmix"}, "seed": 0},
+                "scalars": {},
             }
         )
     )

@@ -39,12 +39,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mcrs.analysis import report
+from mcrs.experiment.untrusted import UntrustedInput, confined
 
 BLOCK = re.compile(
     r"<!-- (?P<kind>table|figure) (?P<file>[\w.-]+\.(?:md|png)) of: mcrs-report (?P<args>[^\n]*?) -->\n"
     r"(?P<body>.*?)<!-- end (?P=kind) -->",
     re.S,
 )
+#: mcrs-report options that write files besides --out: refused in a document's blocks.
+WRITING_OPTIONS = ("--out", "--marl-eval")
 IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)\s]+\.png)\)")
 
 
@@ -67,6 +70,11 @@ class Block:
     image: str = ""  # a figure's image path, relative to the document
 
 
+def _writes(option: str) -> bool:
+    """``option`` is one of :data:`WRITING_OPTIONS` or an abbreviation argparse would accept for it."""
+    return len(option) > 2 and option.startswith("--") and any(w.startswith(option) for w in WRITING_OPTIONS)
+
+
 def find_blocks(text: str) -> list[Block]:
     """The generated tables and figures of ``text``, in order. Refuses a ``--out`` (the tool chooses the folder)."""
     blocks = []
@@ -79,6 +87,12 @@ def find_blocks(text: str) -> list[Block]:
         if "--out" in args:
             raise DocTableError(
                 f"line {line}: leave --out out of the command; the table is made in a temporary folder"
+            )
+        written = [a for a in args if _writes(a.split("=", 1)[0])]
+        if written:  # a document must not make the tool write a file of its choosing
+            raise DocTableError(
+                f"line {line}: {written[0].split('=', 1)[0]} writes a file: a generated block may not use it "
+                f"(allowed options: --env, --claims, --tsne, --tsne-samples, --seed)"
             )
         if (match["kind"] == "table") != match["file"].endswith(".md"):
             raise DocTableError(f"line {line}: a table is a .md file and a figure a .png: {match['file']}")
@@ -170,7 +184,7 @@ def check(doc: Path) -> list[str]:
     ]
     for block, fresh in generate(find_blocks(text), _root(doc)).items():
         if isinstance(fresh, bytes):
-            image = doc.parent / block.image
+            image = _image_path(doc, block)
             if not image.is_file() or image.read_bytes() != fresh:
                 state = "differs from" if image.is_file() else "is missing; it should be"
                 diffs.append(
@@ -189,6 +203,14 @@ def check(doc: Path) -> list[str]:
     return diffs
 
 
+def _image_path(doc: Path, block: Block) -> Path:
+    """A figure's image file, which must lie inside the repository (the folder the commands run in)."""
+    try:
+        return confined(doc.parent / block.image, _root(doc), f"line {block.line}: the image")
+    except UntrustedInput as error:
+        raise DocTableError(str(error)) from None
+
+
 def update(doc: Path) -> int:
     """Rewrite every generated table of ``doc``, and every generated figure's image, from the records
     (each file atomically, and nothing when one cannot be made); how many changed."""
@@ -199,7 +221,7 @@ def update(doc: Path) -> int:
     for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
         made = fresh[block]
         if isinstance(made, bytes):
-            image = doc.parent / block.image
+            image = _image_path(doc, block)
             if not image.is_file() or image.read_bytes() != made:
                 image.parent.mkdir(parents=True, exist_ok=True)
                 partial = image.with_name(f".{image.name}.partial")

@@ -26,6 +26,7 @@ from omegaconf import OmegaConf
 
 from mcrs.analysis.comm_range import policy_label
 from mcrs.analysis.curves import Q_TOT
+from mcrs.analysis.record_schema import RecordError
 from mcrs.analysis.runs import (
     CONFIG_DIR,
     RECORD_FORMAT,
@@ -38,6 +39,7 @@ from mcrs.analysis.runs import (
     read_scalar_rows,
 )
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
 
 #: Where records go by default (committed), relative to the repository root.
 RECORDS_DIR = Path("results/records")
@@ -50,10 +52,6 @@ NAME_FIELDS = {
     "algo.memory_weight": "lambda",
     "algo.incentive_threshold": "thr",
 }
-
-
-class RecordError(ValueError):
-    """A directory that cannot be recorded, or a record that would overwrite another run's."""
 
 
 # ----------------------------------------------------------------------------------------- names
@@ -73,12 +71,40 @@ def point_name(env: str, algo: str, seed: int, settings: dict[str, Any]) -> str:
     return "_".join([env, algo, *swept, f"seed{seed}"])
 
 
+def _component(value: Any, what: str, source: str = "the run's config.yaml") -> str:
+    """A value from a run's files (``source``) that becomes one path component under the records: a
+    plain name, or a one-line RecordError naming the field and the file."""
+    try:
+        return plain_name(value, what)
+    except UntrustedInput as error:
+        raise RecordError(f"{error} (in {source})") from None
+
+
+def under_root(path: Path, root: Path) -> Path:
+    """``path`` if it lies under ``root`` once resolved (a record is never written elsewhere)."""
+    try:
+        confined(path, root, "the record's path")
+    except UntrustedInput as error:
+        raise RecordError(str(error)) from None
+    return path
+
+
 def training_record_path(root: Path, config: dict[str, Any]) -> Path:
-    experiment, budget = str(config.get("experiment", "none")), str(config.get("budget", "none"))
+    experiment = _component(config.get("experiment", "none"), "experiment")
+    budget = _component(config.get("budget", "none"), "budget")
     run = TrainingRun(Path(), config)
+    _component(run.env_name, "env.name")
+    _component(run.algo_name, "algo.name")
+    if (
+        isinstance(run.config.get("seed"), bool)
+        or not isinstance(run.config.get("seed"), int)
+        or run.seed < 0
+    ):
+        raise RecordError(f"seed={run.config.get('seed')!r} (the run's config.yaml): not a whole number >= 0")
     settings = {k: run.setting(k) for k in swept_fields(experiment)}
     name = point_name(run.env_name, run.algo_name, run.seed, settings)
-    return root / experiment / budget / f"{name}.json"
+    file = _component(f"{name}.json", "the point's name")
+    return under_root(root / experiment / budget / file, root)
 
 
 # ---------------------------------------------------------------------------------------- facts
@@ -162,7 +188,20 @@ def _sessions(run_dir: Path) -> list[dict[str, Any]]:
     path = run_dir / SESSIONS
     if not path.is_file():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    sessions = []
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            session = json.loads(line, parse_constant=lambda name: None)
+        except (ValueError, RecursionError):
+            raise RecordError(
+                f"{path}:{number}: not a JSON line (campaign sessions are one object a line)"
+            ) from None
+        if not isinstance(session, dict) or depth_of(session) > MAX_DEPTH:
+            raise RecordError(f"{path}:{number}: not a session (a flat JSON object)")
+        sessions.append(session)
+    return sessions
 
 
 # -------------------------------------------------------------------------------------- records
@@ -219,13 +258,15 @@ def evaluation_record(eval_dir: Path) -> dict[str, Any]:
         reasons = "; ".join(s.reason for s in runs.skipped) or "no metrics.csv"
         raise RecordError(f"{eval_dir}: not an mcrs-eval result ({reasons})")
     hydra_dir = eval_dir / ".hydra"
-    config = OmegaConf.to_container(OmegaConf.load(hydra_dir / "config.yaml")) if hydra_dir.is_dir() else {}
-    choices = (
-        OmegaConf.select(OmegaConf.load(hydra_dir / "hydra.yaml"), "hydra.runtime.choices")
-        if (hydra_dir / "hydra.yaml").is_file()
-        else None
-    )
-    study = (choices or {}).get("study") or "eval"
+    try:  # bounded before parsing (mcrs.experiment.untrusted); Hydra's files keep their interpolations
+        config = read_yaml(hydra_dir / "config.yaml") if hydra_dir.is_dir() else {}
+        hydra = read_yaml(hydra_dir / "hydra.yaml") if (hydra_dir / "hydra.yaml").is_file() else {}
+    except UntrustedInput as error:
+        raise RecordError(str(error)) from None
+    if not isinstance(config, dict) or not isinstance(hydra, dict):
+        raise RecordError(f"{hydra_dir}: config.yaml and hydra.yaml must be mappings")
+    choices = ((hydra.get("hydra") or {}).get("runtime") or {}).get("choices")
+    study = (choices if isinstance(choices, dict) else {}).get("study") or "eval"
     return {
         "format": RECORD_FORMAT,
         "version": RECORD_VERSION,
@@ -264,7 +305,9 @@ def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
         run = run.parent.parent if run.suffix == ".pt" else run
         policy = f"{(row['label'] or 'trained').replace(' ', '-')}-{run.name}"
     name = evaluation_record_name(policy, f"{row['comm_range']:g}", row["seed"])
-    return root / record["study"] / row["env"] / name
+    study = _component(record["study"], "study", "the result's .hydra/hydra.yaml")
+    env = _component(row["env"], "env", "the result's metrics.csv")
+    return under_root(root / study / env / _component(name, "the record's file name", "the result"), root)
 
 
 def _threads(setting: object) -> object:

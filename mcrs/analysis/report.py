@@ -58,6 +58,7 @@ from mcrs.analysis.curves import (
 )
 from mcrs.analysis.evaluations import heuristic_references, heuristic_rows, trained_rows
 from mcrs.analysis.marl_eval import write_marl_eval
+from mcrs.analysis.record_schema import RecordError
 from mcrs.analysis.runs import (
     Runs,
     Skipped,
@@ -419,7 +420,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.tsne_samples < 2:
         raise SystemExit(f"mcrs-report: error: --tsne-samples={args.tsne_samples}: must be >= 2")
-    runs = find_runs(args.paths)
+    try:
+        runs = find_runs(args.paths)
+    except RecordError as error:  # a record or log that fails the schema: named, nothing reported
+        raise SystemExit(f"mcrs-report: error: {error}") from None
     if args.marl_eval is not None:  # every map (a task each), before the report keeps one
         data = write_marl_eval(args.marl_eval, runs.training)
         tasks = {task: len(algos) for env in data.values() for task, algos in env.items()}

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import csv
 import functools
-import json
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,8 +29,18 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from mcrs.analysis.record_schema import (  # noqa: F401 (RECORD_FORMAT: read from here by the tools)
+    RECORD_FORMAT,
+    RECORD_VERSION,
+    RecordError,
+    SchemaField,
+    check_row,
+    deduplicate,
+    load_json_record,
+)
 from mcrs.experiment.checkpoint import current_config, legacy_values
 from mcrs.experiment.logging import flatten_config
+from mcrs.experiment.untrusted import UntrustedInput, read_yaml
 
 #: The Hydra configs (mcrs/conf links to the repo's conf/).
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -70,11 +80,6 @@ class Skipped:
 
     path: Path
     reason: str
-
-
-#: The marker and version of a record file (the first key of its JSON, so it is recognised cheaply).
-RECORD_FORMAT = "mcrs-record"
-RECORD_VERSION = 1
 
 
 @dataclass
@@ -157,8 +162,19 @@ class Runs:
 
 def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
     """The ``step,value`` rows of a CSV-logger file in the order written (a resumed run repeats steps)."""
-    with open(path, newline="") as f:
-        return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) == 2]
+    out = []
+    with open(path, newline="", errors="replace") as f:
+        for line, row in enumerate(csv.reader(f), start=1):
+            if len(row) != 2:
+                continue
+            try:
+                step, value = float(row[0]), float(row[1])
+            except ValueError:
+                raise RecordError(f"{path}:{line}: not a step,value row of numbers: {row!r}") from None
+            if not (step >= 0 and math.isfinite(step)):
+                raise RecordError(f"{path}:{line}: step {row[0]!r} is not a whole number >= 0")
+            out.append((int(step), value))
+    return out
 
 
 def _read_scalar_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -201,6 +217,8 @@ def find_runs(paths: list[Path]) -> Runs:
             elif file.suffix == ".json" and (record := read_record(file, runs.skipped)) is not None:
                 records.append((file, record))
     directories = {r.path.resolve() for r in runs.training} | {e.path.resolve() for e in runs.evaluations}
+    records, copies = deduplicate(records)  # a copied record counts once; a contradictory one is refused
+    runs.skipped += [Skipped(file, reason) for file, reason in copies]
     for file, record in records:
         if Path(record.get("run_dir", "")).resolve() in directories:
             runs.skipped.append(Skipped(file, f"a record of {record['run_dir']}, which is read itself"))
@@ -210,18 +228,11 @@ def find_runs(paths: list[Path]) -> Runs:
 
 
 def read_record(path: Path, skipped: list[Skipped] | None = None) -> dict[str, Any] | None:
-    """The record in ``path``; None for a JSON file that is not a record (an unreadable record, or one
-    of another version, is added to ``skipped`` with the reason)."""
-    with open(path, "rb") as f:
-        if RECORD_FORMAT.encode() not in f.read(200):
-            return None
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
-        if skipped is not None:
-            skipped.append(Skipped(path, f"record cannot be read ({type(error).__name__})"))
-        return None
-    if not isinstance(record, dict) or record.get("format") != RECORD_FORMAT:
+    """The record in ``path``, checked against the schema (mcrs.analysis.record_schema); None for a JSON
+    file that is not a record, or a record of another version (added to ``skipped`` with the reason). A
+    record that fails the schema raises ``RecordError`` naming the file and the field."""
+    record = load_json_record(path)
+    if record is None:
         return None
     if record.get("version") != RECORD_VERSION:
         if skipped is not None:
@@ -257,10 +268,10 @@ def _add_record(path: Path, record: dict[str, Any], runs: Runs) -> None:
 def _add_training_run(run_dir: Path, runs: Runs) -> None:
     if not (run_dir / "checkpoints").is_dir() and not (run_dir / "logs").is_dir():
         return  # a config.yaml that is not an mcrs-train run (e.g. a user's own file)
-    try:
-        config = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
-    except Exception as error:  # unreadable YAML: say so, keep going
-        runs.skipped.append(Skipped(run_dir, f"config.yaml cannot be read ({type(error).__name__})"))
+    try:  # bounded before parsing: an alias bomb or a deep file is refused unexpanded
+        config = read_yaml(run_dir / "config.yaml", interpolations=False)
+    except UntrustedInput as error:  # unreadable YAML: say so, keep going
+        runs.skipped.append(Skipped(run_dir, f"config.yaml cannot be read ({error})"))
         return
     if not isinstance(config, dict) or not all(k in config for k in ("env", "algo", "seed")):
         runs.skipped.append(Skipped(run_dir, "config.yaml is not an mcrs-train config (no env/algo/seed)"))
@@ -309,19 +320,20 @@ def _add_evaluation(path: Path, runs: Runs) -> None:
         missing = sorted(needed - set(rows[0])) if rows else ["every row"]
         runs.skipped.append(Skipped(path.parent, f"metrics.csv lacks {', '.join(missing)} (rerun mcrs-eval)"))
         return
-    for row in rows:
-        means = {k[: -len("_mean")]: float(v) for k, v in row.items() if k.endswith("_mean")}
-        runs.evaluations.append(
-            EvaluationRow(
-                path.parent,
-                row["policy"],
-                row["env"],
-                float(row["comm_range"]),
-                int(row["seed"]),
-                int(row["episodes"]),
-                means,
-            )
-        )
+    for line, row in enumerate(rows, start=2):
+        try:  # every value is checked as a record's row is (mcrs.analysis.record_schema)
+            record_row = {
+                "policy": row["policy"],
+                "env": row["env"],
+                "comm_range": float(row["comm_range"]),
+                "seed": int(row["seed"]),
+                "episodes": int(row["episodes"]),
+                "means": {k[: -len("_mean")]: float(v) for k, v in row.items() if k.endswith("_mean")},
+            }
+            check_row(record_row, f"line {line}: ")
+        except (ValueError, TypeError, SchemaField) as error:
+            raise RecordError(f"{path}: line {line}: {error}") from None
+        runs.evaluations.append(EvaluationRow(path.parent, **record_row))
 
 
 def flatten(config: dict[str, Any]) -> dict[str, Any]:

@@ -12,6 +12,8 @@ Records go to results/records/ (commit them); runs to outputs/campaign/. See doc
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -25,6 +27,8 @@ from mcrs.campaign.runner import Campaign, CampaignBusy
 from mcrs.experiment import checkpoint as ckpt
 
 OUTPUTS_DIR = Path("outputs/campaign")
+#: --hours beyond a year is a typo (and time.time() + inf never ends).
+MAX_HOURS = 24 * 366
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -101,10 +105,13 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    if args.jobs < 1:
-        raise SystemExit(f"mcrs-campaign: error: --jobs={args.jobs}: must be >= 1")
-    if args.hours <= 0:
-        raise SystemExit(f"mcrs-campaign: error: --hours={args.hours}: must be > 0")
+    cores = os.cpu_count() or 1
+    if not 1 <= args.jobs <= cores:  # each run has one torch thread: more runs than cores only queue
+        raise SystemExit(f"mcrs-campaign: error: --jobs={args.jobs}: must be >= 1 and <= {cores} (CPU cores)")
+    if not (math.isfinite(args.hours) and 0 < args.hours <= MAX_HOURS):
+        raise SystemExit(
+            f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"
+        )
     points, total = _points(args)
     evaluations = [] if args.no_evaluate else _evaluations(args)
     campaign = Campaign(
@@ -201,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             "report": cmd_report,
         }
         return commands[args.command](args)
-    except (MatrixError, CampaignBusy) as error:
+    except (MatrixError, CampaignBusy, RecordError) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None
 
 

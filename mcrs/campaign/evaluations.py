@@ -23,14 +23,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from mcrs.analysis.records import RecordError, evaluation_record_name, make_record, write_record
 from mcrs.analysis.runs import is_heuristic_policy, read_record
-from mcrs.campaign.matrix import MatrixError, Point
+from mcrs.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.untrusted import UntrustedInput, confined
 
 EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
+#: More evaluation episodes than this per seed is a typo (the paper uses 32).
+MAX_EPISODES = 100_000
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,9 @@ def _as_tuple(value: Any) -> tuple[Any, ...]:
 
 def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
     """The ``evaluations:`` entries of the campaign file ``path`` (none: an empty list)."""
-    spec = OmegaConf.to_container(OmegaConf.load(path)).get("evaluations") or {}
+    spec = load_campaign_file(path).get("evaluations") or {}
+    if not isinstance(spec, dict):
+        raise MatrixError(f"{path}: evaluations: a mapping of evaluation names to entries")
     out = []
     for name, entry in spec.items():
         where = f"{path}: evaluation {name}"
@@ -121,23 +124,29 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             raise MatrixError(
                 f'{where}: variants: a mapping of names to mcrs-eval overrides, e.g. {{"on": [...]}}'
             )
+        plain(name, f"{path}: evaluation name")  # it names folders under the outputs and the records
         for variant in variants:
             if not isinstance(variant, str):
                 raise MatrixError(
                     f"{where}: variant {variant!r}: not a name (YAML reads a bare on/off/yes/no as true/false: "
                     "quote it)"
                 )
+            plain(variant, f"{where}: variant")
         episodes, seeds = entry.get("episodes", 32), _as_tuple(entry.get("seeds", (0,)))
         if not isinstance(episodes, int) or episodes < 1:
             raise MatrixError(f"{where}: episodes={episodes!r}: a whole number >= 1")
-        if not seeds or not all(isinstance(s, int) and s >= 0 for s in seeds):
-            raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers >= 0")
+        if isinstance(episodes, bool) or episodes > MAX_EPISODES:
+            raise MatrixError(f"{where}: episodes={episodes!r}: a whole number in [1, {MAX_EPISODES}]")
+        if not seeds or not all(
+            isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_SEED for s in seeds
+        ):
+            raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers in [0, 2**63 - 1]")
         out.append(
             Evaluation(
                 name=str(name),
                 title=str(entry.get("title", name)),
                 of=of,
-                heuristics=tuple(str(h) for h in _as_tuple(entry.get("heuristics", ()))),
+                heuristics=tuple(_heuristic(h, where) for h in _as_tuple(entry.get("heuristics", ()))),
                 episodes=episodes,
                 seeds=tuple(seeds),
                 variants=tuple(
@@ -146,6 +155,14 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             )
         )
     return out
+
+
+def _heuristic(name: Any, where: str) -> str:
+    from mcrs.policies import POLICIES
+
+    if name not in POLICIES:
+        raise MatrixError(f"{where}: heuristics: {name!r}: allowed values are {', '.join(POLICIES)}")
+    return str(name)
 
 
 def plan(
@@ -207,7 +224,10 @@ def summary(evaluations: list[Evaluation], points: list[Point], records: Path) -
 def run_job(job: EvaluationJob, outputs: Path, records: Path) -> list[str]:
     """Run one job and record each seed's result; returns the lines to print. The sweep folder is this
     job's own: an earlier attempt's is replaced."""
-    sweep = job.sweep_dir(outputs)
+    try:  # the names were checked on load; a folder outside the outputs is never removed all the same
+        sweep = confined(job.sweep_dir(outputs), outputs, "the evaluation's folder")
+    except UntrustedInput as error:
+        raise RecordError(str(error)) from None
     if sweep.exists():
         shutil.rmtree(sweep)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}

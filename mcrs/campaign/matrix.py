@@ -7,6 +7,7 @@ read from the disk alone (mcrs.campaign.progress).
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +17,7 @@ from omegaconf import OmegaConf
 
 from mcrs.analysis.records import point_name, swept_fields
 from mcrs.analysis.runs import CONFIG_DIR
+from mcrs.experiment.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
 
 #: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
 #: a config group.
@@ -25,6 +27,44 @@ FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also"}
 
 class MatrixError(ValueError):
     """A campaign file or an ``--only`` filter that cannot be used."""
+
+
+#: Seeds are mcrs-train's: in [0, 2**63 - 1].
+MAX_SEED = 2**63 - 1
+
+
+def plain(value: Any, what: str) -> str:
+    """``value`` as a plain name (it becomes a folder of the outputs or the records), else MatrixError."""
+    try:
+        return plain_name(value, what)
+    except UntrustedInput as error:
+        raise MatrixError(str(error)) from None
+
+
+def load_campaign_file(path: Path) -> dict[str, Any]:
+    """The campaign file as plain data, bounded before parsing (no aliases, size and depth limits)."""
+    try:
+        spec = read_yaml(path)
+    except UntrustedInput as error:
+        raise MatrixError(str(error)) from None
+    if not isinstance(spec, dict):
+        raise MatrixError(f"{path}: a mapping with budget, seeds, figures (and overrides, evaluations)")
+    return spec
+
+
+def _option(group: str, value: Any, where: str) -> str:
+    """``value`` as an option of the config group ``group`` (conf/<group>/<value>.yaml)."""
+    name = plain(value, f"{where}: {group}")
+    allowed = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
+    if name not in allowed:
+        raise MatrixError(f"{where}: {group}={name!r}: allowed values are {', '.join(allowed)}")
+    return name
+
+
+def _seed(value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
+        raise MatrixError(f"{where}: seeds: {value!r} is not a whole number in [0, 2**63 - 1]")
+    return value
 
 
 @dataclass(frozen=True)
@@ -117,22 +157,35 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
     figure), and each figure's title."""
     if not path.is_file():
         raise MatrixError(f"--matrix={path}: no such file")
-    spec = OmegaConf.to_container(OmegaConf.load(path))
-    budget, seeds = str(spec.get("budget", "campaign")), [int(s) for s in _as_list(spec.get("seeds", [0]))]
+    spec = load_campaign_file(path)
+    budget = plain(spec.get("budget", "campaign"), f"{path}: budget")
+    seeds = [_seed(s, str(path)) for s in _as_list(spec.get("seeds", [0]))]
     budget_steps(budget)  # an unknown budget fails here, naming the allowed ones
-    overrides = {k: tuple(_as_list(v)) for k, v in (spec.get("overrides") or {}).items()}
+    overrides = {str(k): tuple(str(o) for o in _as_list(v)) for k, v in (spec.get("overrides") or {}).items()}
     figures = spec.get("figures") or {}
+    if not isinstance(figures, dict):
+        raise MatrixError(f"{path}: figures: a mapping of figure names to entries")
     points: dict[Point, list[str]] = {}
     titles = {}
     for name, fig in figures.items():
+        where = f"{path}: figure {name}"
+        if not isinstance(fig, dict) or not {"experiment", "env", "algo"} <= set(fig):
+            raise MatrixError(f"{where}: a mapping with experiment, env and algo (and title, sweep, also)")
         unknown = set(fig) - FIGURE_KEYS
         if unknown:
             raise MatrixError(
                 f"{path}: figure {name}: unknown keys {sorted(unknown)}; allowed: {sorted(FIGURE_KEYS)}"
             )
         titles[name] = str(fig.get("title", name))
-        experiment = str(fig["experiment"])
+        experiment = _option("experiment", fig["experiment"], where)
+        envs = [_option("env", e, where) for e in _as_list(fig["env"])]
+        algos = [_option("algo", a, where) for a in _as_list(fig["algo"])]
         sweep = fig.get("sweep") or {}
+        if not isinstance(sweep, dict):
+            raise MatrixError(f"{where}: sweep: a mapping of fields to lists of values")
+        for key, values in sweep.items():
+            if not all(finite_number(v) or v == math.inf for v in _as_list(values)):
+                raise MatrixError(f"{where}: sweep {key}={values!r}: numbers only (not NaN)")
         bad = [k for k in sweep if k not in swept_fields(experiment)]
         if bad:
             raise MatrixError(
@@ -143,8 +196,8 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
         for key, values in sweep.items():
             combos = [(*c, (key, v)) for c in combos for v in _as_list(values)]
         for seed in seeds:
-            for env in _as_list(fig["env"]):
-                for algo in _as_list(fig["algo"]):
+            for env in envs:
+                for algo in algos:
                     for combo in combos:
                         fixed = (*overrides.get(ALL_POINTS, ()), *overrides.get(algo, ()))
                         point = Point(experiment, env, algo, seed, budget, combo, fixed)

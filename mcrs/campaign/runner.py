@@ -37,6 +37,7 @@ from mcrs.campaign.evaluations import Evaluation, plan, run_pending
 from mcrs.campaign.matrix import Point
 from mcrs.campaign.progress import Progress, progress
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.rundir import lock_holder
 
 #: Seconds a stopped child may take to exit after SIGINT before it is killed.
 STOP_GRACE_S = 120.0
@@ -184,7 +185,7 @@ class Campaign:
         speeds = self._speeds()
         queue = list(launches)
         running: list[Job] = []
-        not_started = 0
+        not_started = refused = 0
         previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
             while (queue or running) and self.stop_signal is None:
@@ -198,7 +199,11 @@ class Campaign:
                         )
                         not_started += 1
                         continue
-                    running.append(self._launch(state, command))
+                    job = self._launch(state, command)
+                    if job is None:
+                        refused += 1
+                    else:
+                        running.append(job)
                 time.sleep(1.0)
                 for job in [j for j in running if j.process.poll() is not None]:
                     running.remove(job)
@@ -210,7 +215,12 @@ class Campaign:
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-        _print(f"campaign: {len(launches) - not_started} runs ended, {not_started} not started (time budget)")
+        ended = len(launches) - not_started - refused
+        _print(f"campaign: {ended} runs ended, {not_started} not started (time budget)")
+        if refused:
+            _print(
+                f"campaign: {refused} runs not started: their directories are in use or not the campaign's"
+            )
         return 0
 
     def _on_signal(self, signum: int, frame: object) -> None:
@@ -218,8 +228,30 @@ class Campaign:
             _print(f"campaign: {signal.Signals(signum).name}: stopping the running children")
         self.stop_signal = signum
 
-    def _launch(self, state: Progress, command: list[str]) -> Job:
+    def _refusal(self, point: Point, state: str) -> str | None:
+        """Why the campaign must not touch ``point``'s run directory now, or None. A run whose lock is
+        held (a user's mcrs-train, or another tool) is left alone, and a directory the campaign did not
+        start (no campaign.log) is never moved aside: only its owner knows what it holds."""
+        run_dir = point.run_dir(self.outputs)
+        holder = lock_holder(run_dir)
+        if holder is not None:
+            return (
+                f"{point.id}: its run directory {run_dir} is in use by {holder}: the campaign leaves a "
+                "live run alone; run the campaign again once it has ended"
+            )
+        if state == "missing" and run_dir.exists() and not (run_dir / LOG).is_file():
+            return (
+                f"{point.id}: {run_dir} holds a run that mcrs-campaign did not start (no {LOG}): move it "
+                "away or resume it yourself (mcrs-train resume=); the campaign does not touch it"
+            )
+        return None
+
+    def _launch(self, state: Progress, command: list[str]) -> Job | None:
         run_dir = state.point.run_dir(self.outputs)
+        refusal = self._refusal(state.point, state.state)
+        if refusal is not None:
+            _print(f"not started: {refusal}")
+            return None
         if state.state == "missing" and run_dir.exists():  # a start that died before its first checkpoint
             aside = run_dir.with_name(f"{run_dir.name}.failed-{time.strftime('%Y%m%d-%H%M%S')}")
             run_dir.rename(aside)
@@ -262,6 +294,10 @@ class Campaign:
 
     def _record(self, point: Point) -> None:
         run_dir = point.run_dir(self.outputs)
+        holder = lock_holder(run_dir)
+        if holder is not None:  # a live run: its checkpoint may change under the record (and the pruning)
+            _print(f"not recorded: {point.id}: {run_dir} is in use by {holder}")
+            return
         try:
             path, record = make_record(run_dir, self.records)
             outcome = write_record(path, record)

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from mcrs.env.config import with_legacy_values
+from mcrs.experiment.untrusted import check_archive
 
 FORMAT = "mcrs-checkpoint"
 VERSION = 1
@@ -89,10 +90,16 @@ def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool 
     """Read a checkpoint without executing code; refuse anything that is not ours. ``mmap=True`` maps
     the tensors instead of reading them (cheap when only a part, e.g. the episodic buffer, is needed)."""
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    if path.stat().st_size == 0:
-        raise CheckpointError(f"checkpoint {path} cannot be read safely: the file is empty")
+    try:
+        if not path.is_file():
+            raise CheckpointError(f"checkpoint {path} does not exist")
+        if path.stat().st_size == 0:
+            raise CheckpointError(f"checkpoint {path} cannot be read safely: the file is empty")
+        refused = check_archive(path)  # before torch.load: a zip bomb is refused from its directory
+    except OSError as error:  # an unreadable file or directory
+        raise CheckpointError(f"checkpoint {path} cannot be read: {error.strerror or error}") from None
+    if refused is not None:
+        raise CheckpointError(f"checkpoint {path} cannot be read safely: {refused}")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as error:  # truncated, corrupt or carrying objects that need code to load

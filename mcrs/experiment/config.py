@@ -26,6 +26,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.experiment.replay import TIME_LIMITS
+from mcrs.experiment.untrusted import PLAIN_NAME
 from mcrs.memory.delta import DELTA_RULES
 from mcrs.memory.index import SHAPES
 from mcrs.models.embeddings import EMBEDDINGS
@@ -305,15 +306,17 @@ def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
     _choice(errors, "model.name", m.name, ModelName)
     if not str(lg.project).strip():
         errors.append(f"logger.project={lg.project!r}: must be a non-empty name")
-    if not str(a.name).strip() or "/" in str(a.name):
-        errors.append(
-            f"algo.name={a.name!r}: must be a non-empty label without '/' (it names run directories)"
-        )
-    labels = {"env.name": str(cfg.env.name), "experiment": cfg.experiment, "budget": cfg.budget}
+    labels = {
+        "algo.name": a.name,
+        "env.name": cfg.env.name,
+        "experiment": cfg.experiment,
+        "budget": cfg.budget,
+    }
     for field_name, label in labels.items():
-        if not str(label).strip() or "/" in str(label):
+        if not PLAIN_NAME.fullmatch(str(label)):  # '..' or '.' would put the run outside outputs/
             errors.append(
-                f"{field_name}={label!r}: must be a non-empty label without '/' (it names run directories)"
+                f"{field_name}={str(label)!r}: must be a non-empty label without '/', a plain name (letters, "
+                "digits, _ . + = -, not starting with '.'): it names run directories"
             )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")

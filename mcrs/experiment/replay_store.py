@@ -51,8 +51,10 @@ class ReplayStore:
         blocks = torch.unique(index.reshape(-1).to("cpu", torch.long) // self.block_episodes)
         self._dirty.update(int(b) for b in blocks)
 
-    def save(self, buffer: ReplayBuffer) -> dict[str, Any]:
-        """Write the blocks changed since the last commit; return the manifest for ``last.pt``."""
+    def save(self, buffer: ReplayBuffer, fingerprint: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write the blocks changed since the last commit; return the manifest for ``last.pt``. Each block
+        carries ``fingerprint`` (the run's, as ``last.pt`` does), so a block copied from another run is
+        refused by :meth:`load`."""
         n = len(buffer)
         n_blocks = math.ceil(n / self.block_episodes)
         self.generation += 1
@@ -66,6 +68,7 @@ class ReplayStore:
             ckpt.save_atomic(
                 {
                     "replay_block": block,
+                    "fingerprint": fingerprint,
                     "batch_size": list(episodes.batch_size),
                     "episodes": {
                         "/".join(k) if isinstance(k, tuple) else k: v.cpu()
@@ -82,6 +85,7 @@ class ReplayStore:
             "block_episodes": self.block_episodes,
             "generation": self.generation,
             "files": list(files),
+            "fingerprinted": fingerprint is not None,  # blocks written before fingerprints carry none
         }
 
     def commit(self) -> None:
@@ -95,8 +99,14 @@ class ReplayStore:
             if _BLOCK_FILE.match(path.name) and path.name not in keep:
                 path.unlink(missing_ok=True)
 
-    def load(self, buffer: ReplayBuffer, manifest: dict[str, Any]) -> None:
-        """Refill an empty ``buffer`` from a manifest: same slots, same next write position."""
+    def load(
+        self, buffer: ReplayBuffer, manifest: dict[str, Any], fingerprint: dict[str, Any] | None = None
+    ) -> None:
+        """Refill an empty ``buffer`` from a manifest: same slots, same next write position. Each block
+        must be the one the manifest names (its index) and, when the manifest says its blocks carry
+        fingerprints, carry ``fingerprint`` (checked like ``last.pt``'s)."""
+        from mcrs.experiment.rundir import first_difference
+
         if len(buffer):
             raise ValueError("ReplayStore.load needs an empty buffer")
         if int(manifest["block_episodes"]) != self.block_episodes:
@@ -107,8 +117,20 @@ class ReplayStore:
         n = int(manifest["length"])
         if n > buffer.storage.max_size:
             raise ValueError(f"the saved replay holds {n} episodes, more than this buffer's capacity")
-        for name in manifest["files"]:
-            payload = ckpt.load(self.directory / name, mmap=True)
+        for block, name in enumerate(manifest["files"]):
+            path = self.directory / name
+            payload = ckpt.load(path, mmap=True)
+            if payload.get("replay_block") != block:
+                raise ckpt.CheckpointError(
+                    f"{path} is not block {block} of this run's replay (it says {payload.get('replay_block')!r})"
+                )
+            if manifest.get("fingerprinted") and fingerprint is not None:
+                saved = payload.get("fingerprint")
+                difference = (
+                    "it carries none" if not isinstance(saved, dict) else first_difference(saved, fingerprint)
+                )
+                if difference is not None:
+                    raise ckpt.CheckpointError(f"{path} does not belong to this run: {difference}")
             episodes = TensorDict(
                 {tuple(k.split("/")): v for k, v in payload["episodes"].items()},
                 batch_size=payload["batch_size"],

@@ -18,7 +18,7 @@ import csv
 import os
 import shutil
 import socket
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +83,25 @@ class RunLock:
 
     def __del__(self) -> None:
         self.release()
+
+
+def lock_holder(run_dir: str | Path) -> str | None:
+    """``"process 7438"`` when a live process holds ``run_dir``'s lock, else None (nothing is created:
+    a directory without a lock file has no writer). For tools that must not touch a run in use."""
+    import fcntl
+
+    try:
+        fd = os.open(Path(run_dir) / LOCK, os.O_RDWR)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 200, 0).decode(errors="replace").split()
+        return f"process {holder[0] if holder else 'unknown'}"
+    finally:
+        os.close(fd)  # closing drops a lock taken here
+    return None
 
 
 def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
@@ -228,10 +247,12 @@ def describe_os_error(error: OSError) -> str:
 
 
 @contextlib.contextmanager
-def io_errors(action: str, after: str = ""):
+def io_errors(action: str, after: str | Callable[[], str] = ""):
     """Turn an ``OSError`` inside the block into a one-line :class:`RunDirError` (``action``: what was
-    being done, ``after``: what is still intact)."""
+    being done, ``after``: what is still intact, or a function that says it once the error happened: a
+    save may have written ``last.pt`` before failing on the next file)."""
     try:
         yield
     except OSError as error:
-        raise RunDirError(f"cannot {action}: {describe_os_error(error)}{after}") from None
+        intact = after() if callable(after) else after
+        raise RunDirError(f"cannot {action}: {describe_os_error(error)}{intact}") from None

@@ -198,6 +198,11 @@ class Experiment:
         """Train until ``train.total_env_steps``; returns the last evaluation's metrics."""
         t, c = self.config.train, self.counters
         self._session_start_steps = c.env_steps
+        if c.env_steps >= t.total_env_steps and self.last_eval:  # a resumed run that had finished
+            log_event(f"the run is finished at env step {c.env_steps}: nothing to train, evaluate or save")
+            self.collector.shutdown()
+            self.close()
+            return dict(self.last_eval)  # its final evaluation is logged once, by the session that ended it
         progress = progress_bar(
             self.config.train.total_env_steps,
             c.env_steps,
@@ -394,7 +399,7 @@ class Experiment:
             if replay_inline:
                 state["replay"] = replay_state_dict(self.replay)
             else:
-                state["replay_blocks"] = self.replay_store.save(self.replay)
+                state["replay_blocks"] = self.replay_store.save(self.replay, state["fingerprint"])
         return state
 
     def fingerprint(
@@ -418,7 +423,7 @@ class Experiment:
         episodes inline, so it stays whole whatever later saves delete.
         """
         target = ckpt.checkpoint_path(self.run_dir, name)
-        with io_errors(f"write checkpoint {target}", self._intact()):
+        with io_errors(f"write checkpoint {target}", self._intact):  # judged after the failure
             path = self._save(name)
         log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
         return path
@@ -454,7 +459,7 @@ class Experiment:
         state = ckpt.current_layout(state)
         self.learner.load_state_dict(state["learner"])
         if "replay_blocks" in state:
-            self.replay_store.load(self.replay, state["replay_blocks"])
+            self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())
         else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
             load_replay_state_dict(self.replay, state["replay"])
         saved = state.get("callbacks", {})

@@ -25,9 +25,12 @@ def resolve_checkpoint(path: str | Path) -> Path:
     """A checkpoint file, or a run directory: its latest ``model_<steps>.pt`` (weights only, small),
     else ``last.pt``."""
     path = Path(path).expanduser()
-    if not path.is_dir():
-        return path
-    weights = sorted((path / "checkpoints").glob("model_*.pt"))
+    try:
+        if not path.is_dir():
+            return path
+        weights = sorted((path / "checkpoints").glob("model_*.pt"))
+    except OSError as error:  # an unreadable directory
+        raise ckpt.CheckpointError(f"checkpoint {path} cannot be read: {error.strerror or error}") from None
     return weights[-1] if weights else ckpt.checkpoint_path(path)
 
 
@@ -49,8 +52,24 @@ class TrainedPolicy(Policy):
         """Load the agent of ``path``; ``env_config`` must have the map and team it was trained on."""
         path = resolve_checkpoint(path)
         state = ckpt.load(path)
-        saved_env, legacy = with_legacy_values(state["config"]["env"])
-        trained = from_mapping(saved_env)
+        try:
+            saved_env, legacy = with_legacy_values(state["config"]["env"])
+            trained = from_mapping(saved_env)
+            model = state["config"]["model"]
+            weights = state["learner"]["agent"]
+        except (KeyError, TypeError, ValueError) as error:
+            reason = "; ".join(line.strip(" -") for line in str(error).splitlines() if line.strip())
+            raise ckpt.CheckpointError(
+                f"checkpoint {path} lacks a usable config or agent ({type(error).__name__}: {reason})"
+            ) from None
+        bad = [
+            k for k, v in weights.items() if not isinstance(v, torch.Tensor) or not torch.isfinite(v).all()
+        ]
+        if bad:  # NaN or inf weights would act (argmax of NaN) and be evaluated as a policy: refused
+            raise ckpt.CheckpointError(
+                f"checkpoint {path}: the agent's weights {', '.join(bad[:3])} hold NaN or inf (or are not "
+                "tensors): not a trained policy"
+            )
         if trained.safety_rule != env_config.safety_rule:  # allowed (a policy judged under either rule): said
             made = " (saved before the field existed)" if legacy else ""
             log.warning(
@@ -65,16 +84,19 @@ class TrainedPolicy(Policy):
                     f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
                     f"{env_config.height}, {env_config.n_uavs} UAVs): pass env={trained.name}"
                 )
-        model = state["config"]["model"]
-        agent = RecurrentAgent(
-            trained.obs_dim,
-            N_ACTIONS,
-            trained.n_uavs,
-            model["hidden_dim"],
-            model["agent_id"],
-            model["last_action"],
-        )
-        agent.load_state_dict(state["learner"]["agent"])
+        try:
+            agent = RecurrentAgent(
+                trained.obs_dim,
+                N_ACTIONS,
+                trained.n_uavs,
+                model["hidden_dim"],
+                model["agent_id"],
+                model["last_action"],
+            )
+            agent.load_state_dict(weights)
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:  # wrong shapes, missing fields
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ckpt.CheckpointError(f"checkpoint {path}: its agent cannot be built: {first}") from None
         return cls(env_config, agent, seed)
 
     @torch.no_grad()
