@@ -28,6 +28,8 @@ LOCK = ".mcrs.lock"
 #: What ``mcrs-train`` writes into a run directory, with ``mcrs-eval``'s and ``mcrs-render``'s results of
 #: the run (``overwrite=true`` removes exactly these).
 RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb", "videos", "report", "eval", "render")
+#: What a run directory must hold to be resumed (:func:`mcrs.experiment.checkpoint.checkpoint_path`).
+LAST_CHECKPOINT = "checkpoints/last.pt"
 #: What may be in a fresh run directory before the run writes: Hydra's own files and our lock.
 FRESH_ALLOWED = (".hydra", LOCK)
 
@@ -48,6 +50,10 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("mcrs.num", lambda value: f"{float(value):g}")
     if not OmegaConf.has_resolver("mcrs.run_dir"):
         OmegaConf.register_new_resolver("mcrs.run_dir", resumed_run_dir)
+    if not OmegaConf.has_resolver("mcrs.resuming"):
+        OmegaConf.register_new_resolver(
+            "mcrs.resuming", lambda resume, fresh, resumed: fresh if resume in (None, "") else resumed
+        )
     if not OmegaConf.has_resolver("mcrs.beside_run"):
         OmegaConf.register_new_resolver("mcrs.beside_run", beside_run)
 
@@ -56,6 +62,19 @@ def resumed_run_dir(resume: Any, fresh: str) -> str:
     """``hydra.run.dir`` of ``mcrs-train``: the run being resumed (its session appends to its own
     ``train.log``; no stray directory is made), else ``fresh``, the name of a new run."""
     return fresh if resume in (None, "") else str(Path(str(resume)).expanduser())
+
+
+def resume_problem(resume: Any) -> str | None:
+    """Why ``resume=<dir>`` cannot be resumed (not a directory, not an ``mcrs-train`` run), or None.
+
+    Checked before Hydra makes or writes anything (:class:`mcrs.experiment.cli.RunDirCheck`): a mistyped
+    path is one line, not a new empty directory."""
+    run_dir = Path(str(resume)).expanduser()
+    if not run_dir.is_dir():
+        return f"resume={resume}: no such directory"
+    if not (run_dir / "config.yaml").is_file() or not (run_dir / LAST_CHECKPOINT).is_file():
+        return f"resume={resume}: not an mcrs-train run directory (needs config.yaml and {LAST_CHECKPOINT})"
+    return None
 
 
 def run_of(policy: Any) -> Path | None:
