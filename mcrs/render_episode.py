@@ -20,6 +20,7 @@ from omegaconf import MISSING, DictConfig
 
 from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.rundir import register_resolvers
 
 # The Hydra configs: mcrs/conf links to the repo's conf/ (see mcrs.evaluate.CONFIG_DIR).
 CONFIG_DIR = str(Path(__file__).parent / "conf")
@@ -37,7 +38,7 @@ class RenderConfig:
     seed: int = 0  # the episode's and the policy's seed
     uav: int = 0  # the UAV of the uncertainty contours
     gif: bool = True  # also write episode.gif
-    out: str = "outputs/render"  # the folder of the pictures (hydra.run.dir)
+    out: str = "outputs/render"  # the folder of the pictures (hydra.run.dir; conf/render.yaml: unique)
 
 
 def register_configs() -> None:
@@ -77,6 +78,7 @@ def run(cfg: DictConfig, out_dir: Path) -> list[Path]:
 
 
 register_configs()
+register_resolvers()  # ${mcrs.pid:} and ${mcrs.beside_run:...} in conf/render.yaml's out
 
 
 @one_line_errors("mcrs-render")

@@ -5,13 +5,15 @@
     mcrs-train resume=outputs/map10/qmix/2026-11-21_10-00-00_seed0
 
 Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the resolved config),
-``logs/`` (metrics), ``checkpoints/last.pt`` (everything needed to resume) and ``model_<steps>.pt``
-(weights, for ``mcrs-eval checkpoint=...``). See docs/TRAINING.md.
+``train.log``, ``logs/`` (metrics), ``checkpoints/last.pt`` (everything needed to resume) and
+``model_<steps>.pt`` (weights, for ``mcrs-eval policy=...``). A resumed session works in the run's own
+directory: it appends to ``train.log`` and makes no new directory. See docs/TRAINING.md.
 """
 
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +21,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.budget import budget_errors
 from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.config import (
     CONFIG_DIR,
@@ -27,8 +29,9 @@ from mcrs.experiment.config import (
     Config,
     ConfigError,
     register_configs,
+    validation_errors,
 )
-from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers
+from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
 from mcrs.experiment.untrusted import UntrustedInput, read_yaml
 
 
@@ -51,14 +54,13 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
 
     Refuses a directory that is not a run, and a command whose explicit overrides contradict the run.
     """
+    from mcrs.experiment import checkpoint as ckpt  # torch: only once the command is known to be sound
+
     run_dir = Path(str(cfg.resume)).expanduser()
     saved_path = run_dir / "config.yaml"
-    if not run_dir.is_dir():
-        raise ConfigError(f"resume={cfg.resume}: no such directory")
-    if not saved_path.is_file() or not ckpt.checkpoint_path(run_dir).is_file():
-        raise ConfigError(
-            f"resume={cfg.resume}: not an mcrs-train run directory (needs config.yaml and checkpoints/{ckpt.LAST})"
-        )
+    problem = resume_problem(cfg.resume)
+    if problem:
+        raise ConfigError(problem)
     raw = _read_run_config(saved_path)
     saved = ckpt.current_config(raw)
     legacy = ckpt.legacy_values(raw)
@@ -155,6 +157,27 @@ def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
     )
 
 
+def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
+    """What is wrong with a fresh run's config that can be told without torch: the values (:func:`
+    validation_errors` without the device, resource and embedding checks, which :class:`Experiment` makes)
+    and a length or interval the command sets that whole collector batches cannot honour. A resume is
+    judged against its run's own config later (:func:`resume_config`)."""
+    if cfg.resume is not None:
+        return []
+    try:
+        problems = validation_errors(cfg, deep=False)
+    except ConfigError as error:
+        return [str(error).removeprefix("invalid config: ")]
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    return problems + budget_errors(cfg, explicit)
+
+
+def _remove_session_files(run_dir: Path, output_subdir: str | None) -> None:
+    """A refused resume leaves the run as it was: the session's Hydra files (``.hydra/resumed_*``) go."""
+    if output_subdir and Path(output_subdir).name.startswith("resumed_"):
+        shutil.rmtree(run_dir / output_subdir, ignore_errors=True)
+
+
 register_configs()
 register_resolvers()
 
@@ -165,16 +188,28 @@ def main(cfg: DictConfig) -> float:
     """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""
     from hydra.core.hydra_config import HydraConfig
 
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    overrides = list(hydra_cfg.overrides.task)
+    problems = early_errors(cfg, overrides)
+    if problems:  # refused before torch, TorchRL and the learners load: at once, and nothing is left behind
+        logging.getLogger(__name__).error("invalid config: %s", "; ".join(problems), extra={"console": False})
+        remove_refused_dirs(run_dir)
+        listed = problems[0] if len(problems) == 1 else "\n  - " + "\n  - ".join(problems)
+        raise SystemExit(f"mcrs-train: error: invalid config: {listed}")
+
+    from mcrs.experiment import checkpoint as ckpt
     from mcrs.experiment.collection import CollectorWorkerFailed
     from mcrs.experiment.interrupt import RunInterrupted, TerminateAsInterrupt
     from mcrs.objectives.gradient import TrainingDiverged
 
-    hydra_cfg = HydraConfig.get()
-    run_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         with TerminateAsInterrupt():
-            result = run(cfg, run_dir, list(hydra_cfg.overrides.task))
+            result = run(cfg, run_dir, overrides)
     except RunInterrupted as stop:  # Ctrl-C or SIGTERM: the checkpoint is written; one line, no traceback
+        logging.getLogger("mcrs.run").info(  # train.log: where this session ended (a resume appends)
+            "%s: stopped at env step %d, checkpoint %s", stop.signal_name, stop.env_steps, stop.checkpoint
+        )
         print(
             f"mcrs-train: {stop.signal_name}: stopped at env step {stop.env_steps}, checkpoint {stop.checkpoint}\n"
             f"resume with: mcrs-train resume={stop.run_dir}",
@@ -190,6 +225,7 @@ def main(cfg: DictConfig) -> float:
         logging.getLogger(__name__).error("%s", error, extra={"console": False})  # train.log; printed below
         if cfg.resume is not None or isinstance(error, ConfigError):
             remove_refused_dirs(run_dir)  # the directories Hydra made for a run that never started
+            _remove_session_files(run_dir, hydra_cfg.output_subdir)
         # one clear message (with the cause), no traceback
         raise SystemExit(f"mcrs-train: error: {error}") from None
     except OSError as error:  # an I/O failure outside the checkpoint writes (which say what is intact)

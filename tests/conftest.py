@@ -52,6 +52,7 @@ SLOW_TESTS = {
     "test_doc_tables.py::test_results_md_agrees_with_the_committed_records",
     "test_env_variants.py::test_variant_matches_the_slow_reference_on_larger_maps",
     "test_evaluate.py::test_cli_runs_and_prints_table",
+    "test_evaluate.py::test_evaluations_started_together_get_their_own_directories",
     "test_evaluate.py::test_cli_unknown_policy_lists_allowed_names",
     "test_evaluate.py::test_cli_bad_env_field_is_one_clear_message_without_traceback",
     "test_reliability_config.py::test_cli_refuses_the_values_that_used_to_crash_late",

@@ -168,3 +168,73 @@ def test_hydra_full_error_still_gives_hydras_trace(tmp_path: Path) -> None:
         timeout=300,
     )
     assert done.returncode == 1 and "Traceback" in done.stderr and "ConfigCompositionException" in done.stderr
+
+
+# ------------------------------------------------------------------------ refused before the stack loads
+_REFUSE_IN_PROCESS = """
+import sys, runpy
+sys.argv = ["mcrs-train", *sys.argv[1:]]
+try:
+    runpy.run_module("mcrs.train", run_name="__main__")
+except SystemExit as stop:
+    print(stop.code, file=sys.stderr)
+print(sorted(m for m in ("torch", "torchrl", "tensordict") if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["env.comm_rage=3"], "env.comm_rage: unknown key"),
+        (["train.lr=-1", "model.hidden_dim=0"], "train.lr=-1.0: must be > 0"),
+        (
+            ["train.total_env_steps=4000", "train.eval_interval=800"],
+            "train.total_env_steps=4000: not a whole number of collector batches of 1600 env steps "
+            "(train.num_envs=32 x env.max_steps=50); the nearest exact values: 3200 or 4800",
+        ),
+    ],
+    ids=["mistyped_key", "bad_values", "inexact_budget"],
+)
+def test_a_refused_command_is_refused_before_torch_loads(
+    overrides: list[str], expected: str, tmp_path: Path
+) -> None:
+    """A refusal costs the config's composition and checks, not the import of torch, TorchRL and the
+    learners (about 13 s on a loaded 2-core machine): no torch module is loaded, and no directory is left."""
+    done = subprocess.run([sys.executable, "-c", _REFUSE_IN_PROCESS, *overrides], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "HYDRA_FULL_ERROR": "0"})  # fmt: skip
+    assert expected in done.stderr, done.stderr
+    assert done.stdout.strip() == "[]", done.stdout  # neither torch, TorchRL nor tensordict was imported
+    assert "Traceback" not in done.stderr and not (tmp_path / "outputs").exists()
+
+
+def test_budget_errors_name_the_nearest_whole_batches() -> None:
+    from mcrs.experiment.budget import budget_errors, collector_batch
+
+    cfg = compose_config("train.total_env_steps=4000", "train.eval_interval=800", tiny=False)
+    assert collector_batch(cfg) == 1600  # 32 envs x 50 steps (map10, the pymarl preset)
+    explicit = {"train.total_env_steps", "train.eval_interval"}
+    total, interval = budget_errors(cfg, explicit)
+    assert total.endswith("the nearest exact values: 3200 or 4800") and "\n" not in total
+    assert interval.startswith("train.eval_interval=800:") and interval.endswith("values: 1600")
+    assert budget_errors(cfg, set()) == []  # a preset's values are not the command line's
+    exact = compose_config("train.total_env_steps=4800", "train.eval_interval=1600", tiny=False)
+    assert budget_errors(exact, explicit) == []
+    map20 = compose_config("env=map20", "train.num_envs=8", "train.total_env_steps=4000", tiny=False)
+    assert budget_errors(map20, {"train.total_env_steps"}) == []  # 8 x 100 = 800: 4000 is five batches
+
+
+def test_the_schema_choices_are_the_implementations() -> None:
+    """The schema writes the choices out (so composing loads no torch); they must stay the modules' own."""
+    from mcrs.experiment import config
+    from mcrs.experiment.replay import TIME_LIMITS
+    from mcrs.memory.delta import DELTA_RULES
+    from mcrs.memory.index import SHAPES
+    from mcrs.models.embeddings import EMBEDDINGS
+    from mcrs.models.mixers import MIXERS
+    from mcrs.objectives.value_factorisation import ValueFactorisationLoss
+
+    assert (config.MIXERS, config.EMBEDDINGS, config.DELTA_RULES, config.SHAPES, config.TIME_LIMITS) == (
+        MIXERS, EMBEDDINGS, DELTA_RULES, SHAPES, TIME_LIMITS,
+    )  # fmt: skip
+    assert config.INCENTIVES == ValueFactorisationLoss.INCENTIVES

@@ -63,3 +63,18 @@ def test_y_limits_ignore_the_untrained_first_evaluations() -> None:
     low, high = ax.get_ylim()
     plt.close(fig)
     assert 250.0 > low > 200.0 and 300.0 < high < 310.0  # the reference level and the curve, a margin
+
+
+def test_iqm_and_its_bootstrap_interval_over_seeds() -> None:
+    """The figures' line is the interquartile mean (an outlying seed does not drag it) and the band a
+    percentile bootstrap over seeds that stays within what the seeds did (a t band does not)."""
+    from mcrs.analysis.curves import interquartile_mean, iqm_interval
+
+    values = np.array([[0.0, 1.0], [1.0, 1.0], [2.0, 1.0], [100.0, 1.0]])  # 4 seeds x 2 steps
+    assert interquartile_mean(values).tolist() == [1.5, 1.0]  # the middle two seeds
+    iqm, low, high = iqm_interval(values)
+    assert (low <= iqm).all() and (iqm <= high).all()
+    assert low[0] >= 0.0 and high[0] <= 100.0 and low[1] == high[1] == 1.0  # within the seeds' values
+    assert iqm_interval(values)[1].tolist() == low.tolist()  # a fixed generator: reproducible figures
+    one = iqm_interval(values[:1])
+    assert one[0].tolist() == one[1].tolist() == one[2].tolist() == [0.0, 1.0]  # one seed: no interval

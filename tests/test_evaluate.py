@@ -154,3 +154,49 @@ def test_cli_bad_env_field_is_one_clear_message_without_traceback(tmp_path: Path
     assert "mcrs-eval: error: invalid environment config" in done.stderr
     assert "comm_range=-1.0: must be a distance >= 0" in done.stderr and "p_detect=2" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_evaluations_started_together_get_their_own_directories(tmp_path: Path) -> None:
+    """Two ``mcrs-eval`` started in the same second: two directories (the names carry the process id),
+    each with its own complete results."""
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    command = [sys.executable, "-m", "mcrs.evaluate", *TINY, "policy=random"]
+    procs = [
+        subprocess.Popen(
+            command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(2)
+    ]
+    for proc in procs:
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err
+    runs = sorted((tmp_path / "outputs" / "eval").iterdir())
+    assert len(runs) == 2, runs
+    assert {run.name.rsplit("_", 1)[1] for run in runs} == {str(proc.pid) for proc in procs}
+    for run_dir in runs:
+        with open(run_dir / "metrics.csv") as f:
+            assert [row["policy"] for row in csv.DictReader(f)] == ["random"]
+
+
+def test_a_trained_runs_evaluation_and_rendering_go_into_the_run(tmp_path: Path) -> None:
+    """``policy=<run>`` (or one of its checkpoints): the results stay with the run, not in a stray folder."""
+    import mcrs.render_episode  # noqa: F401  (registers the render schema)
+    from mcrs.experiment.rundir import beside_run, register_resolvers
+
+    run_dir = tmp_path / "outputs" / "map10" / "qmix" / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    (run_dir / "config.yaml").write_text("seed: 0\n")
+    weights = run_dir / "checkpoints" / "model_000000040.pt"
+    assert beside_run(str(run_dir), "eval", "outputs/eval") == str(run_dir / "eval")
+    assert beside_run(str(weights), "render", "outputs/render") == str(run_dir / "render")
+    assert beside_run("greedy", "eval", "outputs/eval") == "outputs/eval"
+    assert beside_run(str(tmp_path / "elsewhere.pt"), "eval", "outputs/eval") == "outputs/eval"
+    register_resolvers()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        cfg = compose(config_name="eval", overrides=[f"policy={run_dir}"], return_hydra_config=True)
+        render = compose(config_name="render", overrides=[f"policy={run_dir}"])
+    assert str(cfg.hydra.run.dir).startswith(f"{run_dir / 'eval'}/")
+    assert str(cfg.hydra.run.dir).endswith(f"_{os.getpid()}")
+    assert str(render.out).startswith(f"{run_dir / 'render'}/") and str(render.out).endswith(
+        f"_{os.getpid()}"
+    )

@@ -172,3 +172,42 @@ def test_terminate_as_interrupt_raises_a_keyboard_interrupt_with_status_143() ->
         time.sleep(5)
     assert isinstance(stop.value, KeyboardInterrupt) and stop.value.exit_code == 143
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_ctrl_c_then_resume_leaves_one_run_directory_whose_log_holds_both_sessions(tmp_path: Path) -> None:
+    """As a user does it: ``mcrs-train`` (Hydra's own directory name), Ctrl-C, ``mcrs-train resume=<dir>``:
+    the resumed session works in the run's directory (no second one appears) and appends to its train.log."""
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    base = [sys.executable, "-m", "mcrs.train", "algo=qmix", *TINY, "train.checkpoint_interval=10000000"]
+    with open(tmp_path / "first.out", "w") as out:
+        process = subprocess.Popen([*base, "train.total_env_steps=10000000"], cwd=tmp_path, env=env,
+                                   stdout=out, stderr=subprocess.STDOUT)  # fmt: skip
+        deadline = time.monotonic() + 300
+        while process.poll() is None and time.monotonic() < deadline:
+            rows = list((tmp_path / "outputs").glob("map10/qmix/*/logs/scalars/train/episodes.csv"))
+            if rows and len(rows[0].read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.2)
+        assert process.poll() is None, (tmp_path / "first.out").read_text()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=300) == 130
+    (run_dir,) = (tmp_path / "outputs" / "map10" / "qmix").iterdir()
+    steps = _state(run_dir)["counters"]["env_steps"]
+
+    resumed = _run([*base, f"resume={run_dir}", f"train.total_env_steps={steps + 2 * BATCH_STEPS}"], tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    assert [p.relative_to(tmp_path / "outputs") for p in (tmp_path / "outputs").glob("*/*/*")] == [
+        run_dir.relative_to(tmp_path / "outputs")
+    ]  # exactly one run directory, no stray one named after the default algorithm
+    assert _state(run_dir)["counters"]["env_steps"] == steps + 2 * BATCH_STEPS
+    log = (run_dir / "train.log").read_text()
+    first, stop, second = (
+        log.index("training qmix"),
+        log.index("SIGINT: stopped at env step"),
+        log.index("resuming qmix"),
+    )
+    assert first < stop < second, log  # one log: the first session, where it stopped, the resumed one
+    assert f"evaluation at env step {steps + 2 * BATCH_STEPS}" in log[second:]
+    assert (run_dir / ".hydra" / "overrides.yaml").is_file()  # the first session's Hydra files are kept
+    (session,) = (run_dir / ".hydra").glob("resumed_*")
+    assert f"resume={run_dir}" in (session / "overrides.yaml").read_text()

@@ -238,7 +238,7 @@ def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_cli_trains_from_any_directory_and_sweeps(tmp_path: Path) -> None:
-    done = cli("-m", *TINY, "train.total_env_steps=20", "algo=qmix,vdn", "seed=0,1", cwd=tmp_path)
+    done = cli("-m", *TINY, "train.total_env_steps=40", "algo=qmix,vdn", "seed=0,1", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     runs = sorted(p.name for p in (tmp_path / "outputs" / "multirun").glob("*/*") if p.is_dir())
     assert runs == ["0_map10_qmix_seed0", "1_map10_qmix_seed1", "2_map10_vdn_seed0", "3_map10_vdn_seed1"]
@@ -251,7 +251,7 @@ def test_cli_trains_from_any_directory_and_sweeps(tmp_path: Path) -> None:
 
 
 def test_cli_joblib_launcher(tmp_path: Path) -> None:
-    done = cli("-m", *TINY, "train.total_env_steps=20", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+    done = cli("-m", *TINY, "train.total_env_steps=40", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
                "seed=0,1", cwd=tmp_path)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert len(list((tmp_path / "outputs" / "multirun").glob("*/*/checkpoints/last.pt"))) == 2

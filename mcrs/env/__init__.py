@@ -1,20 +1,31 @@
 """The MCRS-LCR environment: belief maths, communication and fusion, the batched simulator and adapters.
 
 The bottom layer of the package: it imports nothing else of ``mcrs``. PettingZoo is optional at import
-time: ``MCRSParallelEnv`` (the PettingZoo adapter) is imported on first use, so ``import mcrs.env`` does
-not load PettingZoo.
+time: every name is imported on first use, so ``import mcrs.env`` loads neither PettingZoo nor (until the
+simulator is asked for) torch.
 """
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
-from mcrs.env.config import SCENARIOS, EnvConfig, scenario
-from mcrs.env.core import METRICS, MOVES, N_ACTIONS, SURROUNDING, MCRSCore, StepResult
-from mcrs.env.torchrl_env import MCRSEnv
-
 if TYPE_CHECKING:
+    from mcrs.env.config import SCENARIOS, EnvConfig, scenario
+    from mcrs.env.core import METRICS, MOVES, N_ACTIONS, SURROUNDING, MCRSCore, StepResult
     from mcrs.env.pettingzoo_env import MCRSParallelEnv
+    from mcrs.env.torchrl_env import MCRSEnv
+
+#: Where each exported name lives, imported on first use: ``mcrs.env.config`` (what a command line
+#: validates) does not load torch, TorchRL or PettingZoo, so a refused command is refused at once.
+_EXPORTS = {
+    **dict.fromkeys(("SCENARIOS", "EnvConfig", "scenario"), "mcrs.env.config"),
+    **dict.fromkeys(
+        ("METRICS", "MOVES", "N_ACTIONS", "SURROUNDING", "MCRSCore", "StepResult"), "mcrs.env.core"
+    ),
+    "MCRSEnv": "mcrs.env.torchrl_env",
+    "MCRSParallelEnv": "mcrs.env.pettingzoo_env",
+}
 
 __all__ = [
     "METRICS",
@@ -32,9 +43,10 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    """``mcrs.env.MCRSParallelEnv``: the PettingZoo adapter, imported (with PettingZoo) when first asked for."""
-    if name == "MCRSParallelEnv":
-        from mcrs.env.pettingzoo_env import MCRSParallelEnv
-
-        return MCRSParallelEnv
+    """``mcrs.env.MCRSEnv`` and the rest: imported when first asked for (``MCRSParallelEnv`` with
+    PettingZoo, ``MCRSEnv`` with TorchRL)."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -288,6 +288,8 @@ def _variant_errors(cfg: EnvConfig) -> list[str]:
 
 def device_problem(device: Any) -> str | None:
     """Why ``device`` cannot hold the environment here, or None when it can."""
+    if device == "cpu":  # always there; a command line checks its config without loading torch
+        return None
     import torch
 
     allowed = "a torch device string such as 'cpu', 'cuda' or 'cuda:0'"

@@ -26,10 +26,10 @@ from typing import Any, TypeVar
 
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
-from mcrs.experiment.rundir import LOCK, describe_os_error
+from mcrs.experiment.rundir import LOCK, describe_os_error, resume_problem
 
 F = TypeVar("F", bound=Callable[..., Any])
 #: Files Hydra writes into a run or sweep directory before the task runs: they do not make it a run.
@@ -168,6 +168,10 @@ class RunDirCheck(Callback):
         self.command = command
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        resume = OmegaConf.select(config, "resume", default=None)  # mcrs-train's resume=<run>
+        problem = resume_problem(resume) if resume is not None else None
+        if problem:  # the run directory would be the one named: refused before anything is made
+            raise SystemExit(f"{self.command}: error: {problem}")
         self._make(Path(str(config.hydra.run.dir)))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:

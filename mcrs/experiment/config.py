@@ -25,13 +25,17 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
-from mcrs.experiment.replay import TIME_LIMITS
 from mcrs.experiment.untrusted import PLAIN_NAME
-from mcrs.memory.delta import DELTA_RULES
-from mcrs.memory.index import SHAPES
-from mcrs.models.embeddings import EMBEDDINGS
-from mcrs.models.mixers import MIXERS
-from mcrs.objectives.value_factorisation import ValueFactorisationLoss
+
+# The choices, as the modules that implement them define them (mcrs.models.mixers.MIXERS, ...; a test keeps
+# them equal): written out here so that composing and checking a config imports neither torch nor TorchRL,
+# and a mistyped override is refused in a second, not after the whole stack has loaded.
+MIXERS = ("qmix", "vdn", "qplex")
+EMBEDDINGS = ("random", "fc", "cnn")
+DELTA_RULES = ("volume", "literal")
+SHAPES = ("ball", "box")
+TIME_LIMITS = ("terminal", "bootstrap")
+INCENTIVES = ("none", "fixed", "change")
 
 
 class Choice(str, Enum):
@@ -56,7 +60,7 @@ WandbMode = _choices("WandbMode", ("offline", "online"))
 ModelName = _choices("ModelName", ("gru",))
 Collector = _choices("Collector", ("single", "multiprocess"))
 Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
-Incentive = _choices("Incentive", ValueFactorisationLoss.INCENTIVES)
+Incentive = _choices("Incentive", INCENTIVES)
 DeltaRule = _choices("DeltaRule", DELTA_RULES)
 Neighbourhood = _choices("Neighbourhood", SHAPES)
 TimeLimit = _choices("TimeLimit", TIME_LIMITS)
@@ -233,22 +237,25 @@ def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> 
         errors.append(f"{name}={str(value)!r}: allowed values are {', '.join(values)}")
 
 
-def validation_errors(cfg: Config | DictConfig) -> list[str]:
-    """Every problem of a config, one message each (empty when it can run)."""
-    return _problems(as_typed(cfg))[0]
+def validation_errors(cfg: Config | DictConfig, deep: bool = True) -> list[str]:
+    """Every problem of a config, one message each (empty when it can run).
+
+    ``deep=False`` leaves out what needs torch (the device, the memory and CPU the run needs, whether the
+    embedding fits the map): the checks a command line makes before it loads the training stack."""
+    return _problems(as_typed(cfg), deep)[0]
 
 
-def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
+def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | None]:
     """Every problem of a config, and the env config it runs on (None when the env part is wrong)."""
     errors: list[str] = []
     a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
     env_config = None
-    problem = device_problem(cfg.device)
+    problem = device_problem(cfg.device) if deep else None
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
     try:  # the scenario's own rules (on the CPU when the device is wrong: that is reported above)
         env_config = EnvConfig.from_scenario(
-            cfg.env, num_envs=t.num_envs, device="cpu" if problem else cfg.device
+            cfg.env, num_envs=t.num_envs, device="cpu" if problem or not deep else cfg.device
         )
     except (ValueError, TypeError) as error:
         errors.append(f"env: {error}")
@@ -266,7 +273,7 @@ def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
     for name in ("gamma", "td_lambda"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
-    errors += _memory_errors(cfg, env_config)
+    errors += _memory_errors(cfg, env_config if deep else None)
     _positive(errors, "model.hidden_dim", m.hidden_dim)
     _positive(errors, "logger.log_interval", lg.log_interval)
     for name in (
@@ -320,13 +327,14 @@ def _problems(cfg: Config) -> tuple[list[str], EnvConfig | None]:
             )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
-    from mcrs.experiment.resources import cpu_count, resource_errors
-    from mcrs.experiment.threads import threads_problem
+    from mcrs.experiment.threads import cpu_count, threads_problem
 
     problem = threads_problem(cfg.threads, cpu_count())
     if problem:
         errors.append(f"threads={cfg.threads}: {problem}")
-    if not errors and env_config is not None:  # sizes are sane: does this machine have what the run needs?
+    if deep and not errors and env_config is not None:  # sizes are sane: has this machine what it needs?
+        from mcrs.experiment.resources import resource_errors
+
         errors += resource_errors(cfg, env_config)
     return errors, env_config
 

@@ -23,12 +23,13 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
+
+from mcrs.experiment.console import ANSI, PlainFormatter, TqdmHandler  # noqa: F401  (the log's handlers)
 
 
 def make_logger(
@@ -154,34 +155,6 @@ def progress_bar(total: int, initial: int, enabled: bool, description: str):
         disable=not enabled,
         desc=description,
     )
-
-
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")  # colour and cursor codes
-
-
-class PlainFormatter(logging.Formatter):
-    """A formatter whose output has no ANSI colour codes (a log file is read in an editor)."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        return ANSI.sub("", super().format(record))
-
-
-class TqdmHandler(logging.StreamHandler):
-    """Writes each record with ``tqdm.write``, which lifts the progress bar, prints and redraws it.
-
-    A record logged with ``extra={"console": False}`` (a message the command prints itself) is skipped.
-    """
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if getattr(record, "console", True) is False:
-            return
-        try:
-            from tqdm import tqdm
-
-            tqdm.write(self.format(record), file=self.stream)
-            self.flush()
-        except Exception:  # logging's contract: report the failure, never raise
-            self.handleError(record)
 
 
 def quiet_torchrl() -> None:

@@ -122,14 +122,6 @@ def machine_memory(device: str) -> tuple[int, str]:
     return total, "this machine's memory"
 
 
-def cpu_count() -> int:
-    """CPU cores this process may run on (its affinity, e.g. under Slurm or taskset)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
 def resource_errors(cfg: Config, env: EnvConfig) -> list[str]:
     """Problems of ``cfg`` against this machine: a memory estimate above what it has."""
     errors: list[str] = []

@@ -1,7 +1,9 @@
 """A run directory belongs to one run: unique names, one writer at a time, no mixing with an old run.
 
-- :func:`register_resolvers` adds ``${mcrs.pid:}`` to the run-directory names (``conf/config.yaml``): two
-  runs started in the same second on one machine get different directories.
+- :func:`register_resolvers` adds ``${mcrs.pid:}`` to the run-directory names (``conf/config.yaml``,
+  ``conf/eval.yaml``, ``conf/render.yaml``): two commands started in the same second on one machine get
+  different directories; ``${mcrs.run_dir:...}`` puts a resumed run back into its own directory and
+  ``${mcrs.beside_run:...}`` an evaluation or rendering of a run inside that run's directory.
 - :class:`RunLock` is an exclusive ``flock`` on ``<run>/.mcrs.lock``, held by the process that writes the
   run; the kernel drops it when that process dies (even by SIGKILL), so a crashed run can be resumed at
   once, while a second writer or a resume of a live run is refused, naming the holder's PID.
@@ -23,8 +25,11 @@ from pathlib import Path
 from typing import Any
 
 LOCK = ".mcrs.lock"
-#: What ``mcrs-train`` writes into a run directory (``overwrite=true`` removes exactly these).
-RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb", "videos")
+#: What ``mcrs-train`` writes into a run directory, with ``mcrs-eval``'s and ``mcrs-render``'s results of
+#: the run (``overwrite=true`` removes exactly these).
+RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb", "videos", "report", "eval", "render")
+#: What a run directory must hold to be resumed (:func:`mcrs.experiment.checkpoint.checkpoint_path`).
+LAST_CHECKPOINT = "checkpoints/last.pt"
 #: What may be in a fresh run directory before the run writes: Hydra's own files and our lock.
 FRESH_ALLOWED = (".hydra", LOCK)
 
@@ -43,6 +48,53 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("mcrs.pid", lambda: str(os.getpid()), use_cache=True)
     if not OmegaConf.has_resolver("mcrs.num"):  # ``rc${mcrs.num:${env.comm_range}}``: rc5, not rc5.0
         OmegaConf.register_new_resolver("mcrs.num", lambda value: f"{float(value):g}")
+    if not OmegaConf.has_resolver("mcrs.run_dir"):
+        OmegaConf.register_new_resolver("mcrs.run_dir", resumed_run_dir)
+    if not OmegaConf.has_resolver("mcrs.resuming"):
+        OmegaConf.register_new_resolver(
+            "mcrs.resuming", lambda resume, fresh, resumed: fresh if resume in (None, "") else resumed
+        )
+    if not OmegaConf.has_resolver("mcrs.beside_run"):
+        OmegaConf.register_new_resolver("mcrs.beside_run", beside_run)
+
+
+def resumed_run_dir(resume: Any, fresh: str) -> str:
+    """``hydra.run.dir`` of ``mcrs-train``: the run being resumed (its session appends to its own
+    ``train.log``; no stray directory is made), else ``fresh``, the name of a new run."""
+    return fresh if resume in (None, "") else str(Path(str(resume)).expanduser())
+
+
+def resume_problem(resume: Any) -> str | None:
+    """Why ``resume=<dir>`` cannot be resumed (not a directory, not an ``mcrs-train`` run), or None.
+
+    Checked before Hydra makes or writes anything (:class:`mcrs.experiment.cli.RunDirCheck`): a mistyped
+    path is one line, not a new empty directory."""
+    run_dir = Path(str(resume)).expanduser()
+    if not run_dir.is_dir():
+        return f"resume={resume}: no such directory"
+    if not (run_dir / "config.yaml").is_file() or not (run_dir / LAST_CHECKPOINT).is_file():
+        return f"resume={resume}: not an mcrs-train run directory (needs config.yaml and {LAST_CHECKPOINT})"
+    return None
+
+
+def run_of(policy: Any) -> Path | None:
+    """The ``mcrs-train`` run directory that ``policy`` names (the run itself, or a checkpoint in its
+    ``checkpoints/``), or None for a heuristic or a checkpoint outside any run."""
+    path = Path(str(policy)).expanduser()
+    candidates = (
+        (path.parent.parent,) if path.suffix == ".pt" and path.parent.name == "checkpoints" else (path,)
+    )
+    for run in candidates:
+        if (run / "config.yaml").is_file() and (run / "checkpoints").is_dir():
+            return run
+    return None
+
+
+def beside_run(policy: Any, kind: str, default: str) -> str:
+    """Where ``mcrs-eval`` / ``mcrs-render`` write: ``<run>/<kind>`` when the policy is a trained run's
+    (its results stay with the run), else ``default`` (``outputs/eval``, ``outputs/render``)."""
+    run = run_of(policy)
+    return str(run / kind) if run is not None else default
 
 
 class RunLock:

@@ -67,8 +67,6 @@ def apply_threads(value: object) -> int:
     """Set torch's thread count for ``threads=value`` (0 leaves torch's default); returns the count used."""
     import torch
 
-    from mcrs.experiment.resources import cpu_count
-
     threads = resolve_threads(value, cpu_count(), load_average())
     if threads:
         torch.set_num_threads(threads)
@@ -135,8 +133,15 @@ class SpeedCheck:
         wait = None
         if before is not None and now is not None:
             cpu, wait = now[0] - before[0], now[1] - before[1]
-        from mcrs.experiment.resources import cpu_count
 
         self.warning = self.decide(wall, cpu, wait, self.threads, load_average(), cpu_count())
         if self.warning:
             log.warning(self.warning)
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (its affinity, e.g. under Slurm or taskset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1

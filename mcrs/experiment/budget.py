@@ -1,0 +1,46 @@
+"""Whole collector batches: the run's length and its evaluation interval, as the command line sets them.
+
+A run collects ``train.num_envs`` whole episodes of ``env.max_steps`` steps at a time; the trainer checks
+its schedule between batches. A length or interval that is not a whole number of batches would be rounded
+up silently (``train.total_env_steps=4000`` with batches of 1600 trains 4800 steps); a command line that
+sets one is refused instead, naming the nearest values that are exact (``mcrs.train.early_errors``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+
+def collector_batch(cfg: Any) -> int:
+    """Env steps per collector batch: ``train.num_envs`` whole episodes of ``env.max_steps`` steps. The
+    run's length and its evaluations fall on multiples of it."""
+    return int(cfg.train.num_envs) * int(cfg.env.max_steps)
+
+
+#: Fields counted in env steps that whole collector batches must honour exactly when a command sets them.
+BATCHED_FIELDS = ("train.total_env_steps", "train.eval_interval")
+
+
+def budget_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
+    """A length or evaluation interval set on the command line (``explicit``: the dotted keys it sets)
+    that is not a whole number of collector batches, naming the nearest values that are.
+
+    A run collects ``num_envs`` whole episodes at a time, so ``train.total_env_steps=4000`` with batches of
+    1600 would train 4800 steps and ``train.eval_interval=800`` evaluate every 1600: refused instead of
+    rounded silently. A preset's values (``budget=``) are not checked: the runs already recorded with them
+    must stay comparable with new ones."""
+    batch, explicit = collector_batch(cfg), set(explicit)
+    t = cfg.train
+    errors = []
+    for name in BATCHED_FIELDS:
+        value = int(getattr(t, name.split(".")[1]))
+        if name not in explicit or value <= 0 or batch <= 0 or value % batch == 0:
+            continue
+        nearest = [v for v in (value // batch * batch, (value // batch + 1) * batch) if v > 0]
+        errors.append(
+            f"{name}={value}: not a whole number of collector batches of {batch} env steps "
+            f"(train.num_envs={t.num_envs} x env.max_steps={cfg.env.max_steps}); "
+            f"the nearest exact values: {' or '.join(map(str, nearest))}"
+        )
+    return errors
