@@ -333,7 +333,8 @@ def _add_evaluation(path: Path, runs: Runs) -> None:
             check_row(record_row, f"line {line}: ")
         except (ValueError, TypeError, SchemaField) as error:
             raise RecordError(f"{path}: line {line}: {error}") from None
-        runs.evaluations.append(EvaluationRow(path.parent, **record_row))
+        env_name = record_row.pop("env")
+        runs.evaluations.append(EvaluationRow(path.parent, env_name=env_name, **record_row))
 
 
 def flatten(config: dict[str, Any]) -> dict[str, Any]:
