@@ -123,12 +123,15 @@ def test_same_seed_replays_the_same_episode_and_another_seed_does_not() -> None:
     assert not np.array_equal(first[0][3], other[0][3])
 
 
-@pytest.mark.parametrize("name", SCENARIOS)
-def test_matches_torchrl_env_over_a_full_episode(name: str) -> None:
-    """Same seed and actions give identical observations, states and rewards: it is the same core."""
+@pytest.mark.parametrize(
+    "name,rule", [*((name, "enter") for name in SCENARIOS), ("map10", "near"), ("map20", "near")]
+)
+def test_matches_torchrl_env_over_a_full_episode(name: str, rule: str) -> None:
+    """Same seed and actions give identical observations, states and rewards: it is the same core, under
+    either penalty rule."""
     seed, agents = 21, [f"uav_{i}" for i in range(TABLE_2[name][2])]
-    pz_env = MCRSParallelEnv(name)
-    rl_env = MCRSEnv(name, num_envs=1)
+    pz_env = MCRSParallelEnv(name, safety_rule=rule)
+    rl_env = MCRSEnv(name, num_envs=1, safety_rule=rule)
     rl_env.set_seed(seed)
     td = rl_env.reset()
     observations, _ = pz_env.reset(seed=seed)
@@ -154,6 +157,7 @@ def test_matches_torchrl_env_over_a_full_episode(name: str) -> None:
         assert truncations["uav_0"] == td["truncated"].item()
         assert infos["uav_0"]["coverage"] == td["metrics", "coverage"].item()
         assert [infos[a]["reading"] for a in agents] == td["agents", "reading"][0].tolist()
+        assert infos["uav_0"]["no_fly_violations"] == td["metrics", "no_fly_violations"].item()
     assert steps == TABLE_2[name][3]
 
 
