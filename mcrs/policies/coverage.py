@@ -174,11 +174,7 @@ class CoveragePolicy(LawnmowerPolicy):
         mask = tensordict.get(ACTION_MASK)
         position = self.layout.cell(observation)  # [E, N, 2]
         new_episode = (tensordict.get("step_count").reshape(-1) == 0).view(-1, 1)
-        start = self._start_pointer(position)
-        if self.pointer is None or self.pointer.shape != start.shape or self.pointer.device != start.device:
-            self.pointer = start
-        else:
-            self.pointer = torch.where(new_episode, start, self.pointer)
+        self._restart_pointer(position, new_episode)
         self._remember(observation, position, new_episode)
         charged = self._charged_map()
         self._advance(position, charged)

@@ -62,16 +62,21 @@ class LawnmowerPolicy(Policy):
         moves_to = [(self.waypoint(s) - position).abs().amax(-1) for s in (start, end)]
         return torch.where(moves_to[1] < moves_to[0], end, start)
 
-    def act(self, tensordict: TensorDictBase) -> torch.Tensor:
-        obs = tensordict.get(OBSERVATION)
-        mask = tensordict.get(ACTION_MASK)
-        position = self.layout.cell(obs)  # [E, N, 2]
-        new_episode = (tensordict.get("step_count").reshape(-1) == 0).view(-1, 1)
+    def _restart_pointer(self, position: torch.Tensor, new_episode: torch.Tensor) -> None:
+        """Aim each UAV of a new episode (``new_episode [E, 1]``) at the nearer end of its snake; the
+        pointers of other episodes go on (a batch of another shape or device starts afresh)."""
         start = self._start_pointer(position)
         if self.pointer is None or self.pointer.shape != start.shape or self.pointer.device != start.device:
             self.pointer = start
         else:
             self.pointer = torch.where(new_episode, start, self.pointer)
+
+    def act(self, tensordict: TensorDictBase) -> torch.Tensor:
+        obs = tensordict.get(OBSERVATION)
+        mask = tensordict.get(ACTION_MASK)
+        position = self.layout.cell(obs)  # [E, N, 2]
+        new_episode = (tensordict.get("step_count").reshape(-1) == 0).view(-1, 1)
+        self._restart_pointer(position, new_episode)
         arrived = (self.waypoint(self.pointer) == position).all(-1)
         self.pointer = torch.where(arrived, (self.pointer + 1) % self.cycle, self.pointer)
         step = (self.waypoint(self.pointer) - position).sign()
