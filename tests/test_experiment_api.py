@@ -16,6 +16,8 @@ from mcrs.experiment.learner import Learner
 from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
 
+pytestmark = pytest.mark.slow
+
 
 class Recorder(Callback):
     """Counts every hook and keeps a number in its state, to see hooks run and state travel."""
