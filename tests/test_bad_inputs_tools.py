@@ -806,6 +806,7 @@ def test_a_zip_bomb_checkpoint_is_refused_at_once(tmp_path: Path) -> None:
     _refuse_zip_bomb(tmp_path / "model.pt", 256 << 20)
 
 
+@pytest.mark.slow
 def test_the_issues_2_4_gb_zip_bomb_is_refused_at_once(tmp_path: Path) -> None:
     """The issue's bomb: 2.4 GB of zeros in 2.4 MB (slow: about 17 s to compress here)."""
     _refuse_zip_bomb(tmp_path / "model.pt", 2400 << 20)
@@ -834,6 +835,7 @@ def test_the_documented_tool_count_is_the_suites(capsys: pytest.CaptureFixture) 
 
 
 # ------------------------------------------------------------------------------ bookkeeping (trains)
+@pytest.mark.slow
 def test_resuming_a_finished_run_three_times_leaves_one_final_evaluation_row(tmp_path: Path) -> None:
     """The old code evaluated (and logged a row, and saved) again on every resume of a finished run."""
     from mcrs.experiment.trainer import Experiment
@@ -851,6 +853,7 @@ def test_resuming_a_finished_run_three_times_leaves_one_final_evaluation_row(tmp
     assert ckpt.checkpoint_path(run_dir).read_bytes() == last  # nothing saved again
 
 
+@pytest.mark.slow
 def test_a_foreign_replay_block_is_refused_on_resume(tmp_path: Path) -> None:
     """A replay block copied from another run (here: another seed) under this run's block name."""
     import shutil

@@ -9,6 +9,8 @@ import pytest
 
 from mcrs.benchmarks.checkpoint import main
 
+pytestmark = pytest.mark.slow
+
 
 def test_quick_run_records_its_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "checkpoint.json"

@@ -15,6 +15,8 @@ from mcrs.env import scenario
 from mcrs.policies import RandomPolicy
 from tests.bench_helpers import run_json
 
+pytestmark = pytest.mark.slow
+
 
 def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
     return run_json(main, tmp_path / "bench.json", argv)

@@ -16,6 +16,8 @@ from mcrs.benchmarks.reference_learner import ReferenceLearner
 from mcrs.env.config import from_mapping
 from tests.bench_helpers import run_json
 
+pytestmark = pytest.mark.slow
+
 
 def _run(tmp_path: Path, argv: list[str]) -> dict[str, Any]:
     return run_json(main, tmp_path / "learner.json", argv)

@@ -14,6 +14,8 @@ import torch
 from mcrs.benchmarks import memory as bench
 from mcrs.benchmarks import memory_anchors
 
+pytestmark = pytest.mark.slow
+
 NUMBER = r"([\d,]+(?:\.\d+)?)"
 TINY = ["--entries", "3000", "--map", "map10", "--episodes", "2", "--lookups", "200", "--repeats", "1"]
 

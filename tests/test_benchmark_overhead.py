@@ -11,6 +11,8 @@ from mcrs.benchmarks.loop import LoopResult
 from mcrs.benchmarks.overhead import main, project
 from tests.bench_helpers import run_json
 
+pytestmark = pytest.mark.slow
+
 QUICK = ["--map", "map10", "--quick", "--loop-steps", "1", "--entries", "500", "--threads", "1"]
 
 

@@ -11,6 +11,8 @@ import pytest
 
 from mcrs.benchmarks.resources import Sample, growth, main
 
+pytestmark = pytest.mark.slow
+
 TINY_RUN = [
     "--env-steps", "800", "--every", "200", "--replay-episodes", "8",
     "--override", "env.max_steps=10", "--override", "train.num_envs=4", "--override", "train.batch_episodes=4",

@@ -21,6 +21,8 @@ from mcrs.experiment import checkpoint as ckpt
 from tests.test_report import read_csv
 from tests.train_helpers import compose_config
 
+pytestmark = pytest.mark.slow
+
 NEAR_MATRIX = Path(__file__).resolve().parents[1] / "mcrs" / "campaign" / "section6_near.yaml"
 OLD_TASK = ("env.safety_rule=near", "algo.time_limit=bootstrap")
 

@@ -126,6 +126,7 @@ def _check_refusal(key: tuple[str, ...], err: str, cwd: Path) -> None:
     assert list(cwd.iterdir()) == [], (key, sorted(map(str, cwd.rglob("*"))))
 
 
+@pytest.mark.slow
 def test_refused_commands_print_one_line_of_ours_and_leave_no_directory(tmp_path: Path) -> None:
     """Each command starts in an empty directory of its own (at once: they only wait for their imports);
     afterwards that directory is still empty: no ``outputs/<map>/<algo>/``."""
@@ -157,6 +158,7 @@ def test_refused_command_in_process_is_one_line_and_leaves_no_directory(
     _check_refusal(key, refused.value.code + "\n", tmp_path)
 
 
+@pytest.mark.slow
 def test_hydra_full_error_still_gives_hydras_trace(tmp_path: Path) -> None:
     """A user who asks Hydra for its full trace (``HYDRA_FULL_ERROR=1``) still gets it."""
     done = subprocess.run(

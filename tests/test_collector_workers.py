@@ -20,6 +20,8 @@ from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, compose_config
 
+pytestmark = pytest.mark.slow
+
 MULTI = ("train.collector=multiprocess", "train.collector_workers=2")
 T, ENVS = 10, 4  # TINY: 4 environments, 10-step episodes
 

@@ -24,6 +24,8 @@ import pytest
 from mcrs.experiment import checkpoint as ckpt
 from tests.train_helpers import TINY, TINY_MEMORY
 
+pytestmark = pytest.mark.slow
+
 BATCH_STEPS = 40  # TINY: 4 envs x 10-step episodes per collector batch
 INTERVAL = BATCH_STEPS  # a checkpoint after every batch
 TOTAL = 4000

@@ -111,6 +111,7 @@ def test_a_generated_figure_is_drawn_from_the_records_and_checked(tmp_path: Path
         update(doc)
 
 
+@pytest.mark.slow
 def test_results_md_agrees_with_the_committed_records() -> None:
     """The issue's proof: every generated table of docs/RESULTS.md is what mcrs-report makes of the
     committed records alone (no run directories)."""

@@ -260,6 +260,7 @@ def test_variant_matches_the_slow_reference(variant):
     compare_with_reference(variant_config("map10", variant), steps=25, seed=5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 @pytest.mark.parametrize("name", ["map15", "map20"])
 def test_variant_matches_the_slow_reference_on_larger_maps(name, variant):

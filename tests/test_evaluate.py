@@ -134,6 +134,7 @@ def _cli(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_cli_runs_and_prints_table(tmp_path: Path) -> None:
     done = _cli(tmp_path, *TINY, "policy=lawnmower", "env=map15", "env.comm_range=0")
     assert done.returncode == 0, done.stderr
@@ -142,12 +143,14 @@ def test_cli_runs_and_prints_table(tmp_path: Path) -> None:
     assert not (tmp_path / "scene.png").exists()  # figures=false
 
 
+@pytest.mark.slow
 def test_cli_unknown_policy_lists_allowed_names(tmp_path: Path) -> None:
     done = _cli(tmp_path, *TINY, "policy=bogus")
     assert done.returncode != 0
     assert "unknown policy 'bogus'" in done.stderr and "lawnmower" in done.stderr
 
 
+@pytest.mark.slow
 def test_cli_bad_env_field_is_one_clear_message_without_traceback(tmp_path: Path) -> None:
     done = _cli(tmp_path, *TINY, "env.comm_range=-1", "env.p_detect=2")
     assert done.returncode != 0
@@ -156,6 +159,7 @@ def test_cli_bad_env_field_is_one_clear_message_without_traceback(tmp_path: Path
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.slow
 def test_evaluations_started_together_get_their_own_directories(tmp_path: Path) -> None:
     """Two ``mcrs-eval`` started in the same second: two directories (the names carry the process id),
     each with its own complete results."""

@@ -10,11 +10,13 @@ import torch
 
 import mcrs
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.callbacks import Callback
+from mcrs.experiment.callbacks import Callback, ExperimentView
 from mcrs.experiment.config import AlgoConfig, Config, compose
 from mcrs.experiment.learner import Learner
 from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
+
+pytestmark = pytest.mark.slow
 
 
 class Recorder(Callback):
@@ -87,6 +89,8 @@ def test_user_callback_hooks_run_and_its_state_is_checkpointed(tmp_path: Path) -
 def test_algorithm_callbacks_come_from_the_algo_config(tmp_path: Path) -> None:
     plain = Experiment(tiny(), tmp_path / "qmix")
     assert plain.callbacks == []
+    promised = [*ExperimentView.__annotations__, "evaluate"]  # what callbacks are typed to see of it
+    assert promised[:2] == ["config", "env_config"] and [n for n in promised if not hasattr(plain, n)] == []
     plain.close()
     emc = Experiment(compose("algo=emc", *TINY, *TINY_MEMORY), tmp_path / "emc")
     assert [cb.name for cb in emc.callbacks] == ["curiosity", "memory"]

@@ -17,6 +17,8 @@ from omegaconf import OmegaConf
 from mcrs.analysis.report import main as report_main
 from tests.test_report import read_csv
 
+pytestmark = pytest.mark.slow
+
 #: Preset -> (the run directories it must make, the methods its report must show).
 PRESETS = {
     "baselines": (

@@ -13,6 +13,8 @@ from mcrs.experiment.config import compose
 from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import TINY
 
+pytestmark = pytest.mark.slow
+
 #: Two evaluations (at 0 and at the end) of 10-step episodes.
 STEPS, T = 40, 10
 

@@ -19,6 +19,8 @@ from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals, TerminateAsInterrupt, Terminated
 from tests.train_helpers import TINY
 
+pytestmark = pytest.mark.slow
+
 BATCH_STEPS = 40  # TINY: 4 envs x 10-step episodes per collector batch
 MORE = 200  # env steps the resumed run trains after the interrupt
 

@@ -1,5 +1,6 @@
 """The package's layers (docs/ARCHITECTURE.md): no package imports one above it, no import cycles between
-packages, no module over 500 lines, and ``import mcrs.env`` loads neither PettingZoo nor anything above.
+packages nor between the modules of one package, no module over 500 lines, and ``import mcrs.env`` loads
+neither PettingZoo nor anything above.
 
 The imports are read from the source (``ast``), every ``import`` statement counted: at module level,
 inside functions (lazy imports) and under ``if TYPE_CHECKING``. A "package" is a sub-package of
@@ -42,6 +43,10 @@ LAYER = {package: level for level, packages in enumerate(LAYERS) for package in 
 #: Known imports against the layers, each with the change that removes it (none: the list only shrinks).
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
 
+#: Known imports that close a cycle between the modules of one package, ``(file, imported module)``, each
+#: with the change that removes it (none: the list only shrinks).
+ALLOWED_MODULE_CYCLES: dict[tuple[str, str], str] = {}
+
 #: Modules allowed over 500 lines (none: the list only shrinks).
 ALLOWED_LONG: dict[str, str] = {}
 
@@ -74,10 +79,16 @@ def imported_modules(path: Path, root: Path = ROOT) -> set[str]:
                 target = ".".join([*base, node.module] if node.module else base)
             else:
                 target = node.module or ""
-            found.add(target)
-            # ``from mcrs import viz`` imports the sub-package mcrs.viz.
-            found.update(f"{target}.{alias.name}" for alias in node.names if target == "mcrs")
+            for alias in node.names:  # ``from mcrs.experiment import checkpoint`` imports that module
+                submodule = f"{target}.{alias.name}"
+                found.add(submodule if target == "mcrs" or _is_module(submodule, root) else target)
     return {m for m in found if m == "mcrs" or m.startswith("mcrs.")}
+
+
+def _is_module(module: str, root: Path) -> bool:
+    """Whether ``mcrs.a.b`` is a file (``mcrs/a/b.py``) or a package (``mcrs/a/b/``) under ``root``."""
+    path = root.parent.joinpath(*module.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
 
 
 def import_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
@@ -101,11 +112,43 @@ def upward(edges: Iterable[tuple[str, str, str]]) -> list[str]:
     ]
 
 
-def cycles(edges: Iterable[tuple[str, str, str]]) -> list[list[str]]:
-    """The package cycles (strongly connected components of more than one package; Tarjan)."""
+def module_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
+    """``(file relative to mcrs/, importing module, imported module)`` for every import between two modules
+    of one package (``mcrs.experiment.trainer`` -> ``mcrs.experiment.config``)."""
+    edges = []
+    for path in sorted(root.rglob("*.py")):
+        source = module_name(path, root)
+        for module in sorted(imported_modules(path, root)):
+            if module != source and package_of(module) == package_of(source) and _is_module(module, root):
+                edges.append((path.relative_to(root).as_posix(), source, module))
+    return edges
+
+
+def module_cycles(edges: Iterable[tuple[str, str, str]]) -> list[str]:
+    """Each cycle between the modules of a package (allowed imports aside), as one line naming its
+    modules and the imports that close it, so that the message says which import to cut."""
+    kept = [
+        (file, source, target)
+        for file, source, target in edges
+        if (file, target) not in ALLOWED_MODULE_CYCLES
+    ]
+    lines = []
+    for component in cycles(kept, allowed={}):
+        inside = [
+            f"{file} imports {target}" for file, source, target in kept if {source, target} <= set(component)
+        ]
+        lines.append(f"{' <-> '.join(component)}: {'; '.join(inside)}")
+    return lines
+
+
+def cycles(
+    edges: Iterable[tuple[str, str, str]], allowed: dict[tuple[str, str], str] = ALLOWED_UPWARD
+) -> list[list[str]]:
+    """The cycles of the graph ``importer -> imported`` (strongly connected components of more than one
+    node; Tarjan); the edges ``(file, imported)`` in ``allowed`` left out."""
     graph: dict[str, set[str]] = {}
     for file, source, target in edges:
-        if (file, target) not in ALLOWED_UPWARD:
+        if (file, target) not in allowed:
             graph.setdefault(source, set()).add(target)
             graph.setdefault(target, set())
     index: dict[str, int] = {}
@@ -154,10 +197,19 @@ def test_no_import_cycles_between_packages() -> None:
     assert cycles(import_edges()) == []
 
 
+def test_no_import_cycles_between_the_modules_of_a_package() -> None:
+    """Lazy imports count: a cycle hidden in a function still ties the modules together (one cannot be
+    understood, tested or moved without the other)."""
+    found = module_cycles(module_edges())
+    assert not found, "import cycles inside a package:\n" + "\n".join(found)
+
+
 def test_allow_lists_are_current() -> None:
     """An allowed exception that is gone must leave the list, so that it cannot come back unnoticed."""
     edges = {(file, target) for file, _, target in import_edges()}
     stale = [edge for edge in ALLOWED_UPWARD if edge not in edges]
+    inner = {(file, target) for file, _, target in module_edges()}
+    stale += [edge for edge in ALLOWED_MODULE_CYCLES if edge not in inner]
     stale += [f for f in ALLOWED_LONG if not (ROOT / f).is_file() or _lines(ROOT / f) <= MAX_LINES]
     assert not stale, f"allow-list entries no longer needed (remove them): {stale}"
 
@@ -192,6 +244,28 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     assert ("env/core.py", "env", "policies") in edges and ("env/core.py", "env", "models") in edges
     assert any("env (layer 0) imports policies (layer 3)" in line for line in upward(edges))
     assert cycles(edges) == [["env", "models"]]
+
+
+def test_the_check_catches_a_module_cycle_through_a_lazy_or_relative_import(tmp_path: Path) -> None:
+    """In one package: ``a`` imports ``b`` lazily, ``b`` imports ``a`` by ``from . import a``; ``c`` imports
+    ``b`` only (no cycle), and ``from mcrs.pkg import c`` names the module, not the package."""
+    package = tmp_path / "mcrs" / "pkg"
+    package.mkdir(parents=True)
+    (tmp_path / "mcrs" / "__init__.py").write_text("")
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("def f():\n    from mcrs.pkg.b import g\n")
+    (package / "b.py").write_text("from . import a\n")
+    (package / "c.py").write_text("from mcrs.pkg import b\n")
+    (package / "d.py").write_text("from mcrs.pkg import c\n")
+    edges = module_edges(tmp_path / "mcrs")
+    assert ("pkg/d.py", "mcrs.pkg.d", "mcrs.pkg.c") in edges and (
+        "pkg/d.py",
+        "mcrs.pkg.d",
+        "mcrs.pkg",
+    ) not in edges
+    assert module_cycles(edges) == [
+        "mcrs.pkg.a <-> mcrs.pkg.b: pkg/a.py imports mcrs.pkg.b; pkg/b.py imports mcrs.pkg.a"
+    ]
 
 
 def test_importing_the_low_layers_loads_neither_pettingzoo_nor_anything_above() -> None:

@@ -19,6 +19,8 @@ from mcrs.train import CONFIG_DIR, resume_config
 from tests.device_helpers import available_devices
 from tests.train_helpers import TINY_MEMORY, compose_config
 
+pytestmark = pytest.mark.slow
+
 MEMORY_ALGOS = ["emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu"]
 
 

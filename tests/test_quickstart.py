@@ -18,6 +18,8 @@ from mcrs.policies import POLICIES
 from tests.device_helpers import available_devices
 from tests.train_helpers import TINY, TINY_MEMORY
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

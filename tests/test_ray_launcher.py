@@ -9,7 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.train_helpers import TINY
+
+pytestmark = pytest.mark.slow
 
 STEPS = 80  # two collector batches of 4 x 10-step episodes; evaluations at 0, 40 and 80
 

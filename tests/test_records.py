@@ -19,6 +19,8 @@ from mcrs.campaign.cli import main as campaign_main
 from mcrs.experiment import checkpoint as ckpt
 from tests.test_report import make_evaluation, make_run, read_csv
 
+pytestmark = pytest.mark.slow
+
 REPORT_FILES = ("final.csv", "milestones.csv", "comm_range.csv", "final.md", "milestones.md", "report.md")
 
 

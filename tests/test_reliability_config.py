@@ -427,6 +427,7 @@ def test_the_documented_bad_input_count_is_the_suites() -> None:
     assert _documented_counts() == {"README.md": total, "docs/RELIABILITY.md": total}
 
 
+@pytest.mark.slow
 def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:
     """Issue 14's list 4 through ``mcrs-train``: refused before anything runs (no run directory is left),
     each field named, no traceback. The commands run at once: they only wait for their imports."""

@@ -210,6 +210,7 @@ def _cli(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_mcrs_render_cli_writes_the_pictures_into_out_only(tmp_path: Path) -> None:
     out = tmp_path / "render"
     done = _cli(
@@ -224,6 +225,7 @@ def test_mcrs_render_cli_writes_the_pictures_into_out_only(tmp_path: Path) -> No
     assert sorted(p.name for p in tmp_path.iterdir()) == ["render"]
 
 
+@pytest.mark.slow
 def test_mcrs_render_cli_bad_input_is_one_line_without_traceback(tmp_path: Path) -> None:
     done = _cli(tmp_path, "uav=7", f"out={tmp_path / 'render'}")
     assert done.returncode != 0

@@ -81,6 +81,7 @@ def test_a_manifest_that_does_not_match_its_files_is_refused(tmp_path: Path) -> 
         reloaded(tmp_path, manifest)
 
 
+@pytest.mark.slow
 def test_time_based_checkpoints_and_the_replay_beside_last_pt(tmp_path: Path) -> None:
     # No step-based checkpoint before the end; a time interval that every batch exceeds.
     cfg = compose_config("train.total_env_steps=120", "train.checkpoint_interval=1000000",

@@ -16,6 +16,8 @@ from mcrs.analysis.runs import find_runs, run_labels, select_map
 from mcrs.analysis.tsne import return_locality
 from mcrs.experiment.config import Config
 
+pytestmark = pytest.mark.slow
+
 STEPS = [0, 10_000, 20_000, 30_000]
 METRICS = ("episode_reward", "uncertainty", "collisions", "targets_found")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from mcrs.env.config import from_mapping
@@ -14,6 +15,7 @@ from mcrs.experiment.trainer import Experiment
 from tests.train_helpers import compose_config
 
 
+@pytest.mark.slow
 def test_the_replay_estimate_is_the_bytes_a_full_buffer_holds(tmp_path: Path) -> None:
     cfg = compose_config("train.total_env_steps=200")  # 20 episodes: the tiny buffer is full
     trainer = Experiment(cfg, tmp_path / "run")

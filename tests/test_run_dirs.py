@@ -30,6 +30,8 @@ from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config, start_train
 
+pytestmark = pytest.mark.slow
+
 BATCH = 40  # TINY: 4 envs x 10 steps per collector batch
 
 

@@ -24,6 +24,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_checkpoint_policy_matches_the_training_greedy_policy(run_dir: Path) -> None:
     trainer = Experiment(compose_config("train.total_env_steps=80"), run_dir, resume=True)
     env_config = scenario("map10", max_steps=10, num_envs=3)

@@ -19,6 +19,8 @@ from mcrs.experiment.trainer import Experiment, TrainingDiverged
 from mcrs.train import resume_config, run
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config
 
+pytestmark = pytest.mark.slow
+
 
 def scalars(run_dir: Path, name: str) -> list[tuple[int, float]]:
     with open(run_dir / "logs" / "scalars" / f"{name}.csv") as f:

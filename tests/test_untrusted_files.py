@@ -27,6 +27,8 @@ from mcrs.experiment.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import compose_config
 
+pytestmark = pytest.mark.slow
+
 
 class _TouchOnLoad:
     """Unpickling this object would create ``marker``: the proof that loading ran code."""

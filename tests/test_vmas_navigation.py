@@ -10,7 +10,10 @@ import torch
 
 from mcrs.tasks.vmas_navigation import greedy_return, make_vmas_env, train_on_vmas
 
-pytestmark = pytest.mark.filterwarnings("ignore::UserWarning", "ignore::DeprecationWarning")
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.filterwarnings("ignore::UserWarning", "ignore::DeprecationWarning"),
+]
 FRAMES = 8_000  # about 7 s per learner on one CPU thread
 
 

@@ -18,19 +18,42 @@ scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 from tensordict import TensorDictBase
 
-from mcrs.experiment.config import Config
 from mcrs.experiment.learner import make_optimizer
+from mcrs.experiment.schema import Config
 from mcrs.objectives.curiosity import EMCCuriosity
 
 if TYPE_CHECKING:
-    from mcrs.experiment.trainer import Experiment
+    from torchrl.data import ReplayBuffer
+
+    from mcrs.env.config import EnvConfig
+    from mcrs.experiment.counters import Counters
+    from mcrs.experiment.learner import Learner
 
 Scalars = dict[str, float | torch.Tensor]
+
+
+class ExperimentView(Protocol):
+    """What a callback sees of the :class:`~mcrs.experiment.trainer.Experiment` that runs it.
+
+    A Protocol, so that callbacks depend on the experiment's interface and not on the trainer module, which
+    imports the callbacks (tests/test_layering.py refuses import cycles between modules)."""
+
+    config: Config
+    env_config: EnvConfig
+    run_dir: Path
+    device: torch.device
+    counters: Counters  # env_steps, episodes, updates, ... (mcrs.experiment.counters)
+    learner: Learner
+    replay: ReplayBuffer  # the episode replay; a callback may append a sampling transform
+    last_eval: dict[str, float]  # the latest greedy evaluation's means (empty before the first)
+
+    def evaluate(self) -> dict[str, float]: ...
 
 
 class Callback:
@@ -38,7 +61,7 @@ class Callback:
 
     name: str = "callback"
 
-    def on_setup(self, experiment: Experiment) -> None:
+    def on_setup(self, experiment: ExperimentView) -> None:
         """Called once the experiment is built; keep a reference if a hook needs it."""
         self.experiment = experiment
 

@@ -17,8 +17,8 @@ import torch
 from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
-from mcrs.experiment.callbacks import Callback, Scalars
-from mcrs.experiment.config import Config
+from mcrs.experiment.callbacks import Callback, ExperimentView, Scalars
+from mcrs.experiment.schema import Config
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
@@ -81,7 +81,7 @@ class EpisodicMemoryCallback(Callback):
         self.lookup = EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
 
     # ------------------------------------------------------------------ hooks
-    def on_setup(self, experiment) -> None:
+    def on_setup(self, experiment: ExperimentView) -> None:
         """Every batch the replay samples carries the memory's H(phi(s_{t+1})) from now on."""
         super().on_setup(experiment)
         experiment.replay.append_transform(self.lookup)

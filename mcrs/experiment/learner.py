@@ -16,7 +16,7 @@ from torchrl.objectives import HardUpdate
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import N_ACTIONS
-from mcrs.experiment.config import AlgoConfig, ModelConfig, TrainConfig
+from mcrs.experiment.schema import AlgoConfig, ModelConfig, TrainConfig
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss

@@ -19,7 +19,7 @@ import torch
 from mcrs.env.config import EnvConfig
 
 if TYPE_CHECKING:
-    from mcrs.experiment.config import Config
+    from mcrs.experiment.schema import Config
 
 GiB = 1024**3
 #: What a process holds before any store: Python, torch, TorchRL and the env code (measured RSS about 370

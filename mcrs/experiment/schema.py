@@ -1,0 +1,256 @@
+"""The typed schemas of the training config, registered in Hydra's ConfigStore, and their conversions.
+
+One typed node per concept: ``env`` (the scenario, :class:`mcrs.env.ScenarioConfig`), ``algo`` (with
+``algo.memory``), ``model``, ``train``, ``logger``; choices are enums, so Hydra refuses unknown keys, wrong
+types and unknown choices while composing. The checks of values, and of what the machine can give, are
+:func:`mcrs.experiment.config.validate`'s: they need the runtime modules (threads, resources, the
+embedding), and those modules need these schemas, so the schemas live apart from the checks and import
+none of them (tests/test_layering.py refuses import cycles between modules). Import the names from
+:mod:`mcrs.experiment.config`, which re-exports them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from mcrs.env.config import ScenarioConfig
+
+# The choices, as the modules that implement them define them (mcrs.models.mixers.MIXERS, ...; a test keeps
+# them equal): written out here so that composing and checking a config imports neither torch nor TorchRL,
+# and a mistyped override is refused in a second, not after the whole stack has loaded.
+MIXERS = ("qmix", "vdn", "qplex")
+EMBEDDINGS = ("random", "fc", "cnn")
+DELTA_RULES = ("volume", "literal")
+SHAPES = ("ball", "box")
+TIME_LIMITS = ("terminal", "bootstrap")
+INCENTIVES = ("none", "fixed", "change")
+
+
+class Choice(str, Enum):
+    """A config choice: Hydra checks it against the members while composing; it compares equal to, prints
+    and formats as its value (``Mixer.qmix == "qmix"``), as ``enum.StrEnum`` does from Python 3.11 on."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+def _choices(name: str, values: tuple[str, ...]) -> type[Choice]:
+    return Choice(name, [(value, value) for value in values])  # member name = value: what users type
+
+
+Mixer = _choices("Mixer", MIXERS)
+Optimizer = _choices("Optimizer", ("rmsprop", "adam"))
+LoggerBackend = _choices("LoggerBackend", ("csv", "wandb", "tensorboard"))
+WandbMode = _choices("WandbMode", ("offline", "online"))
+ModelName = _choices("ModelName", ("gru",))
+Collector = _choices("Collector", ("single", "multiprocess"))
+Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
+Incentive = _choices("Incentive", INCENTIVES)
+DeltaRule = _choices("DeltaRule", DELTA_RULES)
+Neighbourhood = _choices("Neighbourhood", SHAPES)
+TimeLimit = _choices("TimeLimit", TIME_LIMITS)
+MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
+MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
+MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
+CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "conf")  # the packaged Hydra presets
+#: Fields a resumed run may change (how long, how it reports); everything else must match the run.
+RESUME_MUTABLE = (
+    "train.total_env_steps",
+    "logger",
+    "resume",
+    "overwrite",
+    "threads",
+    "report",
+    "train.eval_interval",
+    "train.checkpoint_interval",
+    "train.checkpoint_minutes",
+    "train.keep_checkpoints",
+    "train.collector",  # how episodes are collected (a crashed multiprocess run may go on in one process;
+    "train.collector_workers",  # the episodes then differ from an uninterrupted run's)
+)
+
+
+class ConfigError(ValueError):
+    """A config that cannot run; the message lists every problem."""
+
+
+@dataclass
+class MemoryConfig:
+    """The episodic buffer D_E and its state embedding phi (paper Algorithm 1, eq. 31; table 3)."""
+
+    enabled: bool = False
+    embedding: Embedding = Embedding.cnn  # random (EMC) | fc (SEMU, EMU's dCAE) | cnn (CNN-SEMU)
+    key_dim: int = 4  # dimension of the keys x = phi(s)
+    hidden_dim: int = 64  # width of the encoder and decoder layers
+    cnn_channels: list[int] = field(default_factory=lambda: [8, 16, 32])  # the CNN's three conv layers
+    capacity: int = 1_000_000  # entries; the oldest are evicted when full
+    delta: float = 1.3e-3  # table 3 / eq. 35; what it means is delta_rule's (mcrs/memory/delta.py)
+    delta_rule: DeltaRule = (
+        DeltaRule.volume
+    )  # volume: eq. 35's key-space volume per entry | literal: the tolerance
+    neighbourhood: Neighbourhood = (
+        Neighbourhood.box
+    )  # box: EMU's |z_i - z'_i| <= tol in every dimension | ball: Euclidean < tol
+    embedding_interval: int = 10_000  # t_emb: env steps between trainings of the embedding
+    embedding_samples: int = 102_400  # memory entries drawn per training of the embedding
+    embedding_batch: int = 1024
+    embedding_lr: float = 5e-4
+    state_weight: float = 0.1  # lambda_1 of eq. 31: weight of the state reconstruction
+    embedding_grad_clip: float = 10.0  # gradient-norm clip of the embedding's training (EMU: pymarl's 10)
+    counter_reset: bool = False  # EMU's flag_memory_cnt_reset: a desirability shift restarts N_call, N_xi
+
+
+@dataclass
+class AlgoConfig:
+    """The value-factorisation algorithm: which mixer, the TD target and the episodic-memory terms."""
+
+    name: str = "qmix"  # label of the algorithm (run names, reports)
+    mixer: Mixer = Mixer.qmix
+    mixing_embed_dim: int = 32  # QMIX mixing width
+    hypernet_embed: int = 64  # hidden width of the hypernetworks (QMIX, QPLEX)
+    hypernet_layers: int = 2  # QMIX hypernetwork depth: 1 (TorchRL) or 2 (pymarl)
+    qplex_kernels: int = 4  # QPLEX attention heads of the advantage weights
+    qplex_adv_layers: int = 1  # depth of QPLEX's advantage-weight extractors: 1 (SMAC setting) to 3
+    gamma: float = 0.99
+    td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
+    double_q: bool = True
+    # the horizon T in the TD target: terminal (no bootstrap at T, as the memory's returns) | bootstrap
+    time_limit: TimeLimit = TimeLimit.terminal
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
+    memory_weight: float = 0.0  # lambda of eq. 32: weight of the one-step memory target (0: off)
+    incentive: Incentive = (
+        Incentive.none
+    )  # EMU's episodic incentive: none | fixed (return threshold) | change
+    incentive_threshold: float = 365.0  # "fixed": episodes with a return >= this are desirable
+    curiosity_scale: float = 0.0  # EMC's curiosity reward scale (0: off)
+    curiosity_decay_rate: float = 0.9  # the scale is multiplied by this ...
+    curiosity_decay_cycle: int = 100_000  # ... every this many env steps
+    curiosity_tau: float = 0.005  # soft target update of the curiosity's VDN learner
+
+
+@dataclass
+class ModelConfig:
+    """The shared recurrent agent network."""
+
+    name: ModelName = ModelName.gru
+    hidden_dim: int = 64
+    agent_id: bool = True  # one-hot agent id as input
+    last_action: bool = True  # one-hot last action as input
+
+
+@dataclass
+class LoggerConfig:
+    """Where metrics go (TorchRL loggers). Nothing leaves the machine unless wandb_mode=online."""
+
+    backend: LoggerBackend = LoggerBackend.csv
+    project: str = "mcrs"  # wandb project
+    wandb_mode: WandbMode = WandbMode.offline
+    log_interval: int = 2000  # env steps between train/ and time/ log rows (means over the interval)
+    progress_bar: bool = True
+    video: bool = False  # one greedy evaluation episode as a video at every evaluation (GIF; tb, wandb)
+
+
+@dataclass
+class TrainConfig:
+    """The training loop. Intervals count env steps (agent-team transitions), as in pymarl."""
+
+    total_env_steps: int = 2_000_000
+    num_envs: int = 1  # episodes collected in parallel per collector batch
+    batch_episodes: int = 32  # episodes per learner update
+    replay_episodes: int = 5000  # replay capacity in episodes
+    updates_per_episode: float = 1.0  # learner updates per collected episode
+    optimizer: Optimizer = Optimizer.rmsprop
+    lr: float = 5e-4
+    rmsprop_alpha: float = 0.99
+    optim_eps: float = 1e-5
+    grad_clip: float = 10.0
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    eps_anneal_steps: int = 50_000
+    target_update_episodes: int = 200  # hard target update period, in collected episodes
+    eval_interval: int = 10_000
+    eval_episodes: int = 32
+    eval_seed: int = 1_000_000  # the evaluation episodes are the same at every evaluation
+    checkpoint_interval: int = 100_000
+    checkpoint_minutes: float = 10.0  # also checkpoint every this many minutes of wall clock (0: off)
+    keep_checkpoints: int = (
+        5  # weight files model_<steps>.pt kept, the newest (0: all); last.pt is always kept
+    )
+    save_replay: bool = True  # checkpoints carry the replay buffer, so a resumed run is identical
+    collector: Collector = (
+        Collector.single
+    )  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
+    collector_workers: int = 2  # multiprocess: worker processes, each collecting num_envs / workers episodes
+
+
+@dataclass
+class Config:
+    """The whole ``mcrs-train`` config (``conf/config.yaml``)."""
+
+    env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario; conf/env/ holds the presets
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    preset: str = "pymarl"  # label of the hyper-parameter preset (conf/preset/)
+    experiment: str = "none"  # label of the section-6 preset that launched the run (conf/experiment/)
+    budget: str = "none"  # label of the budget (conf/budget/): smoke, cpu or paper
+    seed: int = 0
+    device: str = "cpu"  # env, acting and learner device: cpu, cuda, cuda:0 ... (the env's runtime field)
+    threads: str = "auto"  # torch CPU threads: auto (the cores the load leaves free), 0 (torch's: all) or N
+    report: bool = False  # after training: evaluate with the heuristics, write report/ (table, curve, GIF)
+    resume: str | None = None  # a run directory to continue
+    overwrite: bool = False  # a fresh run may replace the previous run in a non-empty hydra.run.dir
+
+
+def register_configs() -> None:
+    """Register the schemas (``config.yaml`` names ``mcrs_config`` in its defaults)."""
+    cs = ConfigStore.instance()
+    cs.store(name="mcrs_config", node=Config)
+
+
+def as_typed(cfg: Config | DictConfig) -> Config:
+    """The typed :class:`Config` of a composed ``DictConfig`` (a :class:`Config` is returned as it is)."""
+    if isinstance(cfg, Config):
+        return cfg
+    try:
+        typed = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), cfg))
+    except OmegaConfBaseException as error:
+        key = getattr(error, "full_key", None)
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise ConfigError(f"invalid config: {key + ': ' if key else ''}{first}") from None
+    given = _keys(OmegaConf.to_container(cfg, resolve=False))
+    unknown = sorted(given - _keys(OmegaConf.to_container(OmegaConf.structured(typed), resolve=False)))
+    if unknown:  # a key forced past the schema (``+env.widht=3``): to_object would drop it silently
+        raise ConfigError(f"invalid config: unknown field(s) {', '.join(unknown)}: no schema has them")
+    return typed
+
+
+def _keys(tree: Any, prefix: str = "") -> set[str]:
+    """The dotted keys of a nested dict (lists are leaves)."""
+    if not isinstance(tree, dict):
+        return {prefix[:-1]} if prefix else set()
+    keys: set[str] = set()
+    for key, value in tree.items():
+        keys |= _keys(value, f"{prefix}{key}.")
+    return keys
+
+
+def as_dictconfig(cfg: Config | DictConfig) -> DictConfig:
+    """The config as an OmegaConf node (for YAML and for Hydra-style access)."""
+    return cfg if isinstance(cfg, DictConfig) else OmegaConf.structured(cfg)
+
+
+def to_container(cfg: Config | DictConfig) -> dict[str, Any]:
+    """A plain, resolved dict of the config, choices as strings (checkpoints, loggers, fingerprints)."""
+    return OmegaConf.to_container(as_dictconfig(cfg), resolve=True, enum_to_str=True)
