@@ -22,6 +22,7 @@ from mcrs.analysis.claims import (
 from mcrs.analysis.curves import Curve
 from mcrs.analysis.report import ALGO_ORDER
 from mcrs.analysis.report import main as report_main
+from mcrs.policies import POLICIES
 from tests.test_report import make_evaluation, make_run
 
 STEPS = list(range(0, 110_000, 10_000))  # 0 .. 100k: "end" is 90k and 100k, "start" is 10k .. 30k
@@ -127,7 +128,7 @@ def test_claims_file_errors_name_the_field(tmp_path: Path) -> None:
 
 def test_the_papers_claims_name_real_methods() -> None:
     """A typo in paper_claims.yaml would silently read as "not run"."""
-    known = {*ALGO_ORDER, "greedy (heuristic)", "lawnmower (heuristic)", "random (heuristic)"}
+    known = {*ALGO_ORDER, *(f"{name} (heuristic)" for name in POLICIES)}
     for env in ("map10", "map15", "map20"):
         claims = load_claims(default_claims_path(), env)
         assert claims, env
