@@ -469,7 +469,9 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     with pytest.raises(SystemExit, match=r"evaluation shield: episodes=0: a whole number >= 1"):
         campaign_main(["evaluate", *args])
     matrix.write_text(TWO_POINTS + EVALUATION.replace("seeds: [0, 1]", "seeds: [zero]"))
-    with pytest.raises(SystemExit, match=r"evaluation shield: seeds=\['zero'\]: whole numbers >= 0"):
+    with pytest.raises(
+        SystemExit, match=r"evaluation shield: seeds=\['zero'\]: whole numbers in \[0, 2\*\*63 - 1\]"
+    ):
         campaign_main(["evaluate", *args])
     matrix.write_text(TWO_POINTS + EVALUATION.replace('"on"', "on"))
     with pytest.raises(SystemExit, match=r"evaluation shield: variant True: not a name \(YAML reads"):

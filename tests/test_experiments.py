@@ -15,6 +15,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from mcrs.analysis.report import main as report_main
+from mcrs.policies import POLICIES
 from tests.test_report import read_csv
 
 pytestmark = pytest.mark.slow
@@ -104,7 +105,9 @@ def test_tsne_from_a_saved_buffer(baselines: Path, tmp_path: Path) -> None:
     assert (out / "tsne.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize(("study", "expected"), [("comm_range", 11), ("heuristics", 3)])
+@pytest.mark.parametrize(
+    ("study", "expected"), [("comm_range", 11), ("heuristics", len(POLICIES))]
+)  # every registered heuristic
 def test_evaluation_study_smoke_and_report(study: str, expected: int, tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
     done = subprocess.run(

@@ -151,10 +151,11 @@ def test_report_from_records_alone_equals_the_report_from_run_directories(runs: 
         "random (heuristic)",
         "lawnmower (heuristic)",
         "greedy (heuristic)",
+        "coverage (heuristic)",
     ]
     # given both, a run counts once: the record of a directory that is read itself is skipped
     both = find_runs([runs / "train", records])
-    assert len(both.training) == 2 and len(both.evaluations) == 6  # 2 seeds x 3 heuristics
+    assert len(both.training) == 2 and len(both.evaluations) == 8  # 2 seeds x 4 heuristics
     assert sum("which is read itself" in s.reason for s in both.skipped) == 2
 
 

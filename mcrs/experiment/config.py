@@ -121,8 +121,9 @@ def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> 
 def validation_errors(cfg: Config | DictConfig, deep: bool = True) -> list[str]:
     """Every problem of a config, one message each (empty when it can run).
 
-    ``deep=False`` leaves out what needs torch (the device, the memory and CPU the run needs, whether the
-    embedding fits the map): the checks a command line makes before it loads the training stack."""
+    ``deep=False`` leaves out what needs torch (the memory and CPU the run needs, whether the embedding
+    fits the map; a device other than the CPU is checked either way): the checks a command line makes
+    before it loads the training stack."""
     return _problems(as_typed(cfg), deep)[0]
 
 
@@ -131,7 +132,7 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
     errors: list[str] = []
     a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
     env_config = None
-    problem = device_problem(cfg.device) if deep else None
+    problem = device_problem(cfg.device)  # no torch import for "cpu"; a GPU asked for is checked at once
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
     try:  # the scenario's own rules (on the CPU when the device is wrong: that is reported above)
