@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDictBase
+from torchrl.objectives.value.functional import reward2go
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, as_typed, validate
@@ -36,12 +37,12 @@ LAST_STEPS = 5
 
 
 def cut_returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
-    """``[B, T+1]`` discounted returns from every state, cut at T (``H[:, T] = 0``), of rewards ``[B, T]``."""
-    B, T = reward.shape
-    returns = reward.new_zeros(B, T + 1)
-    for t in range(T - 1, -1, -1):  # T steps of a [B] recursion: the returns' definition, not a hot path
-        returns[:, t] = reward[:, t] + gamma * returns[:, t + 1]
-    return returns
+    """``[B, T+1]`` discounted returns from every state, cut at T (``H[:, T] = 0``), of rewards ``[B, T]``
+    (TorchRL's ``reward2go`` with the episode ending at T)."""
+    done = torch.zeros_like(reward, dtype=torch.bool)
+    done[:, -1] = True
+    returns = reward2go(reward.unsqueeze(-1), done.unsqueeze(-1), gamma, time_dim=-2).squeeze(-1)
+    return torch.cat([returns, returns.new_zeros(returns.shape[0], 1)], dim=1)
 
 
 def horizon_gaps(
@@ -57,11 +58,7 @@ def horizon_gaps(
     if terminal:
         bootstrapped[:, -1] = 0.0
     target_gap = gamma * (bootstrapped - returns)
-    return {
-        "value_gap": value_gap.mean(0),
-        "target_gap": target_gap.mean(0),
-        "episodes": torch.tensor(reward.shape[0]),
-    }
+    return {"value_gap": value_gap.mean(0), "target_gap": target_gap.mean(0)}
 
 
 def load_run(run_dir: Path, device: str = "cpu") -> tuple[Learner, TensorDictBase, object]:
@@ -125,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     gaps = horizon_gaps(learner, newest, cfg.algo.gamma, terminal)
     print(
         f"{args.run}: {cfg.algo.name} on {cfg.env.name}, algo.time_limit={cfg.algo.time_limit}, "
-        f"gamma={cfg.algo.gamma}, the newest {int(gaps['episodes'])} replay episodes"
+        f"gamma={cfg.algo.gamma}, the newest {newest.batch_size[0]} replay episodes"
     )
     print(table(gaps))
     return 0
