@@ -11,6 +11,7 @@ from torchrl.modules.models.multiagent import VDNMixer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.curiosity import EMCCuriosity
+from mcrs.objectives.incentive import make_incentive
 from tests.test_loss import TARGET, constant_q_loss, episodes
 
 GAMMA = 0.5
@@ -29,7 +30,7 @@ def with_memory(batch, returns: list[float], hits: list[bool], ratios: list[floa
 
 def loss_with(memory_weight: float = 0.0, incentive: str = "none") -> ValueFactorisationLoss:
     loss = constant_q_loss(gamma=GAMMA)
-    loss.memory_weight, loss.incentive = memory_weight, incentive
+    loss.memory_weight, loss.incentive = memory_weight, make_incentive(incentive)
     return loss
 
 

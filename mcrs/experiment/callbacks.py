@@ -4,7 +4,9 @@ The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in
 
     on_setup(experiment)                 once, after everything is built (before a checkpoint is loaded)
     on_batch_collected(batch, ids)       after each collection: the episodes ``[E, T]`` and their ids ``[E]``
-    on_train_batch(batch, env_steps)     before each learner update: may add keys the loss reads
+    on_train_batch(batch, env_steps)     before each learner update: may add keys the loss reads (the one
+                                         way an algorithm adds to the batch: the memory's memory_return,
+                                         memory_hit, memory_ratio; the curiosity's intrinsic_reward)
     on_evaluation_end(metrics)           after each greedy evaluation
     statistics()                         at each log row: scalars to log (``memory/...``)
     state_dict() / load_state_dict()     in every checkpoint, under ``callbacks/<name>``
@@ -12,8 +14,8 @@ The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in
 Hooks return scalars to log (averaged over the log interval); ``name`` keys the checkpoint state and the
 ``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
 :class:`~mcrs.experiment.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
-:func:`mcrs.experiment.trainer.algorithm_callbacks` builds the ones an ``algo`` config asks for. A user's own callback (a
-scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
+the run's :class:`~mcrs.experiment.algorithms.Algorithm` builds the ones its ``algo`` config asks for. A
+user's own callback (a scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ class ExperimentView(Protocol):
     device: torch.device
     counters: Counters  # env_steps, episodes, updates, ... (mcrs.experiment.counters)
     learner: Learner
-    replay: ReplayBuffer  # the episode replay; a callback may append a sampling transform
+    replay: ReplayBuffer  # the episode replay (batches reach callbacks through on_train_batch)
     last_eval: dict[str, float]  # the latest greedy evaluation's means (empty before the first)
 
     def evaluate(self) -> dict[str, float]: ...

@@ -3,10 +3,12 @@ its training.
 
     after each collection:        insert the new episodes, s_0 .. s_T, into D_E (Algorithm 1)
     every t_emb env steps:        train phi on a sample of D_E (eq. 31), then re-embed every stored state
-    at every learner update:      the replay buffer's EpisodicLookup transform attaches H(phi(s_{t+1}))
+    before every learner update:  on_train_batch writes H(phi(s_{t+1})) into the sampled batch
+                                  (EpisodicLookup: memory_return, memory_hit, memory_ratio)
 
-Built from the ``algo.memory`` config; everything here is in every checkpoint, so a resumed run continues
-with the same memory.
+Built from the ``algo.memory`` config and the algorithm's incentive strategy (which episodes are desirable,
+whether the look-ups carry N_xi / N_call: :mod:`mcrs.objectives.incentive`); everything here is in every
+checkpoint, so a resumed run continues with the same memory.
 """
 
 from __future__ import annotations
@@ -17,13 +19,14 @@ import torch
 from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
-from mcrs.experiment.callbacks import Callback, ExperimentView, Scalars
+from mcrs.experiment.callbacks import Callback, Scalars
 from mcrs.experiment.schema import Config
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
 from mcrs.memory.transform import EpisodicLookup
 from mcrs.models.embeddings import EmbeddingTrainer, make_embedding
+from mcrs.objectives.incentive import Incentive, make_incentive
 
 
 def build_embedding(cfg: Config, env_config: EnvConfig):
@@ -41,13 +44,22 @@ def build_embedding(cfg: Config, env_config: EnvConfig):
 
 
 class EpisodicMemoryCallback(Callback):
-    """D_E with its embedding and the embedding's trainer, for one run."""
+    """D_E with its embedding and the embedding's trainer, for one run.
+
+    Args:
+        cfg, env_config, device: the run's config, map and device.
+        incentive: the algorithm's incentive strategy (the one its loss uses); default: ``algo.incentive``'s.
+    """
 
     name = "memory"
 
-    def __init__(self, cfg: Config, env_config: EnvConfig, device: torch.device) -> None:
+    def __init__(
+        self, cfg: Config, env_config: EnvConfig, device: torch.device, incentive: Incentive | None = None
+    ) -> None:
         mem, a = cfg.algo.memory, cfg.algo
-        self.incentive, self.threshold = str(a.incentive), float(a.incentive_threshold)
+        if incentive is None:
+            incentive = make_incentive(str(a.incentive), a.incentive_threshold)
+        self.incentive = incentive
         self.max_steps = env_config.max_steps
         self.embedding = build_embedding(cfg, env_config).to(device)
         self.tolerance = match_tolerance(mem.delta, str(mem.delta_rule), str(mem.neighbourhood), mem.key_dim)
@@ -58,7 +70,7 @@ class EpisodicMemoryCallback(Callback):
             delta=self.tolerance,
             gamma=a.gamma,
             max_steps=env_config.max_steps,
-            track_desirability=a.incentive != "none",
+            track_desirability=incentive.tracks_desirability,
             device=device,
             shape=str(mem.neighbourhood),
             counter_reset=mem.counter_reset,
@@ -78,13 +90,15 @@ class EpisodicMemoryCallback(Callback):
         self.interval = int(mem.embedding_interval)
         self.next_embedding = self.interval  # env step of the next training of phi
         self.last_eval_reward: float | None = None  # EMU-change's threshold
-        self.lookup = EpisodicLookup(self.memory, self.max_steps, with_ratio=self.incentive == "fixed")
+        with_ratio = "memory_ratio" in incentive.in_keys
+        self.lookup = EpisodicLookup(self.memory, self.max_steps, with_ratio=with_ratio)
 
     # ------------------------------------------------------------------ hooks
-    def on_setup(self, experiment: ExperimentView) -> None:
-        """Every batch the replay samples carries the memory's H(phi(s_{t+1})) from now on."""
-        super().on_setup(experiment)
-        experiment.replay.append_transform(self.lookup)
+    def on_train_batch(self, batch: TensorDictBase, env_steps: int) -> Scalars:
+        """The memory's answers for the sampled batch: ``memory_return``, ``memory_hit`` (and
+        ``memory_ratio`` when the incentive reads it), looked up with the current embedding and keys."""
+        self.lookup(batch)
+        return {}
 
     def on_batch_collected(self, batch: TensorDictBase, episode_ids: torch.Tensor) -> Scalars:
         """Algorithm 1 on the new episodes; phi is retrained every t_emb env steps."""
@@ -106,12 +120,8 @@ class EpisodicMemoryCallback(Callback):
         diagnostics. The terminal states s_T go in too, with H = 0 (as EMC stores them), so the last
         transition of every episode has a memory to look up."""
         reward = batch.get(("next", "reward"))[..., 0]
-        desirable = None
-        if self.incentive != "none":
-            # EMU: desirable episodes reach the return threshold; EMU-change follows the latest evaluation.
-            threshold = self.threshold if self.incentive == "fixed" else last_eval_reward
-            threshold = float("inf") if threshold is None else threshold
-            desirable = reward.sum(-1) >= threshold
+        # EMU: desirable episodes reach the incentive's return threshold (None: no incentive, none marked).
+        desirable = self.incentive.desirable(reward.sum(-1), last_eval_reward)
         states, counts = (
             torch.cat([batch.get(key), batch.get(("next", key))[:, -1:]], dim=1)
             for key in ("state", "state_counts")

@@ -2,12 +2,15 @@
 
 One :meth:`Learner.update` per sampled batch of episodes. Everything an algorithm adds on top (the episodic
 memory's look-ups, EMC's intrinsic reward) arrives as keys of the batch, written before the update by the
-replay buffer's transforms or by the experiment's callbacks (:mod:`mcrs.experiment.callbacks`), so the
-learner is the same for every algorithm.
+experiment's callbacks (:mod:`mcrs.experiment.callbacks`), so the learner is the same for every algorithm;
+what differs (the mixer, EMU's incentive) is handed to it by the algorithm
+(:mod:`mcrs.experiment.algorithms`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import torch
@@ -21,6 +24,7 @@ from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.gradient import gradient_step
+from mcrs.objectives.incentive import Incentive, make_incentive
 
 
 def build_agent(model: ModelConfig, env_config: EnvConfig) -> RecurrentAgent:
@@ -64,6 +68,11 @@ class Learner:
         algo, model, train: the config nodes it reads (the mixer and TD target; the agent; the optimiser).
         env_config: the map, which fixes the observation, state and team sizes.
         device: where the networks live.
+        mixer: builds the mixer from ``env_config``, right after the agent (so the networks draw their
+            initial weights in that order); default :func:`build_mixer` of ``algo``.
+        incentive: EMU's incentive strategy (:mod:`mcrs.objectives.incentive`); default ``algo.incentive``'s.
+            The :class:`~mcrs.experiment.algorithms.Algorithm` of a run passes both
+            (:meth:`~mcrs.experiment.algorithms.Algorithm.learner`).
     """
 
     def __init__(
@@ -73,9 +82,14 @@ class Learner:
         train: TrainConfig,
         env_config: EnvConfig,
         device: torch.device,
+        *,
+        mixer: Callable[[EnvConfig], nn.Module] | None = None,
+        incentive: Incentive | None = None,
     ) -> None:
         self.agent = build_agent(model, env_config).to(device)
-        self.mixer = build_mixer(algo, env_config).to(device)
+        self.mixer = (mixer or partial(build_mixer, algo))(env_config).to(device)
+        if incentive is None:
+            incentive = make_incentive(str(algo.incentive), algo.incentive_threshold)
         self.loss = ValueFactorisationLoss(
             self.agent,
             self.mixer,
@@ -83,7 +97,7 @@ class Learner:
             td_lambda=algo.td_lambda,
             double_q=algo.double_q,
             memory_weight=algo.memory_weight,
-            incentive=str(algo.incentive),
+            incentive=incentive,
         )
         self.params = [*self.agent.parameters(), *self.mixer.parameters()]
         self.optimizer = make_optimizer(self.params, train)

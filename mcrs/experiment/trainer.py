@@ -34,11 +34,11 @@ from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS, N_ACTIONS
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.callbacks import Callback, CuriosityCallback, append_scalar, check_names
+from mcrs.experiment.algorithms import algorithm_for
+from mcrs.experiment.callbacks import Callback, append_scalar, check_names
 from mcrs.experiment.collection import TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.counters import Counters, batch_seed
-from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.learner import Learner
@@ -69,17 +69,13 @@ __all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", 
 def algorithm_callbacks(
     config: Config, env_config: EnvConfig, learner: Learner, device: torch.device
 ) -> list[Callback]:
-    """The callbacks ``config.algo`` asks for: EMC's curiosity, the episodic memory (in that order).
+    """The callbacks ``config.algo``'s algorithm adds (:meth:`mcrs.experiment.algorithms.Algorithm.callbacks`:
+    EMC's curiosity, the episodic memory, in that order).
 
     Built right after the learner: EMC's networks draw their initial weights from torch's generator, so a
     run's random stream does not depend on what else the experiment builds.
     """
-    callbacks: list[Callback] = []
-    if config.algo.curiosity_scale > 0:
-        callbacks.append(CuriosityCallback(config, learner.agent))
-    if config.algo.memory.enabled:
-        callbacks.append(EpisodicMemoryCallback(config, env_config, device))
-    return callbacks
+    return algorithm_for(config.algo).callbacks(config, env_config, learner, device)
 
 
 class Experiment:
@@ -132,8 +128,9 @@ class Experiment:
         self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
         self.T = self.env_config.max_steps
-        self.learner = Learner(cfg.algo, cfg.model, t, self.env_config, self.device)
-        self.callbacks = algorithm_callbacks(cfg, self.env_config, self.learner, self.device)
+        self.algorithm = algorithm_for(cfg.algo)  # the one choice of the algorithm's parts
+        self.learner = self.algorithm.learner(cfg.model, t, self.env_config, self.device)
+        self.callbacks = self.algorithm.callbacks(cfg, self.env_config, self.learner, self.device)
         self.callbacks += extra_callbacks
         check_names(self.callbacks)
         self.greedy, self.exploring, self.epsilon = make_acting_policy(

@@ -33,19 +33,24 @@ latter is feed-forward: it is run on every step of the batch at once (on a copy 
 so the taken actions are never overwritten by its greedy ones), and items may start mid-episode.
 A missing key raises a ``KeyError`` naming the key and where it usually comes from.
 
-The episodic-memory terms read, when switched on (row t describes the transition t -> t+1; see
-:class:`mcrs.memory.EpisodicLookup`, the replay-buffer transform that attaches them)::
+What an algorithm adds to the batch (EMC's curiosity, the episodic memory) reaches the loss one way: its
+callback writes these keys into the sampled batch in ``on_train_batch``, before the update
+(:mod:`mcrs.experiment.callbacks`); row t describes the transition t -> t+1::
 
     memory_return [B, T+1, 1]        H(phi(s_{t+1})): the highest return stored near s_{t+1}
     memory_hit    [B, T+1]           a stored key lies within delta of phi(s_{t+1})
-    memory_ratio  [B, T+1, 1]        N_xi / N_call of that entry (EMU's desirability), incentive="fixed"
-    intrinsic_reward [B, T+1, 1]     a reward added to the TD target only (EMC's curiosity), optional
+    memory_ratio  [B, T+1, 1]        N_xi / N_call of that entry (EMU's desirability); read by the
+                                     FixedThreshold incentive
+                  (all three: EpisodicMemoryCallback, through mcrs.memory.EpisodicLookup; read when
+                  memory_weight > 0 or the incentive reads the memory)
+    intrinsic_reward [B, T+1, 1]     a reward added to the TD target only (EMC's CuriosityCallback), optional
 
 - ``memory_weight`` (lambda, eq. 32): ``loss += lambda * sum_hits (r_t + gamma H - Q_tot)^2 / n_valid``; a
   transition without a memory contributes nothing (the sum runs over hits, the mean over all valid
   transitions, so the term's weight grows with the hit rate, as EMC's does).
-- ``incentive`` (EMU): ``r_p = gamma * ratio * max(H - Q_tot_target(s_{t+1}), 0)`` on hits, added to the TD
-  target; ``"change"`` drops the ratio (EMU-change).
+- ``incentive`` (EMU), a strategy of :mod:`mcrs.objectives.incentive`: its ``r_p`` is added to the TD
+  target, e.g. ``r_p = gamma * ratio * max(H - Q_tot_target(s_{t+1}), 0)`` on hits (``FixedThreshold``);
+  ``EvaluationThreshold`` (EMU-change) drops the ratio.
 
 Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
 ``reward``, ``done``, ``terminated``, ``filled``, ``action_value``, ``memory_return``, ``memory_hit``,
@@ -69,6 +74,7 @@ from torchrl.objectives.value.functional import td0_return_estimate, td_lambda_r
 
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import DMAQMixer, QPLEXMixer
+from mcrs.objectives.incentive import INCENTIVES, Incentive, make_incentive
 
 NEG_INF = -1e10  # "minus infinity" that stays finite under arithmetic (masked actions)
 
@@ -83,6 +89,10 @@ KEY_ORIGINS = {
     "done": "written by episodes_from_rollout",
     "terminated": "written by episodes_from_rollout",
     "action_value": "written by the TorchRL agent network (QValueActor's action_value_key)",
+    **dict.fromkeys(
+        ("memory_return", "memory_hit", "memory_ratio"),
+        "written by the episodic memory's callback, EpisodicMemoryCallback.on_train_batch (EpisodicLookup)",
+    ),
 }
 REWARD_REDUCTIONS = ("mean", "sum")
 
@@ -105,13 +115,14 @@ class ValueFactorisationLoss(LossModule):
         td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
         double_q: pick the bootstrap action with the online network (True) or the target network.
         memory_weight: lambda of the one-step memory target (eq. 32); 0 switches it off.
-        incentive: EMU's episodic incentive: ``"none"``, ``"fixed"`` (scaled by the desirability ratio) or
+        incentive: EMU's episodic incentive, an :class:`~mcrs.objectives.incentive.Incentive` strategy, or
+            its ``algo.incentive`` name: ``"none"``, ``"fixed"`` (scaled by the desirability ratio) or
             ``"change"`` (no ratio).
         reward_reduction: how per-agent rewards ``[..., N, 1]`` become the team reward: ``"mean"`` or
             ``"sum"``; a team reward ``[..., 1]`` is used as it is.
     """
 
-    INCENTIVES = ("none", "fixed", "change")
+    INCENTIVES = INCENTIVES
 
     @dataclass
     class _AcceptedKeys:
@@ -155,7 +166,7 @@ class ValueFactorisationLoss(LossModule):
         td_lambda: float = 0.0,
         double_q: bool = True,
         memory_weight: float = 0.0,
-        incentive: str = "none",
+        incentive: Incentive | str = "none",
         reward_reduction: str = "mean",
     ) -> None:
         super().__init__()
@@ -177,9 +188,7 @@ class ValueFactorisationLoss(LossModule):
         self.recurrent = isinstance(agent_network, RecurrentAgent)
         if memory_weight < 0:
             raise ValueError(f"memory_weight must be >= 0, got {memory_weight}")
-        if incentive not in self.INCENTIVES:
-            raise ValueError(f"incentive must be one of {', '.join(self.INCENTIVES)}, got {incentive!r}")
-        self.memory_weight, self.incentive = float(memory_weight), incentive
+        self.memory_weight, self.incentive = float(memory_weight), make_incentive(incentive)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not 0.0 <= td_lambda <= 1.0:
@@ -191,7 +200,7 @@ class ValueFactorisationLoss(LossModule):
     @property
     def uses_memory(self) -> bool:
         """Whether batches must carry the memory look-ups (``memory_return``, ``memory_hit``...)."""
-        return self.memory_weight > 0 or self.incentive != "none"
+        return self.memory_weight > 0 or self.incentive.reads_memory
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -202,9 +211,7 @@ class ValueFactorisationLoss(LossModule):
             in_keys.append(keys.state)
         if self.uses_memory:
             in_keys += [keys.memory_return, keys.memory_hit]
-        if self.incentive == "fixed":
-            in_keys.append(keys.memory_ratio)
-        return in_keys
+        return in_keys + [getattr(keys, name) for name in self.incentive.in_keys]
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No TorchRL value estimator object: the returns come from its functional estimators."""
@@ -356,18 +363,22 @@ class ValueFactorisationLoss(LossModule):
         intrinsic = tensordict.get(keys.intrinsic_reward, None)
         if intrinsic is not None:  # EMC's curiosity: in the TD target only
             target_reward = target_reward + intrinsic[:, :-1]
+        memory_return = hit = None
         if self.uses_memory:
-            memory_return = tensordict.get(keys.memory_return)[:, :-1]
-            hit = tensordict.get(keys.memory_hit)[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
+            memory_return = self.require(tensordict, "memory_return")[:, :-1]
+            hit = self.require(tensordict, "memory_hit")[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
             stats["memory_hit_rate"] = hit.sum() / n_valid
 
         with torch.no_grad():
             next_q_tot = self.bootstrap_values(tensordict, inputs, greedy_q)
-            if self.incentive != "none":  # EMU: r_p = gamma * ratio * max(H(s') - Q_target(s'), 0)
-                gap = (memory_return - next_q_tot[:, 1:]).clamp(min=0.0) * hit
-                if self.incentive == "fixed":
-                    gap = gap * tensordict.get(keys.memory_ratio)[:, :-1]
-                incentive = self.gamma * gap
+            incentive = self.incentive.reward(  # EMU's r_p; None without an incentive
+                memory_return,
+                hit,
+                next_q_tot[:, 1:],
+                self.gamma,
+                lambda name: self.require(tensordict, name)[:, :-1],
+            )
+            if incentive is not None:
                 target_reward = target_reward + incentive
                 stats["incentive_mean"] = incentive.sum() / n_valid
             y = self.targets(target_reward, next_q_tot[:, 1:], done, terminated)

@@ -1,0 +1,120 @@
+"""Algorithms: what each value-factorisation algorithm brings to the one loop, chosen once from ``config.algo``.
+
+An :class:`Algorithm` holds the parts of a run that differ between algorithms::
+
+    mixer(env_config)          the mixing network (algo.mixer: QMIX, VDN, QPLEX)
+    incentive                  EMU's incentive strategy (algo.incentive, mcrs.objectives.incentive), one
+                               object for the loss and the episodic memory
+    learner(...)               the Learner with that mixer and incentive; the loss's keys follow from them
+                               and algo.memory_weight (ValueFactorisationLoss.in_keys)
+    callbacks(...)             what it adds to the loop: EMC's curiosity (algo.curiosity_scale > 0), then the
+                               episodic memory (algo.memory.enabled); both write the keys the loss reads
+                               into the sampled batch in on_train_batch
+
+The built-in algorithms (``conf/algo/*.yaml``: qmix, vdn, qplex, semu, cnn_semu, emc, emu, emu_370,
+emu_change) are this one class: they differ in their config nodes only, and a knob set on the command line
+(``algo=qmix algo.memory.enabled=true``) changes the parts the same way. An algorithm of one's own
+subclasses :class:`Algorithm`, overrides the parts it changes and is registered under an ``algo.name``::
+
+    @register_algorithm("my_algo")
+    class MyAlgorithm(Algorithm):
+        def callbacks(self, config, env_config, learner, device):
+            return [*super().callbacks(config, env_config, learner, device), MyCallback()]
+
+    Experiment(compose("algo=qmix", "algo.name=my_algo"), "outputs/run").run()
+
+:func:`algorithm_for` is the one place that reads ``algo.name``; a name nobody registered (a label of one's
+own) gets the built-in :class:`Algorithm`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+from mcrs.env.config import EnvConfig
+from mcrs.experiment.callbacks import Callback, CuriosityCallback
+from mcrs.experiment.episodic import EpisodicMemoryCallback
+from mcrs.experiment.learner import Learner, build_mixer
+from mcrs.experiment.schema import AlgoConfig, Config, ModelConfig, TrainConfig
+from mcrs.objectives.incentive import Incentive, make_incentive
+
+__all__ = ["ALGORITHMS", "BUILT_IN", "Algorithm", "algorithm_for", "register_algorithm"]
+
+
+class Algorithm:
+    """The parts of a value-factorisation algorithm, read from its ``algo`` config node.
+
+    Override a method to change a part; the experiment calls :meth:`learner` first (the networks draw
+    their initial weights from torch's generator: agent, mixer, then the callbacks' networks), then
+    :meth:`callbacks`.
+    """
+
+    def __init__(self, algo: AlgoConfig) -> None:
+        self.algo = algo
+        self.incentive = self.make_incentive()
+
+    def make_incentive(self) -> Incentive:
+        """EMU's incentive strategy (``algo.incentive``, ``algo.incentive_threshold``)."""
+        return make_incentive(str(self.algo.incentive), self.algo.incentive_threshold)
+
+    def mixer(self, env_config: EnvConfig) -> nn.Module:
+        """The mixing network over the map's state (``algo.mixer``)."""
+        return build_mixer(self.algo, env_config)
+
+    def learner(
+        self, model: ModelConfig, train: TrainConfig, env_config: EnvConfig, device: torch.device
+    ) -> Learner:
+        """The agent, this mixer and the TD loss with this incentive, with the optimiser."""
+        return Learner(
+            self.algo, model, train, env_config, device, mixer=self.mixer, incentive=self.incentive
+        )
+
+    def callbacks(
+        self, config: Config, env_config: EnvConfig, learner: Learner, device: torch.device
+    ) -> list[Callback]:
+        """EMC's curiosity (``algo.curiosity_scale > 0``), the episodic memory (``algo.memory.enabled``)."""
+        callbacks: list[Callback] = []
+        if self.algo.curiosity_scale > 0:
+            callbacks.append(CuriosityCallback(config, learner.agent))
+        if self.algo.memory.enabled:
+            callbacks.append(EpisodicMemoryCallback(config, env_config, device, incentive=self.incentive))
+        return callbacks
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.algo.name}: mixer={self.algo.mixer}, incentive={self.incentive})"
+
+
+#: The presets of ``conf/algo/``: all the built-in :class:`Algorithm`, set apart by their config nodes.
+BUILT_IN = ("qmix", "vdn", "qplex", "semu", "cnn_semu", "emc", "emu", "emu_370", "emu_change")
+
+#: ``algo.name`` -> its :class:`Algorithm` class (:func:`register_algorithm` adds to it).
+ALGORITHMS: dict[str, type[Algorithm]] = dict.fromkeys(BUILT_IN, Algorithm)
+
+
+def register_algorithm(
+    name: str, algorithm: type[Algorithm] | None = None, *, replace: bool = False
+) -> Callable[[type[Algorithm]], type[Algorithm]] | type[Algorithm]:
+    """Register ``algorithm`` (an :class:`Algorithm` subclass) under ``algo.name`` ``name``; without
+    ``algorithm``, a class decorator. A taken name is refused unless ``replace=True``."""
+
+    def add(cls: type[Algorithm]) -> type[Algorithm]:
+        if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
+            raise TypeError(f"register_algorithm({name!r}): expected an Algorithm subclass, got {cls!r}")
+        if name in ALGORITHMS and not replace:
+            raise ValueError(
+                f"algorithm {name!r} is already registered ({ALGORITHMS[name].__name__}); pass replace=True "
+                "to replace it"
+            )
+        ALGORITHMS[name] = cls
+        return cls
+
+    return add if algorithm is None else add(algorithm)
+
+
+def algorithm_for(algo: AlgoConfig) -> Algorithm:
+    """The algorithm of an ``algo`` config node: the class registered under ``algo.name``, else the
+    built-in :class:`Algorithm` (its parts follow the node's knobs)."""
+    return ALGORITHMS.get(str(algo.name), Algorithm)(algo)

@@ -1,0 +1,143 @@
+"""The algorithm registry (mcrs/experiment/algorithms.py) and EMU's incentive strategies
+(mcrs/objectives/incentive.py): every preset has its algorithm, the parts are chosen once and shared, an
+algorithm of one's own registers and trains, and the memory and the curiosity reach the batch one way."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torchrl.modules.models.multiagent import VDNMixer
+
+from mcrs.env.core import N_ACTIONS
+from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
+from mcrs.experiment.callbacks import Callback
+from mcrs.experiment.config import compose, validate
+from mcrs.experiment.trainer import Experiment
+from mcrs.models.mixers import make_mixer
+from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
+from mcrs.train import CONFIG_DIR
+from tests.train_helpers import TINY, TINY_MEMORY
+
+CPU = torch.device("cpu")
+
+
+def test_every_algo_preset_is_a_built_in_algorithm() -> None:
+    names = {OmegaConf.load(p).name for p in (Path(CONFIG_DIR) / "algo").glob("*.yaml")}
+    assert names == set(BUILT_IN)
+    assert all(ALGORITHMS[name] is Algorithm for name in BUILT_IN)
+    # A label nobody registered is the built-in algorithm too: its parts follow the knobs.
+    assert type(algorithm_for(compose("algo=qmix", "algo.name=my_label").algo)) is Algorithm
+
+
+@pytest.mark.parametrize(
+    ("algo", "incentive", "callbacks"),
+    [
+        ("qmix", Incentive, []),
+        ("emc", Incentive, ["curiosity", "memory"]),
+        ("emu", FixedThreshold, ["memory"]),
+        ("emu_change", EvaluationThreshold, ["memory"]),
+    ],
+)
+def test_the_parts_are_chosen_once_and_shared(algo: str, incentive: type, callbacks: list[str]) -> None:
+    config = compose(f"algo={algo}", *TINY, *TINY_MEMORY)
+    env_config = validate(config)
+    algorithm = algorithm_for(config.algo)
+    torch.manual_seed(0)
+    learner = algorithm.learner(config.model, config.train, env_config, CPU)
+    built = algorithm.callbacks(config, env_config, learner, CPU)
+    assert type(algorithm.incentive) is incentive and [cb.name for cb in built] == callbacks
+    assert learner.loss.incentive is algorithm.incentive  # one object for the loss and the memory
+    memory = [cb for cb in built if cb.name == "memory"]
+    assert all(cb.incentive is algorithm.incentive for cb in memory)
+    # The learner is the one a plain Learner(config.algo, ...) builds: same mixer, same initial weights.
+    torch.manual_seed(0)
+    plain = type(learner)(config.algo, config.model, config.train, env_config, CPU)
+    for a, b in zip(learner.loss.state_dict().values(), plain.loss.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    assert type(plain.loss.incentive) is incentive
+
+
+def test_incentive_strategies() -> None:
+    returns = torch.tensor([10.0, 365.0, 400.0])
+    assert Incentive().desirable(returns, 5.0) is None
+    assert FixedThreshold(365).desirable(returns, None).tolist() == [False, True, True]
+    change = EvaluationThreshold()
+    assert change.desirable(returns, None).tolist() == [False, False, False]  # before the first evaluation
+    assert change.desirable(returns, 380.0).tolist() == [False, False, True]
+    memory_return = torch.tensor([[[4.0], [-3.0], [8.0]]])
+    hit = torch.tensor([[[1.0], [1.0], [0.0]]])
+    next_value = torch.zeros(1, 3, 1)
+    ratio = {"memory_ratio": torch.tensor([[[0.5], [1.0], [1.0]]])}
+    assert Incentive().reward(None, None, next_value, 0.5, ratio.__getitem__) is None
+    fixed = FixedThreshold(0).reward(memory_return, hit, next_value, 0.5, ratio.__getitem__)
+    assert fixed[0, :, 0].tolist() == [1.0, 0.0, 0.0]  # 0.5 * 0.5 * max(4 - 0, 0); H below Q; a miss
+    assert change.reward(memory_return, hit, next_value, 0.5, ratio.__getitem__)[0, :, 0].tolist() == [
+        2,
+        0,
+        0,
+    ]
+    assert make_incentive("fixed", 370.0).threshold == 370.0 and make_incentive(change) is change
+    with pytest.raises(ValueError, match="incentive must be one of none, fixed, change, got 'always'"):
+        make_incentive("always")
+
+
+def test_register_refuses_a_taken_name_and_a_non_algorithm() -> None:
+    with pytest.raises(ValueError, match="'qmix' is already registered"):
+        register_algorithm("qmix", Algorithm)
+    with pytest.raises(TypeError, match="expected an Algorithm subclass"):
+        register_algorithm("not_one", object)  # type: ignore[arg-type]
+    assert "not_one" not in ALGORITHMS
+
+
+class HalfBonus(Callback):
+    """Writes a constant intrinsic reward, the key the loss reads, as EMC's curiosity does."""
+
+    name = "half_bonus"
+
+    def on_train_batch(self, batch, env_steps: int) -> dict[str, float]:
+        batch.set("intrinsic_reward", torch.full_like(batch.get("reward"), 0.5))
+        return {}
+
+
+class BonusVDN(Algorithm):
+    """An algorithm of one's own: VDN's mixer whatever algo.mixer says, plus a constant bonus."""
+
+    def mixer(self, env_config):
+        return make_mixer("vdn", env_config.n_uavs, (env_config.state_dim,), N_ACTIONS)
+
+    def callbacks(self, config, env_config, learner, device):
+        return [*super().callbacks(config, env_config, learner, device), HalfBonus()]
+
+
+@pytest.mark.slow
+def test_a_registered_algorithm_trains(tmp_path: Path) -> None:
+    register_algorithm("bonus_vdn", BonusVDN)
+    try:
+        config = compose("algo=qmix", *TINY, "algo.name=bonus_vdn", "train.total_env_steps=80")
+        experiment = Experiment(config, tmp_path)
+        assert isinstance(experiment.algorithm, BonusVDN) and isinstance(experiment.learner.mixer, VDNMixer)
+        assert [cb.name for cb in experiment.callbacks] == ["half_bonus"]
+        experiment.run()
+    finally:
+        ALGORITHMS.pop("bonus_vdn")
+    with open(tmp_path / "logs" / "scalars" / "train" / "intrinsic_mean.csv") as f:
+        rows = [float(value) for _, value in csv.reader(f)]
+    assert rows and all(v == pytest.approx(0.5) for v in rows)
+
+
+@pytest.mark.slow
+def test_the_memory_writes_its_keys_in_on_train_batch(tmp_path: Path) -> None:
+    """No replay transform: a sampled batch has no memory keys until the memory's on_train_batch."""
+    config = compose("algo=emu", *TINY, *TINY_MEMORY, "train.total_env_steps=40")
+    experiment = Experiment(config, tmp_path)
+    experiment.run()
+    batch = experiment.replay.sample()
+    keys = ("memory_return", "memory_hit", "memory_ratio")
+    assert all(batch.get(key, None) is None for key in keys)
+    assert experiment.callback("memory").on_train_batch(batch, 40) == {}
+    assert all(batch.get(key, None) is not None for key in keys)
+    assert set(experiment.learner.loss.in_keys) >= set(keys)
