@@ -181,9 +181,7 @@ def spec_leaves(config: EnvConfig, num_envs: int, device: str | torch.device) ->
     done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
     return {
         "observation": observation,
-        "action": {
-            "agents": {"action": Categorical(N_ACTIONS, shape=(E, N), dtype=torch.int64, device=dev)}
-        },
+        "action": {"agents": {"action": Categorical(N_ACTIONS, shape=(E, N), dtype=torch.int64, device=dev)}},
         "reward": {"reward": Unbounded(shape=(E, 1), dtype=torch.float32, device=dev)},
         "done": {"done": done, "terminated": done.clone(), "truncated": done.clone()},
     }
