@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 GiB = 1024**3
 #: What a process holds before any store: Python, torch, TorchRL and the env code (the RSS at the start
-#: of a run, rounded up: docs/PERFORMANCE.md, "The memory estimate").
+#: of a run, rounded up: docs/PERFORMANCE.md, "Figures behind constants").
 BASELINE_BYTES = 400 * 1024**2
 FILLED_BYTES = 1  # a stored episode's ``filled`` flag per step (bool)
 EPISODE_ID_BYTES = 8  # the episode's id per step (int64)
