@@ -106,3 +106,23 @@ def test_empty_replay_state() -> None:
     restored = make_episode_buffer(capacity=4, batch_size=2)
     load_replay_state_dict(restored, replay_state_dict(make_episode_buffer(capacity=4, batch_size=2)))
     assert len(restored) == 0
+
+
+def test_the_saved_format_is_the_one_checkpoints_already_hold() -> None:
+    """Flat ``"a/b"`` keys and the filled episodes only: a replay saved by earlier versions (whose keys
+    were joined by hand) still loads, and a save writes the same keys."""
+    episodes = TensorDict({"x": torch.arange(6.0).view(2, 3), ("a", "b"): torch.ones(2, 3, 2)}, [2, 3])
+    written = make_episode_buffer(capacity=4, batch_size=2)
+    written.extend(episodes)
+    saved = {
+        "length": 2,
+        "writer": written.writer.state_dict(),
+        "batch_size": [2, 3],
+        "episodes": {"x": episodes["x"].clone(), "a/b": episodes["a", "b"].clone()},
+    }
+    state = replay_state_dict(written)
+    assert sorted(state["episodes"]) == ["a/b", "x"] and state["batch_size"] == [2, 3]
+    restored = make_episode_buffer(capacity=4, batch_size=2)
+    load_replay_state_dict(restored, saved)
+    assert len(restored) == 2 and torch.equal(restored[:2]["a", "b"], episodes["a", "b"])
+    assert torch.equal(restored[:2]["x"], episodes["x"])

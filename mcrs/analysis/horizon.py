@@ -67,8 +67,9 @@ def load_run(run_dir: Path, device: str = "cpu") -> tuple[Learner, TensorDictBas
     cfg = as_typed(OmegaConf.create(ckpt.current_config(saved)))
     env_config = validate(cfg).replace(device=device)
     learner = Learner(cfg.algo, cfg.model, cfg.train, env_config, torch.device(device))
-    state = ckpt.load(ckpt.checkpoint_path(run_dir), map_location=device)
-    learner.load_state_dict(ckpt.current_layout(state)["learner"])
+    path = ckpt.checkpoint_path(run_dir)
+    state = ckpt.refuse_pre_release(ckpt.load(path, map_location=device), path)
+    learner.load_state_dict(state["learner"])
     replay = make_episode_buffer(cfg.train.replay_episodes, cfg.train.batch_episodes, device=device)
     if "replay_blocks" not in state:
         raise ckpt.CheckpointError(

@@ -37,7 +37,8 @@ class MemorySample:
 
 
 def _episodic_state(run: TrainingRun) -> dict:
-    payload = ckpt.current_layout(ckpt.load(ckpt.checkpoint_path(run.path), mmap=True))
+    path = ckpt.checkpoint_path(run.path)
+    payload = ckpt.refuse_pre_release(ckpt.load(path, mmap=True), path)
     if "memory" not in payload.get("callbacks", {}):
         raise ValueError(f"{run.path}: its last.pt holds no episodic memory (algo {run.algo_name})")
     return payload["callbacks"]["memory"]

@@ -45,6 +45,11 @@ METRICS = (
 )
 
 
+def counts_dtype(config: EnvConfig) -> torch.dtype:
+    """The dtype of the detection counts: int16 while every count fits (N (T + 1) < 2**15), else int32."""
+    return torch.int16 if config.n_uavs * (config.max_steps + 1) < 2**15 else torch.int32
+
+
 @dataclass
 class StepResult:
     """What one reset or step produces, every entry batched over environments."""
@@ -100,7 +105,7 @@ class MCRSCore:
         self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)  # i < j
         self._earlier = self._pair_upper.transpose(0, 1).contiguous()  # [i, j]: j < i
         self._env_index = torch.arange(E, device=dev)
-        count_dtype = torch.int16 if N * (c.max_steps + 1) < 2**15 else torch.int32
+        count_dtype = counts_dtype(c)
         log_dtype = torch.int16 if 2 * C < 2**15 else torch.int32
 
         # Episode state: everything a step needs, about 24 kB per map20 environment (state_nbytes()).

@@ -25,13 +25,15 @@ m(U), m(F)) and ``"neighbours"`` ``[E, N, N]`` (this step's communication graph)
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from mcrs.env.config import EnvConfig, scenario
-from mcrs.env.core import METRICS, N_ACTIONS, MCRSCore, StepResult
+from mcrs.env.core import METRICS, N_ACTIONS, MCRSCore, StepResult, counts_dtype
 
 
 class MCRSEnv(EnvBase):
@@ -63,59 +65,20 @@ class MCRSEnv(EnvBase):
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
-        c, E, N, dev = self.config, self.config.num_envs, self.config.n_uavs, self.device
-        agents = {
-            "observation": Bounded(-1.0, 1.0, shape=(E, N, c.obs_dim), dtype=torch.float32, device=dev),
-            "action_mask": Binary(n=N_ACTIONS, shape=(E, N, N_ACTIONS), dtype=torch.bool, device=dev),
-            "reading": Categorical(2, shape=(E, N), dtype=torch.bool, device=dev),
-            "position": Bounded(
-                torch.zeros(E, N, 2, dtype=torch.int64),
-                torch.tensor([c.width - 1, c.height - 1]).expand(E, N, 2).clone(),
-                shape=(E, N, 2),
-                dtype=torch.int64,
-                device=dev,
-            ),
-        }
-        root = {
-            "state": Bounded(-1.0, 1.0, shape=(E, c.state_dim), dtype=torch.float32, device=dev),
-            "state_map": Bounded(0.0, 1.0, shape=(E, 2, c.width, c.height), dtype=torch.float32, device=dev),
-            "state_counts": Bounded(
-                0,
-                c.n_uavs * (c.max_steps + 1),
-                shape=(E, c.width * c.height, 2),
-                dtype=torch.float32 if c.evidence_decay > 0 else self.core.global_counts.dtype,
-                device=dev,
-            ),
-            "step_count": Bounded(0, c.max_steps, shape=(E, 1), dtype=torch.int64, device=dev),
-            "reward_terms": Unbounded(shape=(E, 4), dtype=torch.float32, device=dev),
-            "metrics": Composite(
-                {name: Unbounded(shape=(E,), dtype=torch.float32, device=dev) for name in METRICS},
-                shape=(E,),
-                device=dev,
-            ),
-        }
-        if c.expose_beliefs:
-            agents["belief_map"] = Bounded(
-                0.0, 1.0, shape=(E, N, 2, c.width, c.height), dtype=torch.float32, device=dev
-            )
-            root["neighbours"] = Binary(n=N, shape=(E, N, N), dtype=torch.bool, device=dev)
-        self.observation_spec = Composite(
-            agents=Composite(agents, shape=(E, N)), **root, shape=(E,), device=dev
-        )
-        self.action_spec = Composite(
-            agents=Composite(
-                action=Categorical(N_ACTIONS, shape=(E, N), dtype=torch.int64, device=dev), shape=(E, N)
-            ),
-            shape=(E,),
-            device=dev,
-        )
-        self.reward_spec = Composite(
-            reward=Unbounded(shape=(E, 1), dtype=torch.float32, device=dev), shape=(E,), device=dev
-        )
-        done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=done, terminated=done.clone(), truncated=done.clone(), shape=(E,), device=dev
-        )
+        E, N, dev = self.config.num_envs, self.config.n_uavs, self.device
+        specs = spec_leaves(self.config, E, dev)
+
+        def composite(leaves: dict[str, Any], shape: tuple[int, ...]) -> Composite:
+            nested = {
+                k: composite(v, (*shape, N) if k == "agents" else shape) if isinstance(v, dict) else v
+                for k, v in leaves.items()
+            }
+            return Composite(nested, shape=shape, device=dev)
+
+        self.observation_spec = composite(specs["observation"], (E,))
+        self.action_spec = composite(specs["action"], (E,))
+        self.reward_spec = composite(specs["reward"], (E,))
+        self.done_spec = composite(specs["done"], (E,))
 
     # ------------------------------------------------------------------ EnvBase hooks
     def _set_seed(self, seed: int | None) -> None:
@@ -171,3 +134,54 @@ class MCRSEnv(EnvBase):
             root["neighbours"] = result.neighbours
         root["agents"] = TensorDict(agents, batch_size=[E, self.n_agents], device=self.device)
         return TensorDict(root, batch_size=[E], device=self.device)
+
+
+def spec_leaves(config: EnvConfig, num_envs: int, device: str | torch.device) -> dict[str, dict[str, Any]]:
+    """The specs of :class:`MCRSEnv` for ``config`` as nested dicts of leaf specs, without an env:
+    ``observation`` (with ``agents`` ``[E, N]`` and ``metrics`` ``[E]`` nested), ``action``, ``reward`` and
+    ``done``, for ``num_envs`` environments on ``device``.
+
+    The env wraps them in ``Composite`` specs. On the ``meta`` device nothing is allocated, whatever the
+    config's size (TorchRL's ``Composite`` cannot hold a ``Bounded`` spec there, hence the plain dicts):
+    :mod:`mcrs.experiment.resources` sizes a step from them before refusing a config.
+    """
+    c, E, N, dev = config, num_envs, config.n_uavs, torch.device(device)
+    agents: dict[str, Any] = {
+        "observation": Bounded(-1.0, 1.0, shape=(E, N, c.obs_dim), dtype=torch.float32, device=dev),
+        "action_mask": Binary(n=N_ACTIONS, shape=(E, N, N_ACTIONS), dtype=torch.bool, device=dev),
+        "reading": Categorical(2, shape=(E, N), dtype=torch.bool, device=dev),
+        "position": Bounded(
+            torch.zeros(E, N, 2, dtype=torch.int64, device=dev),
+            torch.tensor([c.width - 1, c.height - 1], device=dev).expand(E, N, 2).clone(),
+            shape=(E, N, 2),
+            dtype=torch.int64,
+            device=dev,
+        ),
+    }
+    observation: dict[str, Any] = {
+        "agents": agents,
+        "state": Bounded(-1.0, 1.0, shape=(E, c.state_dim), dtype=torch.float32, device=dev),
+        "state_map": Bounded(0.0, 1.0, shape=(E, 2, c.width, c.height), dtype=torch.float32, device=dev),
+        "state_counts": Bounded(
+            0,
+            c.n_uavs * (c.max_steps + 1),
+            shape=(E, c.width * c.height, 2),
+            dtype=torch.float32 if c.evidence_decay > 0 else counts_dtype(c),
+            device=dev,
+        ),
+        "step_count": Bounded(0, c.max_steps, shape=(E, 1), dtype=torch.int64, device=dev),
+        "reward_terms": Unbounded(shape=(E, 4), dtype=torch.float32, device=dev),
+        "metrics": {name: Unbounded(shape=(E,), dtype=torch.float32, device=dev) for name in METRICS},
+    }
+    if c.expose_beliefs:
+        agents["belief_map"] = Bounded(
+            0.0, 1.0, shape=(E, N, 2, c.width, c.height), dtype=torch.float32, device=dev
+        )
+        observation["neighbours"] = Binary(n=N, shape=(E, N, N), dtype=torch.bool, device=dev)
+    done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
+    return {
+        "observation": observation,
+        "action": {"agents": {"action": Categorical(N_ACTIONS, shape=(E, N), dtype=torch.int64, device=dev)}},
+        "reward": {"reward": Unbounded(shape=(E, 1), dtype=torch.float32, device=dev)},
+        "done": {"done": done, "terminated": done.clone(), "truncated": done.clone()},
+    }

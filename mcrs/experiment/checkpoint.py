@@ -203,22 +203,18 @@ def legacy_values(config: dict[str, Any]) -> list[str]:
     return notes
 
 
-def current_layout(state: dict[str, Any]) -> dict[str, Any]:
-    """A checkpoint in today's layout: before callbacks, the memory was saved as ``episodic`` and EMC's
-    curiosity inside the learner's state, and the embedding's schedule among the counters."""
-    if "callbacks" in state:
-        return state
-    learner = dict(state["learner"])
-    callbacks: dict[str, Any] = {}
-    if "curiosity" in learner:
-        callbacks["curiosity"] = learner.pop("curiosity")
-    if "episodic" in state:
-        callbacks["memory"] = {
-            **state["episodic"],
-            "next_embedding": state["counters"].get("next_embedding", 0),
-            "last_eval_reward": state.get("last_eval", {}).get("episode_reward"),
-        }
-    return {**state, "learner": learner, "callbacks": callbacks}
+def refuse_pre_release(state: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """``state`` itself, unless a pre-release mcrs wrote it (the episodic memory under ``episodic``, EMC's
+    curiosity inside the learner's state, no ``callbacks``): such a run cannot be resumed or read as
+    today's, and is refused in one line. Weights files (``model_*.pt``) have no callbacks and pass."""
+    learner = state.get("learner")
+    old = "episodic" in state or (isinstance(learner, dict) and "curiosity" in learner)
+    if old and "callbacks" not in state:
+        raise CheckpointError(
+            f"{path} was written by a pre-release mcrs (its memory and curiosity are not in "
+            "'callbacks'); it cannot be resumed: start a new run"
+        )
+    return state
 
 
 def weights_path(run_dir: str | Path, env_steps: int) -> Path:
@@ -250,7 +246,7 @@ def load_resumable(
     """
     from mcrs.experiment.rundir import first_difference
 
-    state = load(path, map_location=map_location)
+    state = refuse_pre_release(load(path, map_location=map_location), path)
     saved = state.get("fingerprint")
     if saved is None:  # written before fingerprints: derived from the config and weights it holds
         saved = fingerprint_of(current_config(state.get("config", {})), state.get("learner", {}))

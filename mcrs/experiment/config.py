@@ -112,7 +112,11 @@ def _positive(errors: list[str], name: str, value: float, allow_zero: bool = Fal
 
 
 def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> None:
-    """Hydra checks enums while composing; a Python caller may hand over any string."""
+    """A choice of a :class:`Config` built in Python, which OmegaConf never sees (``as_typed`` returns it
+    as it is): a composed config's choices were refused by OmegaConf's structured schema already, so this
+    fires only for the dataclass. OmegaConf's own check of such an instance (``OmegaConf.structured``)
+    stops at the first bad field and names it without its node (``mixer``, not ``algo.mixer``), so every
+    bad choice is named here, in full."""
     values = [member.value for member in allowed]
     if str(value) not in values:
         errors.append(f"{name}={str(value)!r}: allowed values are {', '.join(values)}")

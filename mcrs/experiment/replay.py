@@ -140,6 +140,23 @@ def make_episode_buffer(capacity: int, batch_size: int, device: str | torch.devi
     )
 
 
+#: How nested keys are written in a saved replay: ``("agents", "observation")`` as ``"agents/observation"``.
+KEY_SEPARATOR = "/"
+
+
+def flat_episodes(episodes: TensorDictBase) -> dict[str, torch.Tensor]:
+    """``episodes`` as a flat ``{"agents/observation": tensor, ...}`` dict: what a checkpoint stores
+    (plain tensors under string keys, read back with ``weights_only=True``). Only the episodes given are
+    written: TorchRL's ``ReplayBuffer.state_dict()`` would write the whole allocated storage
+    (docs/PERFORMANCE.md, "Saving the replay")."""
+    return dict(episodes.flatten_keys(KEY_SEPARATOR).items())
+
+
+def episodes_from_flat(flat: dict[str, torch.Tensor], batch_size: Sequence[int]) -> TensorDict:
+    """The inverse of :func:`flat_episodes`."""
+    return TensorDict(flat, batch_size=list(batch_size)).unflatten_keys(KEY_SEPARATOR)
+
+
 def replay_state_dict(buffer: ReplayBuffer) -> dict:
     """The stored episodes (only the filled part, not the whole capacity) and the writer's position."""
     n = len(buffer)
@@ -147,9 +164,7 @@ def replay_state_dict(buffer: ReplayBuffer) -> dict:
     if n:
         episodes = buffer.storage.get(torch.arange(n))
         state["batch_size"] = list(episodes.batch_size)
-        state["episodes"] = {
-            "/".join(k) if isinstance(k, tuple) else k: v for k, v in episodes.items(True, True)
-        }
+        state["episodes"] = flat_episodes(episodes)
     return state
 
 
@@ -161,8 +176,6 @@ def load_replay_state_dict(buffer: ReplayBuffer, state: dict) -> None:
     if n:
         if n > len(buffer.storage) and buffer.storage.max_size < n:
             raise ValueError(f"the saved replay holds {n} episodes, more than this buffer's capacity")
-        episodes = TensorDict(
-            {tuple(k.split("/")): v for k, v in state["episodes"].items()}, batch_size=state["batch_size"]
-        )
+        episodes = episodes_from_flat(state["episodes"], state["batch_size"])
         buffer.extend(episodes.to(buffer.storage.device) if buffer.storage.device is not None else episodes)
     buffer.writer.load_state_dict(state["writer"])

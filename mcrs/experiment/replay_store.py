@@ -19,10 +19,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict
 from torchrl.data import ReplayBuffer
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.replay import episodes_from_flat, flat_episodes
 
 BLOCK_EPISODES = 100  # slots per block file (map20: about 66 MB)
 _BLOCK_FILE = re.compile(r"^replay_\d+_\d+\.pt$")
@@ -70,10 +70,7 @@ class ReplayStore:
                     "replay_block": block,
                     "fingerprint": fingerprint,
                     "batch_size": list(episodes.batch_size),
-                    "episodes": {
-                        "/".join(k) if isinstance(k, tuple) else k: v.cpu()
-                        for k, v in episodes.items(True, True)
-                    },
+                    "episodes": flat_episodes(episodes.cpu()),
                 },
                 self.directory / name,
             )
@@ -131,10 +128,7 @@ class ReplayStore:
                 )
                 if difference is not None:
                     raise ckpt.CheckpointError(f"{path} does not belong to this run: {difference}")
-            episodes = TensorDict(
-                {tuple(k.split("/")): v for k, v in payload["episodes"].items()},
-                batch_size=payload["batch_size"],
-            )
+            episodes = episodes_from_flat(payload["episodes"], payload["batch_size"])
             device = buffer.storage.device
             buffer.extend(episodes.to(device) if device is not None else episodes)
         if len(buffer) != n:

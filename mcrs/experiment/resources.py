@@ -12,9 +12,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
+from tensordict.utils import NestedKey
 
 from mcrs.env.config import EnvConfig
 
@@ -22,10 +23,11 @@ if TYPE_CHECKING:
     from mcrs.experiment.schema import Config
 
 GiB = 1024**3
-#: What a process holds before any store: Python, torch, TorchRL and the env code (measured RSS about 370
-#: MiB at the start of a run, docs/RELIABILITY.md).
+#: What a process holds before any store: Python, torch, TorchRL and the env code (the RSS at the start
+#: of a run, rounded up: docs/PERFORMANCE.md, "Figures behind constants").
 BASELINE_BYTES = 400 * 1024**2
-N_ACTIONS_BYTES = 8  # the action mask: one bool per action
+FILLED_BYTES = 1  # a stored episode's ``filled`` flag per step (bool)
+EPISODE_ID_BYTES = 8  # the episode's id per step (int64)
 
 
 @dataclass
@@ -37,20 +39,46 @@ class Store:
     fields: str
 
 
+def _nbytes(specs: Any) -> int:
+    """Bytes of one sample of ``specs`` (a leaf spec or nested dicts of them, as ``spec_leaves`` gives)."""
+    if isinstance(specs, dict):
+        return sum(_nbytes(v) for v in specs.values())
+    return specs.shape.numel() * specs.dtype.itemsize
+
+
+def _step_specs(env: EnvConfig) -> dict[str, Any]:
+    """The env's specs for one environment, on the ``meta`` device: sizes, nothing allocated."""
+    from mcrs.env.torchrl_env import spec_leaves
+
+    return spec_leaves(env, 1, "meta")
+
+
+def _leaf(specs: dict[str, Any], key: NestedKey) -> Any:
+    for part in (key,) if isinstance(key, str) else key:
+        specs = specs[part]
+    return specs
+
+
 def replay_step_bytes(env: EnvConfig) -> int:
-    """Bytes of one step of a stored episode (``mcrs.experiment.replay`` layout): observations (float32),
-    action masks, the state, the action (int64), reward, done, terminated and filled flags, and the
-    episode's id (int64, which the trainer adds for the episodic memory's foreign-hit rate)."""
-    agents = env.n_uavs * (4 * env.obs_dim + N_ACTIONS_BYTES + 8)
-    return agents + 4 * env.state_dim + 4 + 3 + 8
+    """Bytes of one step of a stored episode (``mcrs.experiment.replay`` layout), from the env's specs:
+    the step keys (observations, action masks, the state), the action, reward, done and terminated, plus
+    the ``filled`` flag and the episode's id (int64, which the trainer adds for the episodic memory's
+    foreign-hit rate)."""
+    from mcrs.experiment.replay import STEP_KEYS
+
+    specs = _step_specs(env)
+    kept = [_leaf(specs["observation"], key) for key in STEP_KEYS]
+    kept += [specs["action"], specs["reward"], specs["done"]["done"], specs["done"]["terminated"]]
+    return sum(_nbytes(spec) for spec in kept) + FILLED_BYTES + EPISODE_ID_BYTES
 
 
 def rollout_step_bytes(env: EnvConfig, hidden_dim: int) -> int:
-    """Bytes of one step of a collector or evaluation rollout: TorchRL keeps the root and ``next`` copies of
-    the observations, the state, its map and counts, positions and readings, plus the recurrent state."""
-    agents = env.n_uavs * (4 * env.obs_dim + N_ACTIONS_BYTES + 1 + 16)
-    per_copy = agents + 4 * env.state_dim + 8 * env.n_cells + 4 * env.n_cells + 128
-    return 2 * per_copy + env.n_uavs * (8 + 2 * 4 * hidden_dim)
+    """Bytes of one step of a collector or evaluation rollout, from the env's specs: TorchRL keeps a root
+    and a ``next`` copy of everything the env writes (observations, state, map, counts, reward, done
+    flags), one action, and the recurrent state (float32, ``[N, hidden_dim]``) in both copies."""
+    specs = _step_specs(env)
+    written = _nbytes(specs["observation"]) + _nbytes(specs["reward"]) + _nbytes(specs["done"])
+    return 2 * written + _nbytes(specs["action"]) + 2 * env.n_uavs * 4 * hidden_dim
 
 
 def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:

@@ -2,8 +2,7 @@
 
 torch's default is one thread per core. On a machine other jobs keep busy that oversubscribes the cores:
 the threads of one parallel operation wait for each other while the scheduler runs someone else, and a
-learner update gets many times slower (QMIX on map10: 0.037 s per update quiet, 0.59 s with two other
-trainings on the two cores). ``threads=auto`` (the default) takes the cores the load average leaves free,
+learner update gets many times slower (measured in docs/TRAINING.md, "Threads"). ``threads=auto`` (the default) takes the cores the load average leaves free,
 at least one; an integer fixes the count, ``0`` keeps torch's default.
 
 After the first :data:`WINDOW_S` seconds of training, :class:`SpeedCheck` looks once at how long the

@@ -453,7 +453,6 @@ class Experiment:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
         restored by the caller once everything is built."""
-        state = ckpt.current_layout(state)
         self.learner.load_state_dict(state["learner"])
         if "replay_blocks" in state:
             self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())

@@ -163,7 +163,8 @@ def _merge_into(
     a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, keep: torch.Tensor, position: torch.Tensor
 ) -> None:
     """``out[..., keep] = a`` and ``out[..., position] = b`` (along the last dimension)."""
-    if a.device.type == "cpu":  # numpy's boolean-mask copy is one pass; torch's CPU one is ~20x slower
+    if a.device.type == "cpu":  # numpy's boolean-mask copy is one pass, torch's CPU one much slower
+        # (docs/PERFORMANCE.md, "Figures behind constants")
         target = out.numpy()
         target[..., keep.numpy()] = a.numpy()
         target[..., position.numpy()] = b.numpy()

@@ -100,8 +100,8 @@ class StateEmbedding(nn.Module):
 
     trainable: bool = True
     # On the CPU and without autograd, batches are encoded this many states at a time: the activations
-    # then stay in the caches instead of streaming through memory (re-embedding 1M map20 states with the
-    # CNN: about 3x faster than in passes of 65536). Same result; GPUs take the batch in one pass.
+    # then stay in the caches instead of streaming through memory (faster: docs/PERFORMANCE.md, "Figures
+    # behind constants"). Same result; GPUs take the batch in one pass.
     inference_chunk: int = 1024
 
     def __init__(self, state_dim: int, key_dim: int) -> None:

@@ -31,13 +31,14 @@ ZONE_PENALTY = 1000.0
 UAV_PENALTY = 10.0
 # Times the share of a visible lower-indexed UAV's 8 moves that would end where r4 charges with the
 # destination: a 1-in-8 risk outweighs a step of PROGRESS, so the later UAV steps aside. Only one of two
-# UAVs gives way (symmetric avoidance left pairs blocking each other: map20 under near fell to ~200).
+# UAVs gives way (symmetric avoidance left pairs blocking each other: docs/PERFORMANCE.md, "Figures
+# behind constants").
 CONTACT_PENALTY = 16.0
 # Per move of path length from the destination to the waypoint: the lawnmower's pull.
 PROGRESS = 1.0
 # Per unit of m(U) at the destination: < PROGRESS, so it chooses among equally short moves (a detour
 # around a zone has several) without leaving the path. Weights that let it leave the path for unknown
-# cells (1.5, 2.5) measured lower on map20 under both rules (-2 to -5 under enter).
+# cells scored lower (docs/PERFORMANCE.md, "Figures behind constants").
 GAIN = 0.9
 TIE_TOLERANCE = 1e-6
 
