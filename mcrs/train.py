@@ -12,6 +12,31 @@ directory: it appends to ``train.log`` and makes no new directory. See docs/TRAI
 
 from __future__ import annotations
 
+import os
+import signal
+import sys
+import threading
+
+
+def _interrupted_while_loading(signum: int, frame: object) -> None:
+    """Ctrl-C while the command's modules load (Hydra, OmegaConf: seconds on a busy machine): one line and
+    the shell's status, not the traceback of whatever import it hit. Nothing has been written yet."""
+    print(f"mcrs-train: {signal.Signals(signum).name}: interrupted before training started: nothing to save",
+          flush=True)  # fmt: skip
+    raise SystemExit(128 + signum)
+
+
+#: Installed only when this module is the command (``python -m mcrs.train``, the ``mcrs-train`` script),
+#: never when a program imports it; from the end of the imports on, Ctrl-C is a KeyboardInterrupt again,
+#: which :func:`main` (and :func:`mcrs.experiment.cli.one_line_errors` before it) turn into the same line.
+_LOADING = (
+    (__name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") == "mcrs-train")
+    and threading.current_thread() is threading.main_thread()
+    and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+)
+if _LOADING:
+    signal.signal(signal.SIGINT, _interrupted_while_loading)
+
 import logging
 import shutil
 from pathlib import Path
@@ -180,9 +205,11 @@ def _remove_session_files(run_dir: Path, output_subdir: str | None) -> None:
 
 register_configs()
 register_resolvers()
+if _LOADING and signal.getsignal(signal.SIGINT) is _interrupted_while_loading:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-@one_line_errors("mcrs-train")
+@one_line_errors("mcrs-train", interrupted="interrupted before training started: nothing to save")
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""

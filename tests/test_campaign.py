@@ -476,3 +476,28 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     matrix.write_text(TWO_POINTS + EVALUATION.replace('"on"', "on"))
     with pytest.raises(SystemExit, match=r"evaluation shield: variant True: not a name \(YAML reads"):
         campaign_main(["evaluate", *args])
+
+
+def test_a_point_in_use_by_a_live_run_is_not_started_and_the_exit_status_says_so(
+    tmp_path: Path, capsys
+) -> None:
+    """A refused point is not 'all is well': one line per point, the count, exit status 1 (issue 33)."""
+    from mcrs.experiment.rundir import RunLock
+
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("[0, 2]", "[0]"))
+    (point,), _ = load_matrix(matrix)
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    lock = RunLock(point.run_dir(outputs))  # a user's mcrs-train on the point, before its first checkpoint
+    try:
+        args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+        assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1"]) == 1
+    finally:
+        lock.release()
+    out = capsys.readouterr().out
+    assert f"not started: {point.id}: its run directory {point.run_dir(outputs)} is in use by process" in out
+    assert (
+        "campaign: 1 runs not started: their directories are in use or not the campaign's (exit status 1)"
+        in out
+    )
+    assert not (point.run_dir(outputs) / "campaign.log").exists()

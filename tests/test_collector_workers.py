@@ -171,3 +171,88 @@ def test_bad_collector_settings_are_refused(overrides: tuple[str, ...], message:
 
     with pytest.raises(ConfigError, match=message):
         validate(compose_config(*overrides))
+
+
+def _collector_workers(pid: int) -> list[int]:
+    """The spawned collector workers among the children of process ``pid`` (not the resource tracker)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the workers through /proc (Linux)")
+def test_a_killed_worker_ends_the_run_in_one_line_and_the_run_resumes(tmp_path: Path) -> None:
+    """SIGKILL leaves no traceback in the worker, and TorchRL waits for its weight-update acknowledgement
+    without a timeout: the run must neither hang nor end in a traceback (issue 33)."""
+    import signal
+    import time
+
+    from tests.train_helpers import start_train
+
+    run_dir = tmp_path / "run"
+    overrides = [
+        "algo=qmix", *TINY, *MULTI, "train.total_env_steps=100000", "train.checkpoint_interval=40",
+        "train.eval_interval=100000", f"hydra.run.dir={run_dir}",
+    ]  # fmt: skip
+    proc = start_train(*overrides, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 240
+        while not ckpt.checkpoint_path(run_dir).is_file():  # the workers run: a checkpoint is written
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.2)
+        workers = _collector_workers(proc.pid)
+        assert len(workers) == 2, workers
+        os.kill(workers[1], signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)  # no hang
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 1, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    errors = [line for line in err.splitlines() if line.startswith("mcrs-train: error:")]
+    assert errors == [
+        f"mcrs-train: error: a collector worker (pid {workers[1]}) died (signal 9, SIGKILL); the last "
+        f"checkpoint {ckpt.checkpoint_path(run_dir)} is intact: resume={run_dir}"
+    ], err[-3000:]
+    steps = ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"]
+    assert steps > 0 and steps % (ENVS * T) == 0
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1"}
+    resumed = subprocess.run(
+        [sys.executable, "-m", "mcrs.train", f"resume={run_dir}", f"train.total_env_steps={steps + ENVS * T}"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == steps + ENVS * T
+
+
+def test_a_wait_on_a_worker_that_dies_ends_instead_of_hanging() -> None:
+    """The wait TorchRL makes for a weight update's acknowledgement has no timeout: a queue nobody writes
+    to stands for it. The watch ends it when the worker dies."""
+    import multiprocessing
+    import signal
+    import threading
+    import time
+
+    from mcrs.experiment.collection import CollectorWorkerFailed, WorkerWatch
+
+    ctx = multiprocessing.get_context("spawn")
+    worker = ctx.Process(target=time.sleep, args=(120,), daemon=True)
+    worker.start()
+    replies = ctx.Queue()
+    watch = WorkerWatch([worker], interval=0.1)
+    killer = threading.Timer(1.0, os.kill, (worker.pid, signal.SIGKILL))
+    killer.start()
+    started = time.monotonic()
+    try:
+        died = rf"^a collector worker \(pid {worker.pid}\) died \(signal 9, SIGKILL\)$"
+        with pytest.raises(CollectorWorkerFailed, match=died), watch.waiting():
+            replies.get()  # blocks for ever without the watch
+        assert time.monotonic() - started < 30
+        with pytest.raises(CollectorWorkerFailed), watch.waiting():  # every later wait fails at once
+            pass
+    finally:
+        killer.cancel()
+        watch.close()
+        worker.kill()
+        worker.join()
+    assert signal.getsignal(signal.SIGUSR1) is signal.SIG_DFL  # the handler is put back

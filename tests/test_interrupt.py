@@ -213,3 +213,43 @@ def test_ctrl_c_then_resume_leaves_one_run_directory_whose_log_holds_both_sessio
     assert (run_dir / ".hydra" / "overrides.yaml").is_file()  # the first session's Hydra files are kept
     (session,) = (run_dir / ".hydra").glob("resumed_*")
     assert f"resume={run_dir}" in (session / "overrides.yaml").read_text()
+
+
+@pytest.mark.parametrize("when", ["loading", "job"])
+def test_ctrl_c_before_training_is_one_line_and_exit_130(tmp_path: Path, when: str) -> None:
+    """Ctrl-C while the modules load (``loading``: once Hydra's first module has loaded, which Python's
+    ``-X importtime`` tells) or once Hydra has made the run directory (``job``: composing, the config
+    checks, torch loading): one line, exit 130, no traceback (issue 33). Where exactly the signal lands
+    does not matter: every place before training says the same."""
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    command = _command(run_dir, "train.total_env_steps=10000000")
+    process = subprocess.Popen(
+        [command[0], "-X", "importtime", *command[1:]], cwd=tmp_path, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert process.stderr is not None
+        seen = []
+        for line in process.stderr:  # one line per module loaded, as its import ends
+            seen.append(line)
+            if "| hydra" in line:  # imported after mcrs.train's first lines: its handler is in place
+                break
+        if when == "job":
+            deadline = time.monotonic() + 120
+            while not run_dir.exists():
+                assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+                time.sleep(0.01)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 130, (out, err[-3000:])
+    assert "Traceback" not in out + err, err[-3000:]
+    lines = [line for line in (out + err).splitlines() if line.startswith("mcrs-train:")]
+    assert lines == ["mcrs-train: SIGINT: interrupted before training started: nothing to save"], (out, err)
+    assert not ckpt.checkpoint_path(run_dir).exists()
+    if when == "loading":
+        assert not run_dir.exists()  # nothing was written

@@ -113,18 +113,52 @@ def test_a_second_writer_and_a_resume_of_a_live_run_are_refused_naming_the_pid(t
         while not ckpt.checkpoint_path(run_dir).is_file():
             assert live.poll() is None and time.monotonic() < deadline, "the live run did not checkpoint"
             time.sleep(0.05)
+        hydra_files = _hashes(run_dir / ".hydra")
         resume = start_train(f"resume={run_dir}", cwd=tmp_path)  # both at once: they only wait for imports
-        second = start_train("algo=qmix", *TINY, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        second = start_train("algo=qmix", *TINY, "overwrite=true", f"hydra.run.dir={run_dir}", cwd=tmp_path)
         rc, _, err = _finish(resume)
         _assert_one_line_error(rc, err, f"run directory {run_dir} is in use by process {live.pid}")
         rc, _, err = _finish(second)
         _assert_one_line_error(rc, err, f"is in use by process {live.pid}")
         assert live.poll() is None, "the live run was disturbed"
+        assert _hashes(run_dir / ".hydra") == hydra_files  # the live run's Hydra files, untouched
     finally:
         live.send_signal(signal.SIGKILL)
         live.wait(timeout=30)
     # The kernel drops the lock of a killed process: the run can be resumed at once.
     RunLock(run_dir).release()
+
+
+def _hashes(directory: Path) -> dict[str, str]:
+    """Every file under ``directory`` (hidden ones too) and the SHA-256 of its bytes."""
+    import hashlib
+
+    return {
+        p.relative_to(directory).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_a_refused_command_into_an_existing_run_leaves_every_file_of_it_as_it_was(tmp_path: Path) -> None:
+    """Hydra writes ``.hydra/`` and appends to the log when the job starts: a fresh run refused for the
+    directory of an existing run must be refused before that (issue 33)."""
+    run_dir = tmp_path / "run"
+    args = ["algo=qmix", *TINY, "train.total_env_steps=40", f"hydra.run.dir={run_dir}"]
+    rc, _, err = _finish(start_train(*args, cwd=tmp_path))
+    assert rc == 0, err[-3000:]
+    before = _hashes(run_dir)
+    assert {".hydra/config.yaml", ".hydra/overrides.yaml", "train.log", "config.yaml"} <= set(before)
+
+    rc, _, err = _finish(start_train(*args, "seed=5", cwd=tmp_path))
+    _assert_one_line_error(rc, err, f"run directory {run_dir} is not empty", "overwrite=true")
+    assert _hashes(run_dir) == before
+
+    (run_dir / "notes.txt").write_text("mine")
+    before = _hashes(run_dir)
+    rc, _, err = _finish(start_train(*args, "seed=5", "overwrite=true", cwd=tmp_path))
+    _assert_one_line_error(rc, err, "holds files that no run wrote (notes.txt)")
+    assert _hashes(run_dir) == before
 
 
 def test_the_lock_is_held_while_the_trainer_lives_and_released_by_train(tmp_path: Path) -> None:
@@ -310,6 +344,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(
         f"cannot write checkpoint {ckpt.checkpoint_path(run_dir)}: No space left on device"
     )
     assert f"the last checkpoint {ckpt.checkpoint_path(run_dir)} is intact" in message
+    assert message.endswith(f"resume={run_dir}") and "no checkpoint had been written" not in message
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80
     assert not [p.name for p in (run_dir / "checkpoints").iterdir() if p.name.startswith(".")]
     monkeypatch.undo()

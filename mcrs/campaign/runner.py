@@ -85,6 +85,7 @@ class Campaign:
         self.total, self.jobs, self.prune = total_env_steps, jobs, prune
         self.evaluations = evaluations or []
         self.stop_signal: int | None = None
+        self.failed = 0  # runs of this campaign that ended with a non-zero exit status (not stopped by it)
 
     def status(self) -> list[Progress]:
         return [progress(p, self.outputs, self.records, self.total) for p in self.points]
@@ -160,8 +161,10 @@ class Campaign:
         return lines
 
     def run(self, hours: float) -> int:
-        """Run the plan within ``hours``; returns 0, or 128 + the signal that stopped it. One campaign
-        at a time per outputs folder: a second one would start the same points."""
+        """Run the plan within ``hours``; returns 0 when every run it started ended well and the rest were
+        left for lack of time, 1 when a point was refused (its run directory in use by a live run, or not
+        the campaign's) or a run failed, 128 + the signal that stopped it. One campaign at a time per
+        outputs folder: a second one would start the same points."""
         self.outputs.mkdir(parents=True, exist_ok=True)
         with open(self.outputs / ".campaign.lock", "a+") as lock:
             try:
@@ -219,9 +222,12 @@ class Campaign:
         _print(f"campaign: {ended} runs ended, {not_started} not started (time budget)")
         if refused:
             _print(
-                f"campaign: {refused} runs not started: their directories are in use or not the campaign's"
+                f"campaign: {refused} runs not started: their directories are in use or not the campaign's "
+                "(exit status 1)"
             )
-        return 0
+        if self.failed:
+            _print(f"campaign: {self.failed} runs failed (exit status 1)")
+        return 1 if refused or self.failed else 0
 
     def _on_signal(self, signum: int, frame: object) -> None:
         if self.stop_signal is None:
@@ -285,6 +291,7 @@ class Campaign:
         with open(run_dir / SESSIONS, "a") as f:
             f.write(json.dumps(session) + "\n")
         if job.process.returncode != 0 and not stopped:
+            self.failed += 1
             tail = (run_dir / LOG).read_text().strip().splitlines()[-5:]
             _print(
                 f"failed: {job.point.id} (exit {job.process.returncode}); {run_dir / LOG} ends:\n  "

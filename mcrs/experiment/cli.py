@@ -29,7 +29,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
-from mcrs.experiment.rundir import LOCK, describe_os_error, resume_problem
+from mcrs.experiment.rundir import LOCK, describe_os_error, fresh_problem, lock_holder, resume_problem
 
 F = TypeVar("F", bound=Callable[..., Any])
 #: Files Hydra writes into a run or sweep directory before the task runs: they do not make it a run.
@@ -123,9 +123,11 @@ def _lines(text: str) -> list[str]:
     return out
 
 
-def one_line_errors(command: str) -> Callable[[F], F]:
+def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F], F]:
     """Wrap a ``@hydra.main`` function: a composition error becomes ``<command>: error: <one line>``
-    (exit status 1), and the directories the refused command made are removed.
+    (exit status 1), and the directories the refused command made are removed. With ``interrupted``, a
+    Ctrl-C that reaches the wrapper (Hydra composing, the task's first imports) prints ``<command>: SIGINT:
+    <interrupted>``, removes what the command made and exits 130, without a traceback.
 
     Hydra prints its own report unless ``HYDRA_FULL_ERROR=1``, in which case it re-raises: the wrapper
     sets it for the call so that it receives the exception. A user who sets it gets Hydra's full trace.
@@ -143,6 +145,12 @@ def one_line_errors(command: str) -> Callable[[F], F]:
             except (HydraException, OmegaConfBaseException) as error:
                 remove_refused_dirs()
                 raise SystemExit(f"{command}: error: {describe(error)}") from None
+            except KeyboardInterrupt:
+                if interrupted is None:
+                    raise
+                remove_refused_dirs()
+                print(f"{command}: SIGINT: {interrupted}", flush=True)
+                raise SystemExit(130) from None
             finally:
                 if before is None:
                     os.environ.pop("HYDRA_FULL_ERROR", None)
@@ -164,15 +172,22 @@ class RunDirCheck(Callback):
     sweep) directory, create it and check that it can be written, so that a read-only or impossible path is
     one line, not Hydra's traceback; the directories made are remembered for :func:`remove_refused_dirs`."""
 
-    def __init__(self, command: str = "mcrs") -> None:
+    def __init__(self, command: str = "mcrs", fresh_run: bool = False) -> None:
         self.command = command
+        self.fresh_run = fresh_run  # mcrs-train: the directory of a fresh run is checked as Experiment does
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         resume = OmegaConf.select(config, "resume", default=None)  # mcrs-train's resume=<run>
         problem = resume_problem(resume) if resume is not None else None
+        run_dir = Path(str(config.hydra.run.dir))
+        if problem is None and resume is not None:
+            problem = _in_use(Path(str(resume)).expanduser())
+        elif problem is None and self.fresh_run:  # before Hydra writes .hydra/ and the log into a run
+            overwrite = bool(OmegaConf.select(config, "overwrite", default=False))
+            problem = _in_use(run_dir) or fresh_problem(run_dir, overwrite)
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
-        self._make(Path(str(config.hydra.run.dir)))
+        self._make(run_dir)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._make(Path(str(config.hydra.sweep.dir)))
@@ -188,6 +203,17 @@ class RunDirCheck(Callback):
             raise SystemExit(
                 f"{self.command}: error: cannot write the run directory {directory}: {describe_os_error(error)}"
             ) from None
+
+
+def _in_use(run_dir: Path) -> str | None:
+    """The refusal :class:`mcrs.experiment.rundir.RunLock` would give, said before anything is written."""
+    holder = lock_holder(run_dir)
+    if holder is None:
+        return None
+    return (
+        f"run directory {run_dir} is in use by {holder}: one process writes a run; "
+        "wait for it to end (then resume=), or choose another directory"
+    )
 
 
 def make_run_dir(directory: Path) -> None:

@@ -14,6 +14,11 @@ episodes than the single-process run with the same seed.
 A worker that raises dies; TorchRL then only reports its exit code. Each worker therefore writes the
 traceback of an exception in its environment to a per-run temporary folder before dying, and
 :func:`next_batch` raises :class:`CollectorWorkerFailed` carrying that cause.
+
+A worker killed from outside (SIGKILL, the OOM killer) leaves no traceback, and TorchRL waits for some of
+its replies (the acknowledgement of a weight update) without a timeout: while the trainer waits on the
+workers, a watch thread checks every half second that they live and, when one has died, wakes the main
+thread (SIGUSR1), which raises :class:`CollectorWorkerFailed` naming the worker's pid and signal.
 """
 
 from __future__ import annotations
@@ -54,7 +59,118 @@ def _workers_ignore_sigint() -> Iterator[None]:
 
 
 class CollectorWorkerFailed(RuntimeError):
-    """A collector worker process raised; the message carries the worker's exception."""
+    """A collector worker process raised or died; the message carries the worker's exception, or its pid
+    and how it ended."""
+
+
+class _WorkerDied(BaseException):
+    """Raised in the main thread by the watch's wake-up signal. Not an ``Exception``: TorchRL's wait for a
+    weight-update acknowledgement catches ``Exception`` (and would only log it)."""
+
+
+def describe_exit(pid: int, exitcode: int) -> str:
+    """``a collector worker (pid 7438) died (signal 9, SIGKILL)`` / ``... exited with status 1``."""
+    if exitcode < 0:
+        try:
+            name = f", {signal.Signals(-exitcode).name}"
+        except ValueError:
+            name = ""
+        return f"a collector worker (pid {pid}) died (signal {-exitcode}{name})"
+    return f"a collector worker (pid {pid}) exited with status {exitcode}"
+
+
+class WorkerWatch:
+    """Tells when a worker process has ended, and ends a wait on the workers (:meth:`waiting`) then.
+
+    TorchRL waits for a weight update's acknowledgement without a timeout (a dead worker never sends it):
+    during :meth:`waiting` a daemon thread polls the workers' exit codes every ``interval`` seconds and,
+    when one has ended, sends SIGUSR1 to the main thread, whose handler raises there; the wait ends with
+    :class:`CollectorWorkerFailed`. The handler is installed from construction to :meth:`close` and does
+    nothing outside a wait. Outside the main thread there is no wake-up: only the checks before and after.
+    """
+
+    WAKE = signal.SIGUSR1
+
+    def __init__(self, procs: list, interval: float = 0.5) -> None:
+        self.procs = list(procs)
+        self.pids = [int(p.pid) for p in self.procs]
+        self.interval = interval
+        self.dead: tuple[int, int] | None = None
+        self._waiting = threading.Event()
+        self._closed = threading.Event()
+        self._previous: object | None = None
+        self._thread: threading.Thread | None = None
+        if threading.current_thread() is threading.main_thread():
+            self._main = threading.get_ident()
+            self._previous = signal.signal(self.WAKE, self._wake)
+            self._thread = threading.Thread(target=self._watch, name="mcrs-worker-watch", daemon=True)
+            self._thread.start()
+
+    def check(self) -> tuple[int, int] | None:
+        """``(pid, exit code)`` of a worker that has ended, or None. TorchRL terminates (SIGTERM) the other
+        workers once it sees one die: a worker that ended otherwise is the one named."""
+        if self.dead is not None:
+            return self.dead
+        ended = []
+        for pid, proc in zip(self.pids, self.procs, strict=True):
+            try:
+                code = proc.exitcode
+            except (ValueError, OSError):  # closed by TorchRL after terminating it: not the first to die
+                continue
+            if code is not None:
+                ended.append((pid, int(code)))
+        if ended:
+            first = [e for e in ended if e[1] != -signal.SIGTERM] or ended
+            self.dead = first[0]
+        return self.dead
+
+    def failure(self) -> CollectorWorkerFailed:
+        pid, code = self.dead or (0, 0)
+        return CollectorWorkerFailed(describe_exit(pid, code))
+
+    @contextlib.contextmanager
+    def waiting(self) -> Iterator[None]:
+        """Wait on the workers: a worker that has ended (before or during the wait) ends it with
+        :class:`CollectorWorkerFailed`; any other error that comes with a dead worker becomes one too."""
+        if self.check() is not None:
+            raise self.failure()
+        self._waiting.set()
+        try:
+            yield
+        except _WorkerDied:
+            raise self.failure() from None
+        except CollectorWorkerFailed:
+            raise
+        except Exception as error:
+            if self.check() is None:
+                raise
+            raise self.failure() from error
+        finally:
+            self._waiting.clear()
+
+    def _wake(self, signum: int, frame: object) -> None:
+        if self._waiting.is_set() and self.dead is not None:
+            self._waiting.clear()
+            raise _WorkerDied()
+
+    def _watch(self) -> None:
+        while not self._closed.is_set():
+            if not self._waiting.wait(timeout=self.interval):
+                continue  # the trainer is not waiting on the workers
+            if self._closed.wait(self.interval):
+                return
+            if self._waiting.is_set() and self.check() is not None:
+                signal.pthread_kill(self._main, self.WAKE)
+                return  # once: the wait ends, and every later one fails at its first check
+
+    def close(self) -> None:
+        """Stop the thread and put the previous SIGUSR1 handler back (from the main thread)."""
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        if self._previous is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(self.WAKE, self._previous)  # type: ignore[arg-type]
+            self._previous = None
 
 
 class _WorkerEnv(MCRSEnv):
@@ -115,6 +231,7 @@ class TrainingCollector:
         self.kind, self.env = kind, env
         T = env_config.max_steps
         self.error_dir: str | None = None
+        self.watch: WorkerWatch | None = None
         if kind == "single":
             self.collector: BaseCollector = Collector(
                 env,
@@ -140,6 +257,10 @@ class TrainingCollector:
                 trust_policy=True,
                 auto_register_policy_transforms=False,
             )
+        self.watch = WorkerWatch(self.collector.procs)
+
+    def _waiting(self) -> contextlib.AbstractContextManager:
+        return self.watch.waiting() if self.watch is not None else contextlib.nullcontext()
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         return iter(self.collector)
@@ -148,18 +269,22 @@ class TrainingCollector:
         """Seed and reset the environments: the next batch starts fresh episodes from ``seed``."""
         if self.kind == "single":
             self.env.set_seed(seed)
-        else:
+            self.collector.reset()
+            return
+        with self._waiting():
             self.collector.set_seed(seed)
-        self.collector.reset()
+            self.collector.reset()
 
     def sync_weights(self) -> None:
         """Send the learner's weights and epsilon to the workers (one process: they are the same objects)."""
         if self.kind != "single":
-            self.collector.update_policy_weights_()
+            with self._waiting():
+                self.collector.update_policy_weights_()
 
     def next_batch(self, iterator: Iterator[TensorDictBase]) -> TensorDictBase:
         try:
-            return next(iterator)
+            with self._waiting():
+                return next(iterator)
         except Exception as error:
             cause = self.worker_error()
             if cause is None:
@@ -179,6 +304,8 @@ class TrainingCollector:
     def shutdown(self) -> None:
         """Stop the workers; never masks the exception that stopped the run."""
         try:
+            if self.watch is not None:
+                self.watch.close()
             self.collector.shutdown()
         except Exception:  # a worker already dead: its error is the one that matters
             pass

@@ -156,28 +156,44 @@ def lock_holder(run_dir: str | Path) -> str | None:
     return None
 
 
+def _fresh_entries(run_dir: Path) -> list[str]:
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in FRESH_ALLOWED and not _hydra_log(p))
+
+
+def fresh_problem(run_dir: Path, overwrite: bool) -> str | None:
+    """Why a fresh run may not start in ``run_dir`` (:func:`prepare_fresh`), or None (also when it does
+    not exist). :class:`mcrs.experiment.cli.RunDirCheck` asks before Hydra writes its ``.hydra/`` files
+    there, so that a refused command leaves an existing run as it was."""
+    if not run_dir.is_dir():
+        return None
+    entries = _fresh_entries(run_dir)
+    if not entries:
+        return None
+    shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
+    if not overwrite:
+        return (
+            f"run directory {run_dir} is not empty ({shown}): resume it with resume={run_dir}, "
+            "choose another hydra.run.dir, or pass overwrite=true to replace the run in it"
+        )
+    foreign = [name for name in entries if name not in RUN_ARTEFACTS]
+    if foreign:
+        return (
+            f"run directory {run_dir} holds files that no run wrote ({', '.join(foreign[:5])}): "
+            "overwrite=true only replaces a previous run; choose another hydra.run.dir"
+        )
+    return None
+
+
 def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
     """Refuse a run directory that holds anything but Hydra's files, or clear a previous run from it.
 
     With ``overwrite`` only a previous run's own files are removed (:data:`RUN_ARTEFACTS`); a directory
     holding anything else is refused either way, so ``overwrite=true`` never deletes unrelated files.
     """
-    entries = sorted(p.name for p in run_dir.iterdir() if p.name not in FRESH_ALLOWED and not _hydra_log(p))
-    if not entries:
-        return
-    shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
-    if not overwrite:
-        raise RunDirError(
-            f"run directory {run_dir} is not empty ({shown}): resume it with resume={run_dir}, "
-            "choose another hydra.run.dir, or pass overwrite=true to replace the run in it"
-        )
-    foreign = [name for name in entries if name not in RUN_ARTEFACTS]
-    if foreign:
-        raise RunDirError(
-            f"run directory {run_dir} holds files that no run wrote ({', '.join(foreign[:5])}): "
-            "overwrite=true only replaces a previous run; choose another hydra.run.dir"
-        )
-    for name in entries:
+    problem = fresh_problem(run_dir, overwrite)
+    if problem:
+        raise RunDirError(problem)
+    for name in _fresh_entries(run_dir):
         path = run_dir / name
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)

@@ -36,7 +36,7 @@ from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.algorithms import algorithm_for
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
-from mcrs.experiment.collection import TrainingCollector
+from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.counters import Counters, batch_seed
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
@@ -240,6 +240,8 @@ class Experiment:
                 raise RunDirError(
                     f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
                 ) from None
+            except CollectorWorkerFailed as error:  # the batch is lost; the last checkpoint is a whole state
+                raise CollectorWorkerFailed(f"{error}{self._intact('')}") from None
             finally:
                 progress.close()
                 self.collector.shutdown()
@@ -425,12 +427,12 @@ class Experiment:
         log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
         return path
 
-    def _intact(self) -> str:
-        """What survives an I/O error: the checkpoint a resume would start from."""
+    def _intact(self, advice: str = "free space or fix the directory, then ") -> str:
+        """What survives an I/O error (or a dead collector worker): the checkpoint a resume would start from."""
         last = ckpt.checkpoint_path(self.run_dir)
         if not last.is_file():
             return "; no checkpoint had been written yet"
-        return f"; the last checkpoint {last} is intact: free space or fix the directory, then resume={self.run_dir}"
+        return f"; the last checkpoint {last} is intact: {advice}resume={self.run_dir}"
 
     def _save(self, name: str) -> Path:
         last = name == ckpt.LAST
