@@ -17,6 +17,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import hydra
 import torch
@@ -91,10 +92,16 @@ def policy_names(policy: str) -> list[str]:
 
 
 def episode_metrics(
-    env_config: EnvConfig, policy_name: str, episodes: int, seed: int, max_batch: int = MAX_BATCH
+    env_config: EnvConfig,
+    policy_name: str,
+    episodes: int,
+    seed: int,
+    max_batch: int = MAX_BATCH,
+    progress: Any = None,
 ) -> dict[str, torch.Tensor]:
     """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``, on the
-    CPU whatever the env's device (callers turn them into numpy arrays, CSV rows and figures)."""
+    CPU whatever the env's device (callers turn them into numpy arrays, CSV rows and figures).
+    ``progress`` (a bar: :func:`mcrs.experiment.logging.progress_bar`) advances by one per step of the batched environments."""
     if episodes < 1:
         raise ValueError(f"episodes={episodes}: must be >= 1")
     batch = min(episodes, max_batch)
@@ -109,9 +116,28 @@ def episode_metrics(
             td = env.reset()
             for _ in range(cfg.max_steps):
                 td = env.step(policy(td).select(ACTION))["next"]
+                if progress is not None:
+                    progress.update(1)
             chunks.append(td.get("metrics").to("cpu").clone())  # clone: a CPU env reuses its buffers
     metrics = torch.cat(chunks)[:episodes]
     return {name: metrics.get(name) for name in METRICS}
+
+
+def evaluate_episodes(
+    env_config: EnvConfig, names: list[str], episodes: int, seed: int, description: str, enabled: bool = True
+) -> dict[str, dict[str, torch.Tensor]]:
+    """:func:`episode_metrics` of each policy in ``names``, with one progress bar over all their steps
+    (ETA included; plain lines when the console is no terminal), named after the policy it is running."""
+    from mcrs.experiment.logging import progress_bar
+
+    chunks = math.ceil(episodes / min(episodes, MAX_BATCH))
+    total = len(names) * chunks * env_config.max_steps
+    per_episode = {}
+    with progress_bar(total, 0, enabled, description) as bar:
+        for name in names:
+            bar.set_postfix(policy=Path(name).name if name not in POLICIES else name, refresh=False)
+            per_episode[name] = episode_metrics(env_config, name, episodes, seed, progress=bar)
+    return per_episode
 
 
 def summarize(values: dict[str, torch.Tensor]) -> dict[str, tuple[float, float]]:
@@ -209,7 +235,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     names = policy_names(str(cfg.policy))
     episodes, seed = int(cfg.episodes), int(cfg.seed)
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
-    per_episode = {name: episode_metrics(env_config, name, episodes, seed) for name in names}
+    per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)
     table = format_table(results)
@@ -217,6 +243,9 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
+            print(
+                f"drawing one episode of {Path(name).name if name not in POLICIES else name} ...", flush=True
+            )
             paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
             _say("figures: " + ", ".join(str(p) for p in paths))
     _say(f"results in {out_dir}")
@@ -236,12 +265,15 @@ class RunReport:
     rewards: dict[str, tuple[float, float]]
 
 
-def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int, seed: int) -> RunReport:
+def evaluate_run(
+    run_dir: Path, env_config: EnvConfig, label: str, episodes: int, seed: int, progress: bool = True
+) -> RunReport:
     """A finished training run against the heuristics, into ``run_dir/report/``: the greedy trained policy
     and every heuristic on the same ``episodes`` fixed-seed episodes (``summary.md``, ``metrics.csv``,
     ``episodes.csv``, as ``mcrs-eval`` writes them), the run's learning curves with the heuristics as
     horizontal lines (``learning_curves.png``) and one episode of the trained policy (``episode.gif``,
-    ``scene.png``, ``uncertainty_contours.png``). ``label`` names the trained policy in the table."""
+    ``scene.png``, ``uncertainty_contours.png``). ``label`` names the trained policy in the table;
+    ``progress``: a progress bar while the episodes run."""
     import numpy as np
     import yaml
 
@@ -251,7 +283,7 @@ def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int
     out = run_dir / REPORT_DIR
     env_config = env_config.replace(num_envs=min(episodes, MAX_BATCH))
     names = [str(run_dir), *POLICIES]  # the CSV names the trained policy by its run, as mcrs-eval does
-    per_episode = {name: episode_metrics(env_config, name, episodes, seed) for name in names}
+    per_episode = evaluate_episodes(env_config, names, episodes, seed, "report", progress)
     results = {name: summarize(values) for name, values in per_episode.items()}
     labelled = {label if name == str(run_dir) else f"{name} (heuristic)": r for name, r in results.items()}
     table = format_table(labelled)

@@ -171,7 +171,7 @@ def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
     label = f"{cfg.algo.name} ({f'{steps / 1000:g}k' if steps >= 1000 else steps} steps)"
     episodes, seed = int(cfg.train.eval_episodes), int(cfg.train.eval_seed)
     print(f"evaluating {label} and the heuristics on {episodes} episodes ...", flush=True)
-    report = evaluate_run(run_dir, experiment.env_config, label, episodes, seed)
+    report = evaluate_run(run_dir, experiment.env_config, label, episodes, seed, cfg.logger.progress_bar)
     rewards = ", ".join(f"{name} {mean:.1f}" for name, (mean, _) in report.rewards.items())
     print(
         f"report ({cfg.env.name}, episode reward: {rewards}):\n"

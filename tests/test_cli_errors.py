@@ -240,3 +240,26 @@ def test_the_schema_choices_are_the_implementations() -> None:
         MIXERS, EMBEDDINGS, DELTA_RULES, SHAPES, TIME_LIMITS,
     )  # fmt: skip
     assert config.INCENTIVES == ValueFactorisationLoss.INCENTIVES
+
+
+@pytest.mark.parametrize(
+    ("module", "listed", "not_listed"),
+    [
+        ("mcrs.train", ["algo", "budget", "env", "experiment", "logger", "model", "preset"], ["study"]),
+        ("mcrs.evaluate", ["env", "study"], ["algo", "budget", "experiment", "logger", "model", "preset"]),
+    ],
+)
+def test_help_lists_only_the_groups_the_command_accepts(
+    module: str, listed: list[str], not_listed: list[str], tmp_path: Path
+) -> None:
+    """The three commands share one config folder; each ``--help`` lists the groups of its own defaults
+    (``mcrs-train --help`` listed mcrs-eval's ``study``, which mcrs-train refuses)."""
+    done = subprocess.run([sys.executable, "-m", module, "--help"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "HYDRA_FULL_ERROR": "0"})  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    groups = done.stdout.split("== Configuration groups ==", 1)[1].split("== Config ==", 1)[0]
+    named = {line.split(":", 1)[0] for line in groups.splitlines() if ": " in line}
+    assert named == set(listed), groups
+    assert not any(f"\n{group}: " in groups for group in not_listed), groups
+    assert "study" not in done.stdout if module == "mcrs.train" else "study: comm_range, heuristics" in groups
+    assert list(tmp_path.iterdir()) == []  # --help runs nothing

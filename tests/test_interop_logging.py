@@ -11,7 +11,7 @@ from PIL import Image
 
 from mcrs.experiment.config import compose
 from mcrs.experiment.trainer import Experiment
-from tests.train_helpers import TINY
+from tests.train_helpers import TINY, TINY_MEMORY
 
 pytestmark = pytest.mark.slow
 
@@ -91,3 +91,25 @@ def test_report_reads_the_runs_of_every_logger_alike(tmp_path: Path, monkeypatch
     for run in runs_json.values():
         assert [run[f"step_{i}"]["step_count"] for i in range(2)] == [0, STEPS]
         assert run["absolute_metrics"]["episode_reward"][0] == pytest.approx(values[-1], rel=1e-6)
+
+
+#: The scalars of the episodic memory and of the curiosity: an algorithm without them must not log them.
+MEMORY_SCALARS = ("train/memory_hit_rate", "train/loss_memory", "train/memory_target_mean",
+                  "train/incentive_mean", "train/intrinsic_mean")  # fmt: skip
+
+
+def _logged(run: Path) -> set[str]:
+    root = run / "logs" / "scalars"
+    return {p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.csv")}
+
+
+def test_scalars_that_do_not_apply_to_an_algorithm_are_not_logged(tmp_path: Path) -> None:
+    """QMIX has no memory and no curiosity: none of their scalars (each would read 0 at every row); EMU
+    logs its memory's and its incentive's, not those of the memory target it does not train (lambda 0)."""
+    qmix = _logged(tiny_run(tmp_path / "qmix"))
+    assert not [n for n in qmix if n.startswith(("memory/", "curiosity/")) or n in MEMORY_SCALARS], qmix
+    assert {"train/loss_td", "train/q_taken_mean", "eval/episode_reward", "eval/no_fly_violations"} <= qmix
+    emu = _logged(tiny_run(tmp_path / "emu", "algo=emu", *TINY_MEMORY))
+    assert {"train/memory_hit_rate", "train/incentive_mean", "memory/size", "memory/lookup_hit_rate"} <= emu
+    assert not {"train/loss_memory", "train/memory_target_mean", "train/intrinsic_mean"} & emu
+    assert emu - qmix >= {"train/memory_hit_rate", "train/incentive_mean"}

@@ -51,7 +51,7 @@ def test_memory_target_is_reward_plus_gamma_h_on_hits_and_nothing_on_misses() ->
     batch.get("memory_return")[0, 1] = -1e6
     assert loss_with(memory_weight=0.1)(batch)["loss"].item() == pytest.approx(out["loss"].item())
     # No memory term for the padding row or without weight.
-    assert plain["loss_memory"].item() == 0.0
+    assert not {"loss_memory", "memory_hit_rate", "memory_target_mean"} & set(plain.keys())
 
 
 def test_memory_term_gradient_pulls_q_tot_towards_the_memory_target() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import logging.config
+import re
 import sys
 from pathlib import Path
 
@@ -13,7 +14,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import mcrs.evaluate  # noqa: F401 (registers the mcrs-eval schema)
-from mcrs.experiment.logging import ANSI, PlainFormatter, TqdmHandler, log_event
+from mcrs.experiment import logging as run_logging
+from mcrs.experiment.logging import ANSI, PlainFormatter, PlainProgress, TqdmHandler, log_event, progress_bar
 from mcrs.experiment.trainer import Experiment
 from mcrs.train import CONFIG_DIR
 from tests.train_helpers import compose_config
@@ -122,3 +124,52 @@ def test_training_keeps_torchrl_info_lines_off_the_console(
     torchrl.setLevel(logging.INFO)
     Experiment(compose_config("train.total_env_steps=20"), tmp_path / "again").run()
     assert any("LazyTensorStorage" in m for m in keep.messages), keep.messages
+
+
+def test_progress_without_a_terminal_is_plain_lines_with_the_eta_and_the_latest_evaluation(
+    capsys: pytest.CaptureFixture,
+) -> None:
+    """Under nohup or into a log file (stderr no terminal: capsys's) a bar would print nothing readable:
+    the progress is a line when it starts, one per interval, and one when it ends."""
+    bar = progress_bar(2_000_000, 0, True, "qmix map20", interval=0.0)
+    assert isinstance(bar, PlainProgress)
+    bar.set_postfix({"eps": "0.050", "eval_reward": "12.3"}, refresh=False)
+    bar.update(120_000)
+    bar.close()
+    bar.close()  # once
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0].startswith("qmix map20: 0/2M steps (0%), elapsed 00:00"), lines
+    assert re.fullmatch(
+        r"qmix map20: 120k/2M steps \(6%\), [\d.]+[kMG]? steps/s, elapsed [\d:]+, ETA [\d:]+, eps=0.050, "
+        r"eval_reward=12.3",
+        lines[1],
+    ), lines
+
+
+def test_plain_progress_waits_its_interval_and_a_disabled_bar_prints_nothing(
+    capsys: pytest.CaptureFixture,
+) -> None:
+    with progress_bar(100, 40, True, "resumed", interval=3600.0) as bar:  # a resumed run starts at 40
+        for _ in range(6):
+            bar.update(10)
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(",")[0] for line in lines] == [
+        "resumed: 40/100 steps (40%)",
+        "resumed: 100/100 steps (100%)",
+    ]
+    with progress_bar(100, 0, False, "off") as bar:  # logger.progress_bar=false: the campaign's children
+        bar.update(100)
+    assert capsys.readouterr().err == ""
+
+
+def test_a_terminal_gets_tqdms_bar_unless_the_job_shares_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tqdm import tqdm
+
+    monkeypatch.setattr(run_logging, "_is_terminal", lambda stream: True)
+    bar = progress_bar(100, 0, False, "terminal")
+    assert isinstance(bar, tqdm)
+    bar.close()
+    assert not run_logging.parallel_sweep_job()  # not in a Hydra job
+    monkeypatch.setattr(run_logging, "parallel_sweep_job", lambda: True)  # a joblib/Ray/Slurm sweep job
+    assert isinstance(progress_bar(100, 0, True, "job", interval=3600.0), PlainProgress)

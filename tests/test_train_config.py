@@ -150,3 +150,22 @@ def test_launcher_configs_compose() -> None:
                 config_name="config", overrides=["hydra/launcher=ray_cluster"], return_hydra_config=True
             )
             assert ray.hydra.launcher.ray.remote.num_cpus == 2
+
+
+@pytest.mark.parametrize("budget", ["quickstart", "paper", "cpu"])
+def test_foreground_budgets_show_progress_and_paper_writes_the_report_as_quickstart(budget: str) -> None:
+    """A budget run in the foreground shows its progress (the bar, or plain lines where the console is a
+    log file); the paper's 2M-step run ends with the same report/ as the quickstart."""
+    cfg = compose_config(f"budget={budget}", tiny=False)
+    assert cfg.logger.progress_bar is True
+    assert cfg.report is (budget in ("quickstart", "paper"))
+
+
+def test_the_campaigns_background_children_keep_the_bar_off(tmp_path) -> None:
+    from mcrs.campaign.matrix import Point
+
+    assert compose_config("budget=campaign", tiny=False).logger.progress_bar is False
+    assert compose_config("budget=smoke", tiny=False).logger.progress_bar is False  # seconds a point
+    point = Point("baselines", "map20", "qmix", 0, "campaign")
+    assert "budget=campaign" in point.train_command(tmp_path)  # a fresh child: the budget's bar, off
+    assert "logger.progress_bar=false" in point.resume_command(tmp_path, 1000)

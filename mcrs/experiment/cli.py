@@ -32,8 +32,9 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 from mcrs.experiment.rundir import LOCK, describe_os_error, fresh_problem, lock_holder, resume_problem
 
 F = TypeVar("F", bound=Callable[..., Any])
-#: Files Hydra writes into a run or sweep directory before the task runs: they do not make it a run.
-HYDRA_FILES = (".hydra", "multirun.yaml")
+#: Files Hydra (and the sweep's progress, mcrs.experiment.sweep) writes into a run or sweep directory before
+#: the task runs: they do not make it a run.
+HYDRA_FILES = (".hydra", "multirun.yaml", ".sweep")
 #: OmegaConf's "Value 'abc' of type 'str' could not be converted to Float", said as what is wanted.
 TYPE_NAMES = {
     "Float": "a number",

@@ -23,10 +23,13 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
 from mcrs.experiment.console import ANSI, PlainFormatter, TqdmHandler  # noqa: F401  (the log's handlers)
@@ -141,20 +144,137 @@ def log_video(
     return path
 
 
-def progress_bar(total: int, initial: int, enabled: bool, description: str):
-    """tqdm's bar over env steps (``logger.progress_bar``); disabled, it costs nothing."""
+#: Seconds between two lines of :class:`PlainProgress` (a log file, not a terminal).
+PLAIN_INTERVAL_S = 60.0
+
+
+def progress_bar(
+    total: int,
+    initial: int,
+    enabled: bool,
+    description: str,
+    unit: str = "step",
+    plain: bool | None = None,
+    interval: float = PLAIN_INTERVAL_S,
+):
+    """Progress over ``total`` units (env steps; ``logger.progress_bar``): tqdm's bar, with its elapsed
+    time, rate and ETA and the caller's postfix (the latest evaluation), when the console is a terminal;
+    else (``plain``; by default: stderr is no terminal, as under nohup or in a log file, or this is one of
+    several jobs a parallel sweep launcher runs at once) a :class:`PlainProgress` line every ``interval``
+    seconds. Disabled, it costs nothing and prints nothing."""
+    if plain is None:
+        plain = not _is_terminal(sys.stderr) or parallel_sweep_job()
+    if enabled and plain:
+        return PlainProgress(total, initial, description, unit, interval)
     from tqdm.auto import tqdm
 
     return tqdm(
         total=total,
         initial=initial,
-        unit="step",
+        unit=unit,
         unit_scale=True,
         dynamic_ncols=True,
         mininterval=1.0,
         disable=not enabled,
         desc=description,
     )
+
+
+class PlainProgress:
+    """The progress bar as plain lines on stderr, for a console that is no terminal (a bar there would be a
+    stream of carriage returns, or nothing)::
+
+        qmix map20: 120k/2M steps (6%), 1.92k steps/s, elapsed 0:01:03, ETA 0:16:29, eps=0.050, eval_reward=12.3
+
+    One line when it starts, then at most one every ``interval`` seconds as :meth:`update` is called, and
+    one when it closes. The methods the trainer calls on a tqdm bar (``update``, ``set_postfix``,
+    ``set_description``, ``close``) do the same here."""
+
+    def __init__(self, total: int, initial: int, description: str, unit: str = "step",
+                 interval: float = PLAIN_INTERVAL_S) -> None:  # fmt: skip
+        self.total, self.n, self.initial = int(total), int(initial), int(initial)
+        self.description, self.unit, self.interval = description, unit, float(interval)
+        self.postfix: dict[str, Any] = {}
+        self.start = self.last = time.monotonic()
+        self.closed = False
+        self._write()
+
+    def update(self, n: int = 1) -> None:
+        self.n += int(n)
+        if time.monotonic() - self.last >= self.interval:
+            self._write()
+
+    def set_postfix(
+        self, ordered_dict: dict[str, Any] | None = None, refresh: bool = True, **kwargs: Any
+    ) -> None:
+        self.postfix = {**(ordered_dict or {}), **kwargs}
+
+    def set_description(self, description: str, refresh: bool = True) -> None:
+        self.description = description
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._write()
+
+    def __enter__(self) -> PlainProgress:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def line(self) -> str:
+        """The current line (without the newline)."""
+        from tqdm import tqdm
+
+        elapsed = time.monotonic() - self.start
+        rate = (self.n - self.initial) / elapsed if elapsed > 0 else 0.0
+
+        size = _scaled
+        parts = [f"{size(self.n)}/{size(self.total)} {self.unit}s"]
+        if self.total > 0:
+            parts[0] += f" ({100 * self.n / self.total:.0f}%)"
+        if rate > 0:
+            parts.append(f"{size(rate)} {self.unit}s/s")
+        parts.append(f"elapsed {tqdm.format_interval(elapsed)}")
+        if rate > 0 and self.n < self.total:
+            parts.append(f"ETA {tqdm.format_interval((self.total - self.n) / rate)}")
+        parts += [f"{k}={v}" for k, v in self.postfix.items()]
+        return f"{self.description}: {', '.join(parts)}"
+
+    def _write(self) -> None:
+        self.last = time.monotonic()
+        print(self.line(), file=sys.stderr, flush=True)
+
+
+def _scaled(x: float) -> str:
+    """``2M``, ``120k``, ``1.92k``, ``200``, ``14.2``: three significant digits and a k/M/G suffix."""
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(x) >= scale:
+            return f"{x / scale:.3g}{suffix}"
+    return f"{x:.3g}"
+
+
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # replaced by an object without it, or closed
+        return False
+
+
+def parallel_sweep_job() -> bool:
+    """Whether this process runs one job of a Hydra sweep whose launcher runs several at once (joblib, Ray,
+    Slurm): their bars would overwrite each other's on one terminal, so each prints plain lines."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return False
+    hydra = HydraConfig.get()
+    if hydra.mode != RunMode.MULTIRUN:
+        return False
+    launcher = str(OmegaConf.select(hydra, "launcher._target_", default="") or "")
+    return not launcher.endswith("BasicLauncher")
 
 
 def quiet_torchrl() -> None:

@@ -41,7 +41,8 @@ class RunDirError(RuntimeError):
 def register_resolvers() -> None:
     """``${mcrs.pid:}``: this process's id, cached like Hydra's ``${now:}`` so that every job of a sweep
     (which copies the launcher's resolver cache) sees the launcher's value; ``${mcrs.num:x}``: a number as
-    directory names write it (5.0 -> 5, 0.13 -> 0.13, inf -> inf)."""
+    directory names write it (5.0 -> 5, 0.13 -> 0.13, inf -> inf); ``${mcrs.config_groups:}``: the config
+    groups of a command's ``--help`` (:func:`config_groups_help`)."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("mcrs.pid"):
@@ -56,6 +57,31 @@ def register_resolvers() -> None:
         )
     if not OmegaConf.has_resolver("mcrs.beside_run"):
         OmegaConf.register_new_resolver("mcrs.beside_run", beside_run)
+    if not OmegaConf.has_resolver("mcrs.config_groups"):  # --help: the groups the command accepts
+        OmegaConf.register_new_resolver("mcrs.config_groups", config_groups_help)
+
+
+def config_groups_help(*, _root_: Any) -> str:
+    """``${mcrs.config_groups:}`` in a command's ``hydra.help.template``: the config groups that command
+    accepts (those of its defaults list, ``hydra.runtime.choices``), one ``group: option, option`` line
+    each, as Hydra's ``$APP_CONFIG_GROUPS`` writes them. Hydra's own list names every group in the config
+    folder, which ``mcrs-train``, ``mcrs-eval`` and ``mcrs-render`` share: ``mcrs-train --help`` listed
+    mcrs-eval's ``study``, which mcrs-train refuses."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.object_type import ObjectType
+    from omegaconf import OmegaConf
+
+    choices = OmegaConf.select(_root_, "hydra.runtime.choices", default=None) or {}
+    groups = sorted(str(g) for g in choices if not str(g).startswith("hydra/") and str(g) != "hydra")
+    hydra = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    lines = []
+    for group in groups:
+        if hydra is not None:
+            options = hydra.config_loader.get_group_options(group, ObjectType.CONFIG)
+        else:  # not under Hydra: the packaged config folder
+            options = [p.stem for p in (Path(__file__).resolve().parents[1] / "conf" / group).glob("*.yaml")]
+        lines.append(f"{group}: {', '.join(sorted(options))}")
+    return "\n".join(lines) + "\n"
 
 
 def resumed_run_dir(resume: Any, fresh: str) -> str:

@@ -145,10 +145,9 @@ class ValueFactorisationLoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    out_keys: tuple[str, ...] = (
-        "loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs",
-        "loss_memory", "memory_hit_rate", "memory_target_mean", "incentive_mean", "intrinsic_mean",
-    )  # fmt: skip
+    #: What every forward returns; the memory and curiosity terms' statistics come only with those terms
+    #: (:attr:`out_keys`): an algorithm without them logs no scalar that would always read 0.
+    BASE_OUT_KEYS = ("loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs")
 
     agent_network: RecurrentAgent | TensorDictModuleBase
     agent_network_params: TensorDictBase
@@ -196,6 +195,21 @@ class ValueFactorisationLoss(LossModule):
         self.gamma, self.td_lambda, self.double_q = float(gamma), float(td_lambda), bool(double_q)
         self.convert_to_functional(agent_network, "agent_network", create_target_params=True)
         self.convert_to_functional(mixer, "mixer", create_target_params=True)
+
+    @property
+    def out_keys(self) -> tuple[str, ...]:
+        """What :meth:`forward` returns: :data:`BASE_OUT_KEYS`, ``memory_hit_rate`` with the memory's
+        look-ups, ``loss_memory`` and ``memory_target_mean`` with the memory target (``memory_weight > 0``),
+        ``incentive_mean`` with EMU's incentive, ``intrinsic_mean`` when the batch has an intrinsic reward
+        (EMC's curiosity; not known before the batch, so not listed here)."""
+        keys = [*self.BASE_OUT_KEYS]
+        if self.uses_memory:
+            keys.append("memory_hit_rate")
+        if self.memory_weight > 0:
+            keys += ["loss_memory", "memory_target_mean"]
+        if self.incentive != "none":
+            keys.append("incentive_mean")
+        return tuple(keys)
 
     @property
     def uses_memory(self) -> bool:
@@ -357,8 +371,7 @@ class ValueFactorisationLoss(LossModule):
 
         weight = filled.unsqueeze(-1).to(q_tot.dtype)
         n_valid = weight.sum().clamp(min=1.0)
-        zero = q_tot.new_zeros(())
-        stats = {"memory_hit_rate": zero, "memory_target_mean": zero, "incentive_mean": zero}
+        stats: dict[str, torch.Tensor] = {}  # the memory and curiosity terms', only where they exist
         target_reward = reward
         intrinsic = tensordict.get(keys.intrinsic_reward, None)
         if intrinsic is not None:  # EMC's curiosity: in the TD target only
@@ -386,12 +399,14 @@ class ValueFactorisationLoss(LossModule):
         td_error = (q_tot - y) * weight
         loss_td = td_error.pow(2).sum() / n_valid
         loss = loss_td
-        loss_memory = zero
         if self.memory_weight > 0:  # eq. 32: the one-step memory target r_t + gamma * H(phi(s_{t+1}))
             memory_target = reward + self.gamma * memory_return
             loss_memory = ((q_tot - memory_target) * hit).pow(2).sum() / n_valid
             loss = loss + self.memory_weight * loss_memory
+            stats["loss_memory"] = loss_memory
             stats["memory_target_mean"] = (memory_target * hit).sum() / hit.sum().clamp(min=1.0)
+        if intrinsic is not None:
+            stats["intrinsic_mean"] = (intrinsic[:, :-1] * weight).sum() / n_valid
         return TensorDict(
             {
                 "loss": loss,
@@ -399,8 +414,6 @@ class ValueFactorisationLoss(LossModule):
                 "q_taken_mean": (q_tot.detach() * weight).sum() / n_valid,
                 "target_mean": (y * weight).sum() / n_valid,
                 "td_error_abs": td_error.detach().abs().sum() / n_valid,
-                "loss_memory": loss_memory.detach(),
-                "intrinsic_mean": zero if intrinsic is None else (intrinsic[:, :-1] * weight).sum() / n_valid,
                 **{k: v.detach() for k, v in stats.items()},
             },
             batch_size=[],
