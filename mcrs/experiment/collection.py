@@ -123,8 +123,11 @@ class TrainingCollector:
         num_envs: int | None = None,
     ) -> None:
         self.kind, self.env = kind, env
-        task = as_task(task)  # an EnvConfig: MCRS with its num_envs
-        num_envs = task.env_config.num_envs if num_envs is None else num_envs  # type: ignore[attr-defined]
+        if num_envs is None:  # an EnvConfig carries it; a Task does not
+            if not isinstance(task, EnvConfig):
+                raise TypeError("TrainingCollector(task=...) needs num_envs")
+            num_envs = task.num_envs
+        task = as_task(task)
         T = task.max_steps
         self.error_dir: str | None = None
         if kind == "single":
