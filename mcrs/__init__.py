@@ -16,6 +16,8 @@ _LAZY = {
     "Callback": "mcrs.experiment.callbacks",
     "Config": "mcrs.experiment.config",
     "compose": "mcrs.experiment.config",
+    "Task": "mcrs.experiment.task",
+    "MCRSTask": "mcrs.experiment.task",
 }
 __all__ = sorted(_LAZY)
 

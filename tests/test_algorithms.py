@@ -12,7 +12,6 @@ import torch
 from omegaconf import OmegaConf
 from torchrl.modules.models.multiagent import VDNMixer
 
-from mcrs.env.core import N_ACTIONS
 from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
 from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.config import compose, validate
@@ -106,8 +105,8 @@ class HalfBonus(Callback):
 class BonusVDN(Algorithm):
     """An algorithm of one's own: VDN's mixer whatever algo.mixer says, plus a constant bonus."""
 
-    def mixer(self, env_config):
-        return make_mixer("vdn", env_config.n_uavs, (env_config.state_dim,), N_ACTIONS)
+    def mixer(self, task):
+        return make_mixer("vdn", task.n_agents, task.state_shape, task.n_actions)
 
     def callbacks(self, config, env_config, learner, device):
         return [*super().callbacks(config, env_config, learner, device), HalfBonus()]

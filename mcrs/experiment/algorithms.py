@@ -2,7 +2,7 @@
 
 An :class:`Algorithm` holds the parts of a run that differ between algorithms::
 
-    mixer(env_config)          the mixing network (algo.mixer: QMIX, VDN, QPLEX)
+    mixer(task)                the mixing network (algo.mixer: QMIX, VDN, QPLEX)
     incentive                  EMU's incentive strategy (algo.incentive, mcrs.objectives.incentive), one
                                object for the loss and the episodic memory
     learner(...)               the Learner with that mixer and incentive; the loss's keys follow from them
@@ -39,6 +39,7 @@ from mcrs.experiment.callbacks import Callback, CuriosityCallback
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.learner import Learner, build_mixer
 from mcrs.experiment.schema import AlgoConfig, Config, ModelConfig, TrainConfig
+from mcrs.experiment.task import Task
 from mcrs.objectives.incentive import Incentive, make_incentive
 
 __all__ = ["ALGORITHMS", "BUILT_IN", "Algorithm", "algorithm_for", "register_algorithm"]
@@ -60,12 +61,12 @@ class Algorithm:
         """EMU's incentive strategy (``algo.incentive``, ``algo.incentive_threshold``)."""
         return make_incentive(str(self.algo.incentive), self.algo.incentive_threshold)
 
-    def mixer(self, env_config: EnvConfig) -> nn.Module:
-        """The mixing network over the map's state (``algo.mixer``)."""
-        return build_mixer(self.algo, env_config)
+    def mixer(self, task: Task) -> nn.Module:
+        """The mixing network over the task's state (``algo.mixer``)."""
+        return build_mixer(self.algo, task)
 
     def learner(
-        self, model: ModelConfig, train: TrainConfig, env_config: EnvConfig, device: torch.device
+        self, model: ModelConfig, train: TrainConfig, env_config: EnvConfig | Task, device: torch.device
     ) -> Learner:
         """The agent, this mixer and the TD loss with this incentive, with the optimiser."""
         return Learner(

@@ -39,8 +39,7 @@ from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from mcrs.env.config import EnvConfig
-from mcrs.env.torchrl_env import MCRSEnv
-from mcrs.models.acting import recurrent_primer
+from mcrs.experiment.task import Task, as_task, with_agent_state
 
 
 @contextlib.contextmanager
@@ -173,12 +172,11 @@ class WorkerWatch:
             self._previous = None
 
 
-class _WorkerEnv(MCRSEnv):
-    """MCRSEnv inside a collector worker: records the traceback of a failure where the trainer finds it."""
+class _WorkerEnv:
+    """Mixed into the task's env inside a collector worker (:func:`_in_worker`): records the traceback of a
+    failure where the trainer finds it, and seeds the worker's exploration with the env."""
 
-    def __init__(self, config: EnvConfig, error_dir: str) -> None:
-        super().__init__(config)
-        self._error_dir = error_dir
+    _error_dir: str
 
     def _record(self) -> None:
         path = Path(self._error_dir) / f"worker_{os.getpid()}.txt"
@@ -203,16 +201,27 @@ class _WorkerEnv(MCRSEnv):
             raise
 
 
-class WorkerEnvFactory:
-    """Builds one worker's environments in the worker process (picklable: sent to spawned processes)."""
+def _in_worker(env: EnvBase, error_dir: str) -> EnvBase:
+    """``env`` (its base env, under any transforms) with :class:`_WorkerEnv`'s hooks mixed in."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    base.__class__ = type(f"_Worker{type(base).__name__}", (_WorkerEnv, type(base)), {})
+    base._error_dir = error_dir
+    return env
 
-    def __init__(self, env_config: EnvConfig, hidden_dim: int, error_dir: str) -> None:
-        self.env_config, self.hidden_dim, self.error_dir = env_config, hidden_dim, error_dir
+
+class WorkerEnvFactory:
+    """Builds one worker's environments in the worker process (picklable, as the task must be: sent to
+    spawned processes)."""
+
+    def __init__(
+        self, task: Task | EnvConfig, num_envs: int, hidden_dim: int, error_dir: str, device: torch.device
+    ) -> None:
+        self.task, self.num_envs, self.hidden_dim = as_task(task), num_envs, hidden_dim
+        self.error_dir, self.device = error_dir, device
 
     def __call__(self) -> EnvBase:
-        c = self.env_config
-        primer = recurrent_primer(c.num_envs, c.n_uavs, self.hidden_dim, device=torch.device(c.device))
-        return TransformedEnv(_WorkerEnv(c, self.error_dir), primer)
+        env = _in_worker(self.task.make_env(self.num_envs, self.device), self.error_dir)
+        return with_agent_state(env, self.task, self.num_envs, self.hidden_dim, self.device)
 
 
 class TrainingCollector:
@@ -223,34 +232,42 @@ class TrainingCollector:
         kind: str,
         env: EnvBase,
         policy: torch.nn.Module,
-        env_config: EnvConfig,
+        task: Task | EnvConfig,
         hidden_dim: int,
         workers: int,
         device: torch.device,
+        num_envs: int | None = None,
     ) -> None:
         self.kind, self.env = kind, env
-        T = env_config.max_steps
+        if num_envs is None:  # an EnvConfig carries it; a Task does not
+            if not isinstance(task, EnvConfig):
+                raise TypeError("TrainingCollector(task=...) needs num_envs")
+            num_envs = task.num_envs
+        task = as_task(task)
+        T = task.max_steps
         self.error_dir: str | None = None
         self.watch: WorkerWatch | None = None
         if kind == "single":
             self.collector: BaseCollector = Collector(
                 env,
                 policy,
-                frames_per_batch=env_config.num_envs * T,  # whole episodes: every batch row is one episode
+                frames_per_batch=num_envs * T,  # whole episodes: every batch row is one episode
                 total_frames=-1,
                 device=device,
                 trust_policy=True,
                 auto_register_policy_transforms=False,
             )
             return
-        per_worker = env_config.num_envs // workers
+        per_worker = num_envs // workers
         self.error_dir = tempfile.mkdtemp(prefix="mcrs-collector-")
-        worker_config = env_config.replace(num_envs=per_worker)
         with _workers_ignore_sigint():
             self.collector = MultiSyncCollector(
-                [WorkerEnvFactory(worker_config, hidden_dim, self.error_dir) for _ in range(workers)],
+                [
+                    WorkerEnvFactory(task, per_worker, hidden_dim, self.error_dir, device)
+                    for _ in range(workers)
+                ],
                 policy,
-                frames_per_batch=env_config.num_envs * T,  # split evenly: per_worker whole episodes each
+                frames_per_batch=num_envs * T,  # split evenly: per_worker whole episodes each
                 total_frames=-1,
                 device=device,
                 cat_results=0,  # [workers * per_worker, T]: the single-process layout

@@ -1,4 +1,4 @@
-"""Greedy evaluation of a trained agent on separate, fixed-seed environments."""
+"""Greedy evaluation of a trained agent on separate, fixed-seed environments of its task."""
 
 from __future__ import annotations
 
@@ -14,40 +14,52 @@ from torchrl.record.loggers import Logger
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS
-from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment.logging import log_video
-from mcrs.models.acting import recurrent_primer
+from mcrs.experiment.task import MCRSTask, Task, as_task, with_agent_state
 
 
 def make_eval_env(
-    env_config: EnvConfig,
+    env_config: EnvConfig | Task,
     episodes: int,
     hidden_dim: int,
     device: str | torch.device,
     expose_beliefs: bool = False,
 ) -> TransformedEnv:
-    """``episodes`` environments run as one batch, carrying the agents' recurrent state (with
-    ``expose_beliefs``, also what an episode's pictures are drawn from)."""
-    env = MCRSEnv(env_config.replace(num_envs=episodes, expose_beliefs=expose_beliefs), device=str(device))
-    return TransformedEnv(env, recurrent_primer(episodes, env_config.n_uavs, hidden_dim, device=device))
+    """``episodes`` environments of the task run as one batch, carrying the agents' recurrent state (with
+    ``expose_beliefs``, MCRS only, also what an episode's pictures are drawn from)."""
+    task = as_task(env_config)
+    if isinstance(task, MCRSTask):
+        env = task.make_env(episodes, torch.device(device), expose_beliefs=expose_beliefs)
+    else:
+        env = task.make_env(episodes, torch.device(device))
+    return with_agent_state(env, task, episodes, hidden_dim, device)
 
 
 @torch.no_grad()
-def rollout_greedy(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> TensorDictBase:
-    """One episode in every environment of ``env`` from seed ``seed``, greedy actions: ``[E, T]``."""
+def rollout_greedy(
+    env: TransformedEnv, policy: TensorDictModuleBase, seed: int, max_steps: int | None = None
+) -> TensorDictBase:
+    """One episode (``max_steps``; default: the MCRS env's) in every environment of ``env`` from seed
+    ``seed``, greedy actions: ``[E, T]``."""
     env.set_seed(seed)
+    steps = env.base_env.config.max_steps if max_steps is None else max_steps
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        return env.rollout(env.base_env.config.max_steps, policy, break_when_any_done=False)
+        return env.rollout(steps, policy, break_when_any_done=False)
 
 
-def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
-    """Final value of every metric per episode: ``{name: [E]}``."""
-    return {name: rollout.get(("next", "metrics", name))[:, -1].float() for name in METRICS}
+def episode_metrics(rollout: TensorDictBase, task: Task | None = None) -> dict[str, torch.Tensor]:
+    """Final value of every metric per episode: ``{name: [E]}`` (``task.episode_metrics``; default MCRS's)."""
+    if task is None:
+        return {name: rollout.get(("next", "metrics", name))[:, -1].float() for name in METRICS}
+    return task.episode_metrics(rollout)
 
 
-def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> dict[str, float]:
+def evaluate(
+    env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task: Task | None = None
+) -> dict[str, float]:
     """Mean (and std of the episode reward) of every metric over the batch of episodes."""
-    metrics = episode_metrics(rollout_greedy(env, policy, seed))
+    steps = None if task is None else task.max_steps
+    metrics = episode_metrics(rollout_greedy(env, policy, seed, steps), task)
     out = {name: values.mean().item() for name, values in metrics.items()}
     out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
     return out

@@ -18,8 +18,8 @@ from torch import nn
 from torchrl.objectives import HardUpdate
 
 from mcrs.env.config import EnvConfig
-from mcrs.env.core import N_ACTIONS
 from mcrs.experiment.schema import AlgoConfig, ModelConfig, TrainConfig
+from mcrs.experiment.task import Task, as_task
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
@@ -27,25 +27,27 @@ from mcrs.objectives.gradient import gradient_step
 from mcrs.objectives.incentive import Incentive, make_incentive
 
 
-def build_agent(model: ModelConfig, env_config: EnvConfig) -> RecurrentAgent:
-    """The agent network shared by all UAVs."""
+def build_agent(model: ModelConfig, env_config: EnvConfig | Task) -> RecurrentAgent:
+    """The agent network shared by all UAVs (all agents of the task)."""
+    task = as_task(env_config)
     return RecurrentAgent(
-        env_config.obs_dim,
-        N_ACTIONS,
-        env_config.n_uavs,
+        task.obs_dim,
+        task.n_actions,
+        task.n_agents,
         model.hidden_dim,
         model.agent_id,
         model.last_action,
     )
 
 
-def build_mixer(algo: AlgoConfig, env_config: EnvConfig) -> nn.Module:
-    """The algorithm's mixer (QMIX, VDN or QPLEX) over the map's global state."""
+def build_mixer(algo: AlgoConfig, env_config: EnvConfig | Task) -> nn.Module:
+    """The algorithm's mixer (QMIX, VDN or QPLEX) over the map's (the task's) global state."""
+    task = as_task(env_config)
     return make_mixer(
         str(algo.mixer),
-        env_config.n_uavs,
-        (env_config.state_dim,),
-        N_ACTIONS,
+        task.n_agents,
+        tuple(task.state_shape),
+        task.n_actions,
         mixing_embed_dim=algo.mixing_embed_dim,
         hypernet_embed=algo.hypernet_embed,
         hypernet_layers=algo.hypernet_layers,
@@ -66,9 +68,10 @@ class Learner:
 
     Args:
         algo, model, train: the config nodes it reads (the mixer and TD target; the agent; the optimiser).
-        env_config: the map, which fixes the observation, state and team sizes.
+        env_config: the map, which fixes the observation, state and team sizes (or a
+            :class:`~mcrs.experiment.task.Task`, which also fixes the keys the loss reads).
         device: where the networks live.
-        mixer: builds the mixer from ``env_config``, right after the agent (so the networks draw their
+        mixer: builds the mixer from the task, right after the agent (so the networks draw their
             initial weights in that order); default :func:`build_mixer` of ``algo``.
         incentive: EMU's incentive strategy (:mod:`mcrs.objectives.incentive`); default ``algo.incentive``'s.
             The :class:`~mcrs.experiment.algorithms.Algorithm` of a run passes both
@@ -80,14 +83,15 @@ class Learner:
         algo: AlgoConfig,
         model: ModelConfig,
         train: TrainConfig,
-        env_config: EnvConfig,
+        env_config: EnvConfig | Task,
         device: torch.device,
         *,
-        mixer: Callable[[EnvConfig], nn.Module] | None = None,
+        mixer: Callable[[Task], nn.Module] | None = None,
         incentive: Incentive | None = None,
     ) -> None:
-        self.agent = build_agent(model, env_config).to(device)
-        self.mixer = (mixer or partial(build_mixer, algo))(env_config).to(device)
+        task = as_task(env_config)
+        self.agent = build_agent(model, task).to(device)
+        self.mixer = (mixer or partial(build_mixer, algo))(task).to(device)
         if incentive is None:
             incentive = make_incentive(str(algo.incentive), algo.incentive_threshold)
         self.loss = ValueFactorisationLoss(
@@ -99,6 +103,7 @@ class Learner:
             memory_weight=algo.memory_weight,
             incentive=incentive,
         )
+        self.loss.set_keys(**task.loss_keys())
         self.params = [*self.agent.parameters(), *self.mixer.parameters()]
         self.optimizer = make_optimizer(self.params, train)
         # interval 0: every step() copies; the experiment calls it every target_update_episodes episodes.

@@ -13,6 +13,7 @@
         newest keep_checkpoints weight files model_<steps>.pt are kept
 
     Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run").run()
+    Experiment(compose("algo=qplex"), "outputs/game", task=MatrixGameTask()).run()   # any Task
 
 Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments from
 ``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in every
@@ -28,11 +29,8 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torchrl.envs import TransformedEnv
 
 from mcrs.env.config import EnvConfig
-from mcrs.env.core import METRICS, N_ACTIONS
-from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.algorithms import algorithm_for
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
@@ -59,8 +57,9 @@ from mcrs.experiment.rundir import (
     prepare_fresh,
     truncate_csv_logs,
 )
+from mcrs.experiment.task import MCRSTask, Task, check_supported, with_agent_state
 from mcrs.experiment.threads import SpeedCheck, apply_threads
-from mcrs.models.acting import make_acting_policy, recurrent_primer
+from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
 __all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", "batch_seed"]
@@ -88,6 +87,7 @@ class Experiment:
         run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
         resume: continue from ``run_dir/checkpoints/last.pt``.
         callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.callbacks`).
+        task: the environment (:class:`~mcrs.experiment.task.Task`); default: MCRS on ``config.env``.
     """
 
     def __init__(
@@ -96,9 +96,12 @@ class Experiment:
         run_dir: str | Path,
         resume: bool = False,
         callbacks: list[Callback] | None = None,
+        task: Task | None = None,
     ) -> None:
         self.config = as_typed(config)
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
+        self.task = MCRSTask(self.env_config) if task is None else task
+        check_supported(self.config, self.task)  # ConfigError: what the task cannot run (logger.video, ...)
         self.run_dir = Path(run_dir)
         # One writer per run directory: a second run there, or a resume of a live run, stops here.
         self._lock: RunLock | None = RunLock(self.run_dir)
@@ -127,26 +130,26 @@ class Experiment:
         self.threads = apply_threads(cfg.threads)  # auto: the cores the load leaves free
         self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
-        self.T = self.env_config.max_steps
+        self.T = self.task.max_steps
         self.algorithm = algorithm_for(cfg.algo)  # the one choice of the algorithm's parts
-        self.learner = self.algorithm.learner(cfg.model, t, self.env_config, self.device)
+        self.learner = self.algorithm.learner(cfg.model, t, self.task, self.device)
         self.callbacks = self.algorithm.callbacks(cfg, self.env_config, self.learner, self.device)
         self.callbacks += extra_callbacks
         check_names(self.callbacks)
         self.greedy, self.exploring, self.epsilon = make_acting_policy(
             self.learner.agent,
-            N_ACTIONS,
+            self.task.n_actions,
             eps_start=t.eps_start,
             eps_end=t.eps_end,
             eps_anneal_steps=t.eps_anneal_steps,
+            group=self.task.group,
         )
-        hidden = cfg.model.hidden_dim
-        self.env = TransformedEnv(
-            MCRSEnv(self.env_config),
-            recurrent_primer(t.num_envs, self.env_config.n_uavs, hidden, device=self.device),
+        hidden, task = cfg.model.hidden_dim, self.task
+        self.env = with_agent_state(
+            task.make_env(t.num_envs, self.device), task, t.num_envs, hidden, self.device
         )
-        self.eval_env = make_eval_env(self.env_config, t.eval_episodes, hidden, self.device)
-        self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))
+        self.eval_env = make_eval_env(task, t.eval_episodes, hidden, self.device)
+        self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))  # MCRS only
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
         self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
         self.counters = Counters(
@@ -170,10 +173,11 @@ class Experiment:
             str(t.collector),
             self.env,
             self.exploring,
-            self.env_config,
+            task,
             hidden,
             t.collector_workers,
             self.device,
+            t.num_envs,
         )
         if resume:  # last: building the collector may draw random numbers
             rng = self._resume_rng
@@ -181,7 +185,7 @@ class Experiment:
             torch.set_rng_state(rng["torch"].cpu())
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
-        log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.env_config.name}")
+        log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
@@ -204,7 +208,7 @@ class Experiment:
             self.config.train.total_env_steps,
             c.env_steps,
             self.config.logger.progress_bar,
-            f"{self.config.algo.name} {self.env_config.name}",
+            f"{self.config.algo.name} {self.task.name}",
         )
         self._timer = dict.fromkeys(self._timer, 0.0)  # this session's clock
         collector_iter = iter(self.collector)
@@ -258,12 +262,15 @@ class Experiment:
         self.collector.start_batch(batch_seed(int(self.config.seed), c.iteration))
         batch = self.collector.next_batch(collector_iter)
         self._check_finite(batch)
-        episodes = episodes_from_rollout(batch, time_limit=str(self.config.algo.time_limit))
+        task = self.task
+        episodes = episodes_from_rollout(
+            batch, task.step_keys, task.action_key, time_limit=str(self.config.algo.time_limit)
+        )
         episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
         episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
         self.replay_store.mark_written(self.replay.extend(episodes))
-        for name in METRICS:
-            append_scalar(stats, f"train/{name}", batch.get(("next", "metrics", name))[:, -1].mean())
+        for name, values in task.episode_metrics(batch).items():
+            append_scalar(stats, f"train/{name}", values.mean())
         c.iteration += 1
         c.episodes += t.num_envs
         c.env_steps += batch.numel()
@@ -323,13 +330,11 @@ class Experiment:
             c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
         return self.save() if due_by_steps or due_by_time else None
 
-    #: What a collected batch must hold finite, and how an error names it.
-    FINITE_KEYS = (("state", "belief maps / state"), (("next", "reward"), "reward"),
-                   (("agents", "observation"), "observation"))  # fmt: skip
-
     def _check_finite(self, batch) -> None:
         """Stop before a NaN or inf from the env (a belief, a reward) reaches the replay or the memory."""
-        for key, term in self.FINITE_KEYS:
+        finite_keys = ((self.task.state_key, "belief maps / state"), (("next", "reward"), "reward"),
+                       (self.task.observation_key, "observation"))  # fmt: skip
+        for key, term in finite_keys:
             if not bool(torch.isfinite(batch.get(key)).all()):
                 path = self.save(name="last_good.pt")
                 raise TrainingDiverged(
@@ -341,7 +346,7 @@ class Experiment:
     def evaluate(self) -> dict[str, float]:
         """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
         start = time.perf_counter()
-        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed))
+        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task)
         if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
             self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start
@@ -411,7 +416,8 @@ class Experiment:
         learner = self.learner.weights() if learner is None else learner
         config = to_container(self.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
-        return fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)
+        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second:
+        return {"format.version": out.pop("format.version"), **self.task.fingerprint(), **out}
 
     def save(self, name: str = ckpt.LAST) -> Path:
         """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.

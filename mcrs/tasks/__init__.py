@@ -4,8 +4,16 @@ from mcrs.tasks.matrix_game import (
     PAYOFF,
     QPLEX_MATRIX_GAME,
     MatrixGameEnv,
+    MatrixGameTask,
     make_matrix_game,
     train_on_matrix_game,
 )
 
-__all__ = ["PAYOFF", "QPLEX_MATRIX_GAME", "MatrixGameEnv", "make_matrix_game", "train_on_matrix_game"]
+__all__ = [
+    "PAYOFF",
+    "QPLEX_MATRIX_GAME",
+    "MatrixGameEnv",
+    "MatrixGameTask",
+    "make_matrix_game",
+    "train_on_matrix_game",
+]

@@ -38,6 +38,7 @@ from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from torchrl.objectives import HardUpdate
 
 from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
+from mcrs.experiment.task import Task
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
@@ -157,6 +158,33 @@ class MatrixGameEnv(EnvBase):
         out = self._observe(after_move=True)
         out.set("reward", self.payoff.flatten()[(action * self._strides).sum(-1)].unsqueeze(-1))
         return out
+
+
+class MatrixGameTask(Task):
+    """The matrix game as a :class:`~mcrs.experiment.task.Task`: ``Experiment(config, run_dir,
+    task=MatrixGameTask())`` trains and evaluates any of our value-factorisation learners on it through the
+    experiment's loop, checkpoints and logs. Its metric is the episode reward: the payoff of the joint
+    action (greedy evaluation: the learned joint action's payoff, 8 at the optimum (0, 0)).
+
+    Args:
+        payoff: the shared payoff, shape ``[A] * N`` (default :data:`PAYOFF`).
+    """
+
+    name = "matrix_game"
+    group = GROUP
+    state_key = STATE_KEY
+    max_steps = 1
+
+    def __init__(self, payoff: torch.Tensor = PAYOFF) -> None:
+        self.payoff = torch.as_tensor(payoff, dtype=torch.float32).clone()
+        self.n_agents, self.n_actions = self.payoff.ndim, self.payoff.shape[0]
+        self.obs_dim, self.state_shape = self.n_agents, (2,)
+
+    def make_env(self, num_envs: int, device: torch.device) -> MatrixGameEnv:
+        return MatrixGameEnv(num_envs, self.payoff, device)
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {**super().fingerprint(), "task.payoff": self.payoff.flatten().tolist()}
 
 
 def make_matrix_game(
