@@ -11,7 +11,7 @@ times the real :meth:`Experiment.save` of a run whose replay is full:
    ``checkpoint_seconds``);
 3. with ``--compare-inline``, the previous format: the whole replay inline in one file.
 
-The episodes are synthetic but valid (:func:`mcrs.benchmarks.common.synthetic_episodes`): the cost of
+The episodes are synthetic but valid (:func:`mcrs_benchmarks.common.synthetic_episodes`): the cost of
 writing them does not depend on their values. Everything is written under a temporary directory.
 """
 
@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+from mcrs_benchmarks.common import compose_config, load_average, synthetic_episodes
+from mcrs_benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 
-from mcrs.benchmarks.common import compose_config, load_average, synthetic_episodes
-from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 from mcrs.env.config import SCENARIOS, from_mapping
 from mcrs.experiment import checkpoint as ckpt
 

@@ -1,6 +1,6 @@
 """Helpers shared by the benchmark commands: process settings, the real training config, synthetic episodes.
 
-The harness around every command (arguments, machine facts, JSON results) is :mod:`mcrs.benchmarks.harness`.
+The harness around every command (arguments, machine facts, JSON results) is :mod:`mcrs_benchmarks.harness`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Environment throughput and memory benchmark (``mcrs-bench-env``, ``python -m mcrs.benchmarks.env_throughput``).
+"""Environment throughput and memory benchmark (``mcrs-bench-env``, ``python -m mcrs_benchmarks.env_throughput``).
 
 Why: training speed is bounded by how fast the batched simulator steps, and the design promises three
 figures, printed here next to the measurements with PASS/FAIL:
@@ -7,7 +7,7 @@ figures, printed here next to the measurements with PASS/FAIL:
 * >= 100x the classic loop that steps one PettingZoo environment at a time (``MCRSParallelEnv``);
 * 10,000 parallel map20 environments fit in <= 2 GiB.
 
-In the JSON (:mod:`mcrs.benchmarks.harness`): figures ``goal_env_steps_per_s``, ``<map>.ratio_to_pettingzoo``,
+In the JSON (:mod:`mcrs_benchmarks.harness`): figures ``goal_env_steps_per_s``, ``<map>.ratio_to_pettingzoo``,
 ``memory_projected_gib``, ``memory_measured_gib``; every row in the table ``throughput``.
 
 ``--env-override KEY=VALUE ...`` (or ``--variants``: delay, bandwidth and moving targets of the presets
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from mcrs_benchmarks.common import pass_fail
+from mcrs_benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 
-from mcrs.benchmarks.common import pass_fail
-from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 from mcrs.env.config import SCENARIOS, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.env.pettingzoo_env import MCRSParallelEnv

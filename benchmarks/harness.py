@@ -34,8 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-
-from mcrs.benchmarks.common import benchmark_process, load_average, pass_fail
+from mcrs_benchmarks.common import benchmark_process, load_average, pass_fail
 
 SCHEMA = 1  # bump when the JSON layout changes incompatibly
 DEFAULT_DIR = Path("outputs") / "benchmarks"

@@ -1,4 +1,4 @@
-"""Learner benchmark (``mcrs-bench-learner``, ``python -m mcrs.benchmarks.learner``).
+"""Learner benchmark (``mcrs-bench-learner``, ``python -m mcrs_benchmarks.learner``).
 
 Why: the TorchRL stack (replay buffer, ``LossModule``, functional target parameters) must not make a
 learner update much slower than the plain PyTorch a pymarl user would write, and a whole training run must
@@ -7,9 +7,9 @@ double Q, one-step targets), with PASS/FAIL:
 
 * seconds per learner update of our :class:`~mcrs.experiment.learner.Learner` (a batch sampled from our
   TorchRL episode buffer, then ``Learner.update``) and of the plain-PyTorch reference learner
-  (:mod:`mcrs.benchmarks.reference_learner`: same networks, no TorchRL, no tensordict); goal: ours <= 1.15x
+  (:mod:`mcrs_benchmarks.reference_learner`: same networks, no TorchRL, no tensordict); goal: ours <= 1.15x
   the reference (JSON figure ``<map>.update_ratio``);
-* env-steps/s of the real training loop (:mod:`mcrs.benchmarks.loop`) in steady state, and the hours it
+* env-steps/s of the real training loop (:mod:`mcrs_benchmarks.loop`) in steady state, and the hours it
   extrapolates to for 2M env steps; goal on map20: <= 1.25 h (``map20.hours``);
 * with ``--launcher-steps``, two 1-thread runs side by side against one 2-thread run (``launcher.ratio``).
 
@@ -33,11 +33,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-
-from mcrs.benchmarks.common import compose_config, load_average, synthetic_episodes
-from mcrs.benchmarks.harness import Figure, Goal, Report, make_parser, require_at_least, run_benchmark
-from mcrs.benchmarks.loop import GOAL_STEPS, LoopResult, collector_step_seconds, launcher_rates, measure_loop
-from mcrs.benchmarks.reference_learner import (
+from mcrs_benchmarks.common import compose_config, load_average, synthetic_episodes
+from mcrs_benchmarks.harness import Figure, Goal, Report, make_parser, require_at_least, run_benchmark
+from mcrs_benchmarks.loop import GOAL_STEPS, LoopResult, collector_step_seconds, launcher_rates, measure_loop
+from mcrs_benchmarks.reference_learner import (
     AGREE_RTOL,
     Agreement,
     ReferenceLearner,
@@ -45,6 +44,7 @@ from mcrs.benchmarks.reference_learner import (
     as_plain,
     check_agreement,
 )
+
 from mcrs.env.config import SCENARIOS, EnvConfig, from_mapping
 
 GOAL_RATIO = 1.15  # ours / reference, seconds per update

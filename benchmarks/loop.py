@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from mcrs_benchmarks.common import compose_config
 
-from mcrs.benchmarks.common import compose_config
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import N_ACTIONS
 
@@ -121,7 +121,7 @@ def measure_loop(
 
 _LAUNCHER_WORKER = (
     "import json, sys, torch\n"
-    "from mcrs.benchmarks.loop import measure_loop\n"
+    "from mcrs_benchmarks.loop import measure_loop\n"
     "map_name, steps, threads, quick = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == '1'\n"
     "torch.set_num_threads(threads)\n"
     "r = measure_loop(map_name, quick, steps, threads)\n"

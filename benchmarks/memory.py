@@ -1,4 +1,4 @@
-"""Episodic-memory benchmark (``mcrs-bench-memory``, ``python -m mcrs.benchmarks.memory``).
+"""Episodic-memory benchmark (``mcrs-bench-memory``, ``python -m mcrs_benchmarks.memory``).
 
 Why: the episodic buffer D_E sits on the training loop's hot path (an insertion per collected batch, a
 look-up per learner batch, a re-embedding of every stored state per embedding update) and holds a million
@@ -12,7 +12,7 @@ default sizes (1M map20 entries):
   printed separately and not charged to it; no goal: a Python loop is not a fair anchor, the batched
   query below is); the two must find the same entries. scipy is not a
   dependency of the package: without it the stand-in reference is our index queried one key at a time.
-  Beside it the fair anchors (:mod:`mcrs.benchmarks.memory_anchors`): one batched cKDTree query of all
+  Beside it the fair anchors (:mod:`mcrs_benchmarks.memory_anchors`): one batched cKDTree query of all
   keys, and faiss's exact index, as ratios to ours (no goal);
 * re-embedding every stored state with the CNN encoder (``refresh_keys``: decode, embed, rebuild the
   index): <= 10 s;
@@ -20,7 +20,7 @@ default sizes (1M map20 entries):
 
 Times are wall clock with the process CPU time beside them (on a loaded machine the CPU time is the
 better estimate of a quiet machine's wall clock). The figures are also written as JSON (the shared harness,
-:mod:`mcrs.benchmarks.harness`): ``lookup_ms``, ``insert_ms``, ``reembed_s`` and their ``*_cpu_*`` twins,
+:mod:`mcrs_benchmarks.harness`): ``lookup_ms``, ``insert_ms``, ``reembed_s`` and their ``*_cpu_*`` twins,
 ``buffer_gib`` (judged at the default sizes only), ``ratio``, the anchors' ``kdtree_batched.*`` and
 ``faiss.*``; every ``*same_entries`` figure must count every key, whatever the sizes.
 
@@ -48,11 +48,11 @@ import time
 from collections.abc import Callable, Sequence
 
 import torch
+from mcrs_benchmarks.common import load_average
+from mcrs_benchmarks.env_throughput import resident_bytes
+from mcrs_benchmarks.harness import Figure, Goal, Report, make_parser, require_at_least, run_benchmark
+from mcrs_benchmarks.memory_anchors import anchors, reference_lookups
 
-from mcrs.benchmarks.common import load_average
-from mcrs.benchmarks.env_throughput import resident_bytes
-from mcrs.benchmarks.harness import Figure, Goal, Report, make_parser, require_at_least, run_benchmark
-from mcrs.benchmarks.memory_anchors import anchors, reference_lookups
 from mcrs.env.config import SCENARIOS, EnvConfig, scenario
 from mcrs.env.core import MCRSCore
 from mcrs.experiment.config import MemoryConfig

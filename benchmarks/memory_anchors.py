@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 import torch
+from mcrs_benchmarks.harness import Goal, Report
 
-from mcrs.benchmarks.harness import Goal, Report
 from mcrs.memory.episodic import EpisodicMemory
 from mcrs.memory.index import squared_distance
 

@@ -7,7 +7,7 @@ A 2M-step run takes hours, so this measures and projects:
 1. The real :class:`~mcrs.experiment.trainer.Experiment` of each algorithm runs ``--loop-steps`` env steps
    (pymarl preset; the memory inserts every batch, attaches look-ups to every learner batch and trains
    phi every ``t_emb`` = 10k steps, all inside the timed window), exactly as
-   :func:`mcrs.benchmarks.loop.measure_loop` times QMIX; evaluation is timed apart and added back at
+   :func:`mcrs_benchmarks.loop.measure_loop` times QMIX; evaluation is timed apart and added back at
    the preset's interval for both.
 2. What a short window cannot show grows with the buffer: re-embedding after every training of phi costs
    time per stored state, and the buffer holds min(env steps, capacity) states. A synthetic buffer of
@@ -23,10 +23,11 @@ import argparse
 import time
 from collections.abc import Sequence
 
-from mcrs.benchmarks.common import compose_config, load_average
-from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
-from mcrs.benchmarks.loop import GOAL_STEPS, LoopResult, measure_loop
-from mcrs.benchmarks.memory import fill, median_seconds, rollout
+from mcrs_benchmarks.common import compose_config, load_average
+from mcrs_benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
+from mcrs_benchmarks.loop import GOAL_STEPS, LoopResult, measure_loop
+from mcrs_benchmarks.memory import fill, median_seconds, rollout
+
 from mcrs.env.config import SCENARIOS, from_mapping
 from mcrs.experiment.episodic import build_embedding
 from mcrs.memory.codec import StateCodec

@@ -1,4 +1,4 @@
-"""Long-run resource benchmark (``mcrs-bench-resources``, ``python -m mcrs.benchmarks.resources``).
+"""Long-run resource benchmark (``mcrs-bench-resources``, ``python -m mcrs_benchmarks.resources``).
 
 Why: a 2M-step run must not grow its memory without bound. Every store of the loop is bounded (the replay
 buffer holds ``train.replay_episodes`` episodes, the episodic memory ``algo.memory.capacity`` entries), so
@@ -29,8 +29,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from mcrs.benchmarks.env_throughput import resident_bytes
-from mcrs.benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
+from mcrs_benchmarks.env_throughput import resident_bytes
+from mcrs_benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 
 GOAL_GROWTH = 0.05  # RSS growth between 50% and 100% of the run
 MIB = 2**20

@@ -97,7 +97,7 @@ print(
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from mcrs.analysis.runs import read_scalar_rows  # noqa: E402
+from mcrs_lab.analysis.runs import read_scalar_rows  # noqa: E402
 
 rows = read_scalar_rows(RUN_DIR / "logs" / "scalars" / "eval" / "episode_reward.csv")
 fig = Figure(figsize=(6, 3.5), layout="constrained")

@@ -1,14 +1,21 @@
-"""Greedy evaluation of a trained agent on separate, fixed-seed environments."""
+"""Evaluation: episodes of a policy on separate, fixed-seed environments, and their metrics.
+
+One path for every evaluation: :func:`final_metrics` runs a batch of episodes (the trainer's greedy agent,
+``mcrs-eval``'s heuristics and checkpoints) and :func:`summarize` gives mean and std over them. The std
+convention is an explicit argument, because both are in committed records: ``mcrs-eval`` (its tables,
+``metrics.csv`` and the evaluation records) takes the sample std (:data:`SAMPLE_STD`), the trainer's
+``eval/episode_reward_std`` (the training records' scalars) the population std (:data:`POPULATION_STD`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 
@@ -40,16 +47,45 @@ def rollout_greedy(env: TransformedEnv, policy: TensorDictModuleBase, seed: int)
         return env.rollout(env.base_env.config.max_steps, policy, break_when_any_done=False)
 
 
-def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
-    """Final value of every metric per episode: ``{name: [E]}``."""
-    return {name: rollout.get(("next", "metrics", name))[:, -1].float() for name in METRICS}
+SAMPLE_STD = 1  # std correction of mcrs-eval (n - 1): its tables, metrics.csv and evaluation records
+POPULATION_STD = 0  # std correction of the trainer's eval/episode_reward_std (n), as training records hold it
+
+
+@torch.no_grad()
+def final_metrics(
+    env: EnvBase, policy: Callable[[TensorDictBase], TensorDictBase], seed: int | None
+) -> dict[str, torch.Tensor]:
+    """One episode in every environment of ``env`` (seeded with ``seed`` first; None: the environments go
+    on from where their generator stands), greedy actions; the final value of every metric per episode,
+    ``{name: [E]}`` in float64 on the CPU whatever the env's device. A plain loop instead of
+    ``env.rollout``: only the last step is needed, so nothing is stacked."""
+    if seed is not None:
+        env.set_seed(seed)
+    steps = getattr(env, "base_env", env).config.max_steps
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        for _ in range(steps):
+            td = env.step(policy(td))["next"]
+    metrics = td.get("metrics")  # copied: a CPU env reuses its buffers
+    return {name: metrics.get(name).to(device="cpu", dtype=torch.float64, copy=True) for name in METRICS}
+
+
+def summarize(values: dict[str, torch.Tensor], correction: int) -> dict[str, tuple[float, float]]:
+    """Mean and standard deviation over episodes, the std with ``correction`` (:data:`SAMPLE_STD` or
+    :data:`POPULATION_STD`); 0 when there are no more episodes than the correction (one episode)."""
+    out = {}
+    for name, v in values.items():
+        v = v.to(torch.float64)
+        std = v.std(correction=correction).item() if v.numel() > correction else 0.0
+        out[name] = (v.mean().item(), std)
+    return out
 
 
 def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int) -> dict[str, float]:
-    """Mean (and std of the episode reward) of every metric over the batch of episodes."""
-    metrics = episode_metrics(rollout_greedy(env, policy, seed))
-    out = {name: values.mean().item() for name, values in metrics.items()}
-    out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
+    """Mean (and population std of the episode reward) of every metric over the batch of episodes."""
+    stats = summarize(final_metrics(env, policy, seed), correction=POPULATION_STD)
+    out = {name: mean for name, (mean, _) in stats.items()}
+    out["episode_reward_std"] = stats["episode_reward"][1]
     return out
 
 

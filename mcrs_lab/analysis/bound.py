@@ -8,7 +8,7 @@ under ``safety_rule``. No paths, no collisions, no sensing at reset: every one o
 real policy gets, so the sum of the ``N * T`` best gains bounds the reward of every policy on that
 layout. The layouts are the env's own, drawn with the evaluation seed.
 
-    python -m mcrs.analysis.bound --env map20 [--episodes 32] [--seed 0]
+    python -m mcrs_lab.analysis.bound --env map20 [--episodes 32] [--seed 0]
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def reward_bound(config: EnvConfig, episodes: int, seed: int) -> torch.Tensor:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m mcrs.analysis.bound", description=__doc__.split("\n\n")[0]
+        prog="python -m mcrs_lab.analysis.bound", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("--env", default="map20", choices=PRESETS, help="the scenario preset")
     parser.add_argument("--episodes", type=int, default=32, help="layouts averaged over")

@@ -19,10 +19,10 @@ import numpy as np
 import yaml
 from scipy import stats
 
-from mcrs.analysis.curves import Curve
-from mcrs.analysis.evaluations import heuristic_samples, trained_samples
-from mcrs.analysis.runs import EvaluationRow
-from mcrs.analysis.tables import markdown
+from mcrs.viz.curves import Curve
+from mcrs.viz.tables import markdown
+from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
+from mcrs_lab.analysis.runs import EvaluationRow
 
 ALPHA = 0.05  # significance of Welch's two-sided t-test
 END_FRACTION = 0.1  # "end": the evaluations in the last tenth of the budget
@@ -85,7 +85,7 @@ class Verdict:
 
 # ------------------------------------------------------------------------------------------ reading
 def default_claims_path() -> Path:
-    return Path(str(resources.files("mcrs.analysis") / "paper_claims.yaml"))
+    return Path(str(resources.files("mcrs_lab.analysis") / "paper_claims.yaml"))
 
 
 def load_claims(path: Path, env_name: str) -> list[Claim]:

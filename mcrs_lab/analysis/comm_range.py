@@ -15,15 +15,12 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from mcrs.analysis.curves import confidence_half_width
-from mcrs.analysis.runs import EvaluationRow, is_heuristic_policy
+from mcrs.env.metrics import METRIC_LABELS
+from mcrs.viz.curves import confidence_half_width
+from mcrs_lab.analysis.runs import EvaluationRow, is_heuristic_policy
 
 #: The panels of figure 5 (and the reward).
-RANGE_METRICS = {
-    "targets_found": "targets found",
-    "uncertainty": "final uncertainty",
-    "episode_reward": "episode reward",
-}
+RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncertainty", "episode_reward")}
 
 
 @dataclass(frozen=True)

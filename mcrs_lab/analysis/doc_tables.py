@@ -38,8 +38,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcrs.analysis import report
 from mcrs.experiment.untrusted import UntrustedInput, confined
+from mcrs_lab.analysis import report
 
 BLOCK = re.compile(
     r"<!-- (?P<kind>table|figure) (?P<file>[\w.-]+\.(?:md|png)) of: mcrs-report (?P<args>[^\n]*?) -->\n"

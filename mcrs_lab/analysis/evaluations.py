@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.analysis.curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
-from mcrs.analysis.runs import EvaluationRow
+from mcrs.viz.curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
+from mcrs_lab.analysis.runs import EvaluationRow
 
 HEURISTIC_ORDER = ("random", "lawnmower", "greedy", "coverage")
 

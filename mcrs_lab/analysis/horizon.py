@@ -10,7 +10,7 @@ its newest replay episodes and prints, by time step, the mean of
 - ``gamma * (Q_tot^-(s_{t+1}) - H_{t+1})`` under the run's convention: the gap between the TD target and
   the memory's one-step target ``r_t + gamma * H(s_{t+1})`` (eq. 32), 0 at the last step under ``terminal``.
 
-    python -m mcrs.analysis.horizon outputs/map20/qmix/<run> [--episodes 256]
+    python -m mcrs_lab.analysis.horizon outputs/map20/qmix/<run> [--episodes 256]
 
 docs/MEMORY.md ("The horizon") shows the figures and the choice they support.
 """
@@ -96,7 +96,7 @@ def table(gaps: dict[str, torch.Tensor]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m mcrs.analysis.horizon", description=__doc__.split("\n\n")[0]
+        prog="python -m mcrs_lab.analysis.horizon", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument(
         "run", type=Path, help="an mcrs-train run directory (config.yaml, checkpoints/last.pt)"

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from mcrs.analysis.runs import TrainingRun, run_labels
 from mcrs.env.core import METRICS
+from mcrs_lab.analysis.runs import TrainingRun, run_labels
 
 ENVIRONMENT = "mcrs"
 

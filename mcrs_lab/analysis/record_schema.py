@@ -1,6 +1,6 @@
 """The record's schema: every record is checked here when it is read, by every tool that reads one.
 
-A record (mcrs.analysis.records) is evidence: a wrong field would change a table silently. So a file
+A record (mcrs_lab.analysis.records) is evidence: a wrong field would change a table silently. So a file
 that carries the record marker is read with bounds (size, nesting, no NaN/Infinity literals) and each
 field is checked for its type and range; a bad one is refused with the file and the field named::
 

@@ -3,7 +3,7 @@
 Run directories are not committed (a map20 checkpoint is gigabytes), so each finished or stopped run
 leaves a record: its resolved config, the evaluation learning curves (every ``eval/`` metric and the
 mean Q_tot, as logged), the final evaluation, how far it got, how long it took, the git commit and the
-machine. ``mcrs-report`` reads records as it reads run directories (mcrs.analysis.runs), so the
+machine. ``mcrs-report`` reads records as it reads run directories (mcrs_lab.analysis.runs), so the
 committed records alone regenerate the report. ``mcrs-eval`` results (the heuristics) get records too.
 
     results/records/<experiment>/<budget>/<map>_<algo>[_<swept value>]_seed<k>.json    (mcrs-train)
@@ -24,11 +24,13 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mcrs.analysis.comm_range import policy_label
-from mcrs.analysis.curves import Q_TOT
-from mcrs.analysis.record_schema import RecordError
-from mcrs.analysis.runs import (
-    CONFIG_DIR,
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
+from mcrs_lab.analysis.comm_range import policy_label
+from mcrs_lab.analysis.curves import Q_TOT
+from mcrs_lab.analysis.record_schema import RecordError
+from mcrs_lab.analysis.runs import (
     RECORD_FORMAT,
     RECORD_VERSION,
     EvaluationRow,
@@ -38,8 +40,6 @@ from mcrs.analysis.runs import (
     read_record,
     read_scalar_rows,
 )
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
 
 #: Where records go by default (committed), relative to the repository root.
 RECORDS_DIR = Path("results/records")
@@ -58,7 +58,7 @@ NAME_FIELDS = {
 @functools.cache
 def swept_fields(experiment: str) -> tuple[str, ...]:
     """The fields that ``conf/experiment/<experiment>.yaml`` sweeps besides map, algorithm and seed."""
-    path = CONFIG_DIR / "experiment" / f"{experiment}.yaml"
+    path = Path(CONFIG_DIR, "experiment", f"{experiment}.yaml")
     if not path.is_file():
         return ()
     params = OmegaConf.select(OmegaConf.load(path), "hydra.sweeper.params") or {}

@@ -5,21 +5,21 @@
     mcrs-report outputs/experiments/baselines --out outputs/reports/tsne --tsne       (figure 9, from saved buffers)
     mcrs-report outputs/experiments/baselines --out outputs/reports/b --marl-eval outputs/reports/b/marl_eval.json
 
-It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs.analysis.runs),
+It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs_lab.analysis.runs),
 keeps one map, groups training runs into methods (an algorithm plus the settings swept within it, e.g.
 ``cnn_semu lambda=0.5``; the seeds of a method are averaged), and writes into ``--out``:
 
 - ``learning_curves.png``: episode reward, uncertainty, collisions and targets found of the greedy
   evaluations against env steps (figures 6-7, 10, 11-12), IQM over seeds with a 95 % stratified bootstrap
-  confidence interval (mcrs.analysis.curves); the heuristics as labelled horizontal lines;
+  confidence interval (mcrs_lab.analysis.curves); the heuristics as labelled horizontal lines;
 - ``q_tot.png``: the mean Q_tot of replayed transitions (figure 8b);
 - ``final.md|csv``: every evaluation metric at the last step, with the heuristics evaluated by
   ``mcrs-eval`` at the same R_c as extra rows;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
   in the paper's layout when delta was swept;
 - ``claims.md``: the paper's claims about this map (``--claims``, default
-  ``mcrs/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
-  noise, one seed) or not run (mcrs.analysis.claims); for evaluations only, the claims of ``--claims``;
+  ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
+  noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
 - ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
@@ -27,7 +27,7 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   by ``mcrs-eval``;
 - ``report.md``: all of it, plus every run that was skipped and why;
 - with ``--marl-eval out.json``: every training run's evaluations (all maps) in marl-eval's JSON
-  (mcrs.analysis.marl_eval).
+  (mcrs_lab.analysis.marl_eval).
 
 Runs logged with any of ``mcrs-train``'s loggers are read: CSV, TensorBoard event files, and wandb runs
 (through the CSV history they keep beside them).
@@ -42,25 +42,17 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.analysis import comm_range as cr
-from mcrs.analysis import tsne
-from mcrs.analysis.claims import Claim, ClaimsError, claims_table, default_claims_path, load_claims
-from mcrs.analysis.curves import (
-    CURVE_METRICS,
-    FINAL_METRICS,
-    Q_TOT,
-    Curve,
-    Reference,
-    aggregate,
-    final_rows,
-    milestone_steps,
-    milestone_values,
-    plot_curves,
-)
-from mcrs.analysis.evaluations import heuristic_references, heuristic_rows, trained_rows
-from mcrs.analysis.marl_eval import write_marl_eval
-from mcrs.analysis.record_schema import RecordError
-from mcrs.analysis.runs import (
+from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.viz.curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
+from mcrs.viz.tables import markdown, mean_std, write_csv
+from mcrs_lab.analysis import comm_range as cr
+from mcrs_lab.analysis import tsne
+from mcrs_lab.analysis.claims import Claim, ClaimsError, claims_table, default_claims_path, load_claims
+from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_steps, milestone_values
+from mcrs_lab.analysis.evaluations import heuristic_references, heuristic_rows, trained_rows
+from mcrs_lab.analysis.marl_eval import write_marl_eval
+from mcrs_lab.analysis.record_schema import RecordError
+from mcrs_lab.analysis.runs import (
     Runs,
     Skipped,
     TrainingRun,
@@ -69,8 +61,6 @@ from mcrs.analysis.runs import (
     run_labels,
     select_map,
 )
-from mcrs.analysis.tables import markdown, mean_std, write_csv
-from mcrs.experiment.checkpoint import CheckpointError
 
 #: Row order of tables and legends: the paper's baselines first, its method last.
 ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
@@ -414,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="YAML",
-        help="the claims to check, per map (default: the paper's, mcrs/analysis/paper_claims.yaml)",
+        help="the claims to check, per map (default: the paper's, mcrs_lab/analysis/paper_claims.yaml)",
     )
     parser.add_argument(
         "--marl-eval",

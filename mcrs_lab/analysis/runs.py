@@ -9,7 +9,7 @@ Three kinds of file count as runs:
   ``EventAccumulator``);
 - an ``mcrs-eval`` result: ``metrics.csv`` with one row per policy (map, R_c, seed, mean and std of
   every episode metric);
-- a record (``mcrs-campaign record``, mcrs.analysis.records): a small JSON file holding either of the
+- a record (``mcrs-campaign record``, mcrs_lab.analysis.records): a small JSON file holding either of the
   above, so that committed records give the same report as the run directories they came from.
 
 Anything else under the given paths is ignored; a directory that looks like a run but cannot be read is
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import functools
-import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +28,13 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from mcrs.analysis.record_schema import (  # noqa: F401 (RECORD_FORMAT: read from here by the tools)
+from mcrs.experiment.checkpoint import current_config, legacy_values
+from mcrs.experiment.logging import ScalarFileError, flatten_config, scalar_file
+from mcrs.experiment.logging import read_scalar_rows as logged_rows
+from mcrs.experiment.logging import sorted_points as _sorted_points
+from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs_lab.analysis.record_schema import (  # noqa: F401 (RECORD_FORMAT: read from here by the tools)
     RECORD_FORMAT,
     RECORD_VERSION,
     RecordError,
@@ -38,12 +43,6 @@ from mcrs.analysis.record_schema import (  # noqa: F401 (RECORD_FORMAT: read fro
     deduplicate,
     load_json_record,
 )
-from mcrs.experiment.checkpoint import current_config, legacy_values
-from mcrs.experiment.logging import flatten_config
-from mcrs.experiment.untrusted import UntrustedInput, read_yaml
-
-#: The Hydra configs (mcrs/conf links to the repo's conf/).
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 #: Config fields that never tell two runs' methods apart: seeds, resources, reporting, run bookkeeping.
 NOT_A_SETTING = (
@@ -123,7 +122,7 @@ class TrainingRun:
         if self.scalars is not None:  # a record: what it holds is all there is
             return self.scalars.get(name)
         if name not in self._cache:
-            path = self.path / "logs" / "scalars" / f"{name}.csv"
+            path = scalar_file(self.path, name)
             self._cache[name] = _read_scalar_csv(path) if path.is_file() else None
         return self._cache[name]
 
@@ -161,30 +160,16 @@ class Runs:
 
 
 def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
-    """The ``step,value`` rows of a CSV-logger file in the order written (a resumed run repeats steps)."""
-    out = []
-    with open(path, newline="", errors="replace") as f:
-        for line, row in enumerate(csv.reader(f), start=1):
-            if len(row) != 2:
-                continue
-            try:
-                step, value = float(row[0]), float(row[1])
-            except ValueError:
-                raise RecordError(f"{path}:{line}: not a step,value row of numbers: {row!r}") from None
-            if not (step >= 0 and math.isfinite(step)):
-                raise RecordError(f"{path}:{line}: step {row[0]!r} is not a whole number >= 0")
-            out.append((int(step), value))
-    return out
+    """The ``step,value`` rows of a CSV-logger file in the order written (:func:`mcrs.experiment.logging.
+    read_scalar_rows`); a bad row is refused as a :class:`RecordError`."""
+    try:
+        return logged_rows(path)
+    except ScalarFileError as error:
+        raise RecordError(str(error)) from None
 
 
 def _read_scalar_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _sorted_points(read_scalar_rows(path))
-
-
-def _sorted_points(rows: list[tuple[int, float]] | list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
-    points = {int(step): float(value) for step, value in rows}  # a repeated step keeps the last value
-    steps = np.array(sorted(points), dtype=np.int64)
-    return steps, np.array([points[s] for s in steps], dtype=np.float64)
 
 
 def _is_hidden(path: Path, root: Path) -> bool:
@@ -228,7 +213,7 @@ def find_runs(paths: list[Path]) -> Runs:
 
 
 def read_record(path: Path, skipped: list[Skipped] | None = None) -> dict[str, Any] | None:
-    """The record in ``path``, checked against the schema (mcrs.analysis.record_schema); None for a JSON
+    """The record in ``path``, checked against the schema (mcrs_lab.analysis.record_schema); None for a JSON
     file that is not a record, or a record of another version (added to ``skipped`` with the reason). A
     record that fails the schema raises ``RecordError`` naming the file and the field."""
     record = load_json_record(path)
@@ -321,7 +306,7 @@ def _add_evaluation(path: Path, runs: Runs) -> None:
         runs.skipped.append(Skipped(path.parent, f"metrics.csv lacks {', '.join(missing)} (rerun mcrs-eval)"))
         return
     for line, row in enumerate(rows, start=2):
-        try:  # every value is checked as a record's row is (mcrs.analysis.record_schema)
+        try:  # every value is checked as a record's row is (mcrs_lab.analysis.record_schema)
             record_row = {
                 "policy": row["policy"],
                 "env": row["env"],
@@ -350,7 +335,7 @@ def _is_setting(name: str) -> bool:
 def budget_fields() -> frozenset[str]:
     """The fields that the budget presets set (conf/budget/*.yaml): run length, batch sizes, buffer sizes."""
     out: set[str] = set()
-    for path in sorted(CONFIG_DIR.joinpath("budget").glob("*.yaml")):
+    for path in sorted(Path(CONFIG_DIR, "budget").glob("*.yaml")):
         out |= {
             k for k in flatten(OmegaConf.to_container(OmegaConf.load(path))) if not k.startswith("hydra.")
         }

@@ -1,4 +1,4 @@
-"""``mcrs-campaign``: the section-6 campaign (mcrs/campaign/section6.yaml) on one machine.
+"""``mcrs-campaign``: the section-6 campaign (mcrs_lab/campaign/section6.yaml) on one machine.
 
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
@@ -18,13 +18,13 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from mcrs.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
-from mcrs.analysis.tables import markdown
-from mcrs.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
-from mcrs.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
-from mcrs.campaign.progress import STATES
-from mcrs.campaign.runner import Campaign, CampaignBusy
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.viz.tables import markdown
+from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
+from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
+from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
+from mcrs_lab.campaign.progress import STATES
+from mcrs_lab.campaign.runner import Campaign, CampaignBusy
 
 OUTPUTS_DIR = Path("outputs/campaign")
 #: --hours beyond a year is a typo (and time.time() + inf never ends).
@@ -171,7 +171,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from mcrs.analysis.report import main as report_main
+    from mcrs_lab.analysis.report import main as report_main
 
     points, _ = _points(args)
     paths = [p.record_path(args.records) for p in points if p.record_path(args.records).is_file()]

@@ -8,7 +8,7 @@ one ``mcrs-eval -m`` over the seeds on the point's map; each seed's result is re
 
     <records>/<evaluation>/<variant>/eval/<map>/<policy>_rc<R_c>_seed<k>.json
 
-(mcrs.analysis.records.evaluation_record_path), so what is already recorded is skipped and the committed
+(mcrs_lab.analysis.records.evaluation_record_path), so what is already recorded is skipped and the committed
 records alone make the evaluation's tables (``mcrs-report <records>/<evaluation>/<variant>/eval/<map>``).
 """
 
@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mcrs.analysis.records import RecordError, evaluation_record_name, make_record, write_record
-from mcrs.analysis.runs import is_heuristic_policy, read_record
-from mcrs.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.untrusted import UntrustedInput, confined
+from mcrs_lab.analysis.records import RecordError, evaluation_record_name, make_record, write_record
+from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
+from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
 
 EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
 #: More evaluation episodes than this per seed is a typo (the paper uses 32).

@@ -1,8 +1,8 @@
-"""The campaign's points (mcrs/campaign/section6.yaml): which mcrs-train runs make which figure.
+"""The campaign's points (mcrs_lab/campaign/section6.yaml): which mcrs-train runs make which figure.
 
 A point is one run: an experiment preset, a map, an algorithm, its swept values and a seed, at the
 campaign's budget. Its run directory and its record path follow from it, so whether it is done can be
-read from the disk alone (mcrs.campaign.progress).
+read from the disk alone (mcrs_lab.campaign.progress).
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mcrs.analysis.records import point_name, swept_fields
-from mcrs.analysis.runs import CONFIG_DIR
+from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
+from mcrs_lab.analysis.records import point_name, swept_fields
 
 #: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
 #: a config group.
@@ -55,7 +55,7 @@ def load_campaign_file(path: Path) -> dict[str, Any]:
 def _option(group: str, value: Any, where: str) -> str:
     """``value`` as an option of the config group ``group`` (conf/<group>/<value>.yaml)."""
     name = plain(value, f"{where}: {group}")
-    allowed = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
+    allowed = sorted(p.stem for p in Path(CONFIG_DIR, group).glob("*.yaml"))
     if name not in allowed:
         raise MatrixError(f"{where}: {group}={name!r}: allowed values are {', '.join(allowed)}")
     return name
@@ -137,7 +137,7 @@ class Point:
 
 def budget_steps(budget: str) -> int:
     """``train.total_env_steps`` of ``conf/budget/<budget>.yaml``: the length every point must reach."""
-    path = CONFIG_DIR / "budget" / f"{budget}.yaml"
+    path = Path(CONFIG_DIR, "budget", f"{budget}.yaml")
     if not path.is_file():
         allowed = sorted(p.stem for p in path.parent.glob("*.yaml"))
         raise MatrixError(f"budget={budget!r}: allowed values are {', '.join(allowed)}")

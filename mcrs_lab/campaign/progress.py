@@ -11,9 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcrs.analysis.runs import read_record
-from mcrs.campaign.matrix import Point
 from mcrs.experiment import checkpoint as ckpt
+from mcrs_lab.analysis.runs import read_record
+from mcrs_lab.campaign.matrix import Point
 
 STATES = ("done", "unrecorded", "partial", "missing")
 

@@ -5,7 +5,7 @@ Each child runs in its own session (process group), with one torch thread, its o
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
 exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
 recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them. A run that
-finishes is then evaluated as the campaign file's ``evaluations:`` ask (mcrs.campaign.evaluations),
+finishes is then evaluated as the campaign file's ``evaluations:`` ask (mcrs_lab.campaign.evaluations),
 while the other jobs go on.
 """
 
@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from mcrs.analysis.records import (
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.rundir import lock_holder
+from mcrs_lab.analysis.records import (
     SESSIONS,
     RecordError,
     git_facts,
@@ -32,12 +34,10 @@ from mcrs.analysis.records import (
     make_record,
     write_record,
 )
-from mcrs.analysis.runs import read_record
-from mcrs.campaign.evaluations import Evaluation, plan, run_pending
-from mcrs.campaign.matrix import Point
-from mcrs.campaign.progress import Progress, progress
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.rundir import lock_holder
+from mcrs_lab.analysis.runs import read_record
+from mcrs_lab.campaign.evaluations import Evaluation, plan, run_pending
+from mcrs_lab.campaign.matrix import Point
+from mcrs_lab.campaign.progress import Progress, progress
 
 #: Seconds a stopped child may take to exit after SIGINT before it is killed.
 STOP_GRACE_S = 120.0
