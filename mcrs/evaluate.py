@@ -224,7 +224,13 @@ def evaluate_run(run_dir: Path, env_config: EnvConfig, label: str, episodes: int
     import numpy as np
 
     from mcrs.experiment.logging import read_scalar_rows, scalar_file, sorted_points
-    from mcrs.viz.curves import CURVE_METRICS, Reference, confidence_half_width, curve_of, plot_curves
+    from mcrs.viz.learning_curves import (
+        CURVE_METRICS,
+        Reference,
+        confidence_half_width,
+        curve_of,
+        plot_curves,
+    )
 
     out = run_dir / REPORT_DIR
     env_config = env_config.replace(num_envs=min(episodes, MAX_BATCH))

@@ -10,7 +10,7 @@ import yaml
 from scipy import stats
 
 from mcrs.policies import POLICIES
-from mcrs.viz.curves import Curve
+from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import (
     Claim,
     ClaimsError,

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from scipy import stats
 
 from mcrs.experiment.config import Config
-from mcrs.viz.curves import confidence_half_width
+from mcrs.viz.learning_curves import confidence_half_width
 from mcrs_lab.analysis.report import main as report_main
 from mcrs_lab.analysis.runs import find_runs, run_labels, select_map
 from mcrs_lab.analysis.tsne import return_locality

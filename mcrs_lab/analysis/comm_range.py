@@ -16,7 +16,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from mcrs.env.metrics import METRIC_LABELS
-from mcrs.viz.curves import confidence_half_width
+from mcrs.viz.learning_curves import confidence_half_width
 from mcrs_lab.analysis.runs import EvaluationRow, is_heuristic_policy
 
 #: The panels of figure 5 (and the reward).

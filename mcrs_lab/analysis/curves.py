@@ -1,14 +1,14 @@
 """Learning curves over seeds against env steps, and the tables read off them (final metrics, rewards at
 thirds of the budget, the paper's table 4 layout).
 
-The curves and their figure are the library's (:mod:`mcrs.viz.curves`: IQM over seeds, 95 % stratified
+The curves and their figure are the library's (:mod:`mcrs.viz.learning_curves`: IQM over seeds, 95 % stratified
 bootstrap band); the tables keep mean ± std over seeds."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from mcrs.viz.curves import Curve, curve_of
+from mcrs.viz.learning_curves import Curve, curve_of
 from mcrs_lab.analysis.runs import Skipped, TrainingRun
 
 Q_TOT = "train/q_taken_mean"  # mean Q_tot(s, a) of the replayed transitions (figure 8b)

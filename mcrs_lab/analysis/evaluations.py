@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.viz.curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
+from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
 from mcrs_lab.analysis.runs import EvaluationRow
 
 HEURISTIC_ORDER = ("random", "lawnmower", "greedy", "coverage")

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.experiment.checkpoint import CheckpointError
-from mcrs.viz.curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
+from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
 from mcrs.viz.tables import markdown, mean_std, write_csv
 from mcrs_lab.analysis import comm_range as cr
 from mcrs_lab.analysis import tsne
