@@ -97,9 +97,9 @@ print(
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from mcrs.analysis.runs import read_scalar_rows  # noqa: E402
+from mcrs.experiment.logging import read_scalar_rows, scalar_file  # noqa: E402
 
-rows = read_scalar_rows(RUN_DIR / "logs" / "scalars" / "eval" / "episode_reward.csv")
+rows = read_scalar_rows(scalar_file(RUN_DIR, "eval/episode_reward"))
 fig = Figure(figsize=(6, 3.5), layout="constrained")
 FigureCanvasAgg(fig)
 ax = fig.add_subplot()

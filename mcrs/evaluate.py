@@ -25,28 +25,18 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig
 
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
-from mcrs.env.core import METRICS
+from mcrs.env.metrics import METRIC_LABELS, METRICS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment import evaluation
 from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
+from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.policies import POLICIES, make_policy
-from mcrs.policies.base import ACTION
 
 ALL = "all"
 log = logging.getLogger(__name__)
-# The Hydra configs: mcrs/conf links to the repo's conf/ (and is copied into wheels as package data). An
-# absolute directory, because Hydra's pkg:// lookup of "mcrs.conf" needs an __init__.py that conf/ lacks.
-CONFIG_DIR = str(Path(__file__).parent / "conf")
 MAX_BATCH = 512  # environments per batch; bounds memory on the largest map
-METRIC_LABELS = {
-    "episode_reward": "episode reward",
-    "uncertainty": "final uncertainty",
-    "targets_found": "targets found",
-    "false_discoveries": "false discoveries",
-    "collisions": "collisions",
-    "no_fly_violations": "no-fly violations",
-    "coverage": "coverage",
-}
 
 
 @dataclass
@@ -107,20 +97,14 @@ def episode_metrics(
     batch = min(episodes, max_batch)
     cfg = env_config.replace(num_envs=batch, expose_beliefs=False)
     env = MCRSEnv(cfg)
-    env.set_seed(seed)
     policy = make_policy(policy_name, cfg, seed)
-    chunks = []
-    with torch.no_grad():
-        for _ in range(math.ceil(episodes / batch)):
-            # A plain loop instead of env.rollout: only the last step is needed, so nothing is stacked.
-            td = env.reset()
-            for _ in range(cfg.max_steps):
-                td = env.step(policy(td).select(ACTION))["next"]
-                if progress is not None:
-                    progress.update(1)
-            chunks.append(td.get("metrics").to("cpu").clone())  # clone: a CPU env reuses its buffers
-    metrics = torch.cat(chunks)[:episodes]
-    return {name: metrics.get(name) for name in METRICS}
+    # the environments are seeded once: each further batch goes on from where the generator stands
+    step = None if progress is None else (lambda: progress.update(1))
+    chunks = [
+        final_metrics(env, policy, seed if k == 0 else None, on_step=step)
+        for k in range(math.ceil(episodes / batch))
+    ]
+    return {name: torch.cat([chunk[name] for chunk in chunks])[:episodes] for name in METRICS}
 
 
 def evaluate_episodes(
@@ -142,12 +126,7 @@ def evaluate_episodes(
 
 def summarize(values: dict[str, torch.Tensor]) -> dict[str, tuple[float, float]]:
     """Mean and standard deviation over episodes (sample std; 0 for a single episode)."""
-    out = {}
-    for name, v in values.items():
-        v = v.to(torch.float64)
-        std = v.std(correction=1).item() if v.numel() > 1 else 0.0
-        out[name] = (v.mean().item(), std)
-    return out
+    return evaluation.summarize(values, correction=evaluation.SAMPLE_STD)
 
 
 def evaluate_policy(
@@ -159,7 +138,7 @@ def evaluate_policy(
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
     """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
-    from mcrs.analysis.tables import markdown, mean_std
+    from mcrs.viz.tables import markdown, mean_std
 
     header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
     return markdown(header, [[name] + [mean_std(*r[m]) for m in METRICS] for name, r in results.items()])
@@ -275,10 +254,15 @@ def evaluate_run(
     ``scene.png``, ``uncertainty_contours.png``). ``label`` names the trained policy in the table;
     ``progress``: a progress bar while the episodes run."""
     import numpy as np
-    import yaml
 
-    from mcrs.analysis.curves import CURVE_METRICS, Reference, aggregate, confidence_half_width, plot_curves
-    from mcrs.analysis.runs import TrainingRun
+    from mcrs.experiment.logging import read_scalar_rows, scalar_file, sorted_points
+    from mcrs.viz.learning_curves import (
+        CURVE_METRICS,
+        Reference,
+        confidence_half_width,
+        curve_of,
+        plot_curves,
+    )
 
     out = run_dir / REPORT_DIR
     env_config = env_config.replace(num_envs=min(episodes, MAX_BATCH))
@@ -289,9 +273,11 @@ def evaluate_run(
     table = format_table(labelled)
     write_results(out, env_config, seed, per_episode, results, describe(env_config, episodes, seed), table)
 
-    config = yaml.safe_load((run_dir / "config.yaml").read_text())
-    runs = {label: [TrainingRun(run_dir, config)]}
-    panels = {panel: aggregate(runs, metric, []) for metric, panel in CURVE_METRICS.items()}
+    panels: dict[str, dict] = {}
+    for metric, panel in CURVE_METRICS.items():
+        path = scalar_file(run_dir, metric)
+        curve = curve_of(label, [sorted_points(read_scalar_rows(path))]) if path.is_file() else None
+        panels[panel] = {label: curve} if curve is not None else {}
     references: dict[str, list[Reference]] = {}
     for name in POLICIES:
         for metric, panel in CURVE_METRICS.items():

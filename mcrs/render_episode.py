@@ -21,9 +21,8 @@ from omegaconf import MISSING, DictConfig
 from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.rundir import register_resolvers
+from mcrs.experiment.schema import CONFIG_DIR
 
-# The Hydra configs: mcrs/conf links to the repo's conf/ (see mcrs.evaluate.CONFIG_DIR).
-CONFIG_DIR = str(Path(__file__).parent / "conf")
 SCHEMA_NAME = "mcrs_render"
 
 

@@ -24,21 +24,21 @@ from typing import Any
 import pytest
 import torch
 
-from mcrs.analysis.doc_tables import main as results_main
-from mcrs.analysis.record_schema import RECORD_FORMAT, RECORD_VERSION, RecordError
-from mcrs.analysis.records import make_record, training_record_path
-from mcrs.analysis.report import main as report_main
-from mcrs.analysis.runs import find_runs, read_record
-from mcrs.campaign.cli import main as campaign_main
-from mcrs.campaign.evaluations import Evaluation, EvaluationJob, run_job
-from mcrs.campaign.matrix import load_matrix
-from mcrs.campaign.progress import Progress
-from mcrs.campaign.runner import LOG, Campaign
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
 from mcrs.experiment.rundir import RunLock
 from mcrs.experiment.untrusted import MAX_YAML_BYTES
 from mcrs.train import _read_run_config
+from mcrs_lab.analysis.doc_tables import main as results_main
+from mcrs_lab.analysis.record_schema import RECORD_FORMAT, RECORD_VERSION, RecordError
+from mcrs_lab.analysis.records import make_record, training_record_path
+from mcrs_lab.analysis.report import main as report_main
+from mcrs_lab.analysis.runs import find_runs, read_record
+from mcrs_lab.campaign.cli import main as campaign_main
+from mcrs_lab.campaign.evaluations import Evaluation, EvaluationJob, run_job
+from mcrs_lab.campaign.matrix import load_matrix
+from mcrs_lab.campaign.progress import Progress
+from mcrs_lab.campaign.runner import LOG, Campaign
 from tests.train_helpers import compose_config
 
 # ------------------------------------------------------------------------------------ campaign files
@@ -332,7 +332,7 @@ def test_the_valid_records_pass() -> None:
 
 
 def validate_ok(record: dict[str, Any]) -> bool:
-    from mcrs.analysis.record_schema import check_record
+    from mcrs_lab.analysis.record_schema import check_record
 
     check_record(record)
     return True
@@ -656,7 +656,7 @@ BAD_BLOCKS: list[tuple[str, str]] = [
 def test_a_document_block_cannot_make_mcrs_results_write_elsewhere(
     text: str, expected: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import mcrs.analysis.doc_tables as doc_tables
+    import mcrs_lab.analysis.doc_tables as doc_tables
 
     repo = tmp_path / "repo"
     (repo / "docs").mkdir(parents=True)

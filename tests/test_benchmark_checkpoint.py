@@ -6,8 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-
-from mcrs.benchmarks.checkpoint import main
+from mcrs_benchmarks.checkpoint import main
 
 pytestmark = pytest.mark.slow
 

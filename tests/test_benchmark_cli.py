@@ -7,10 +7,10 @@ from typing import Any
 
 import pytest
 import torch
+from mcrs_benchmarks import env_throughput
+from mcrs_benchmarks.env_throughput import main
 from tensordict import TensorDict
 
-from mcrs.benchmarks import env_throughput
-from mcrs.benchmarks.env_throughput import main
 from mcrs.env import scenario
 from mcrs.policies import RandomPolicy
 from tests.bench_helpers import run_json

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from mcrs.benchmarks.harness import SCHEMA, Figure, Goal, Report, make_parser, run_benchmark
+from mcrs_benchmarks.harness import SCHEMA, Figure, Goal, Report, make_parser, run_benchmark
 
 
 @pytest.mark.parametrize(

@@ -8,11 +8,11 @@ from typing import Any
 
 import pytest
 import torch
+from mcrs_benchmarks import learner as bench
+from mcrs_benchmarks.common import compose_config, synthetic_episodes
+from mcrs_benchmarks.learner import main
+from mcrs_benchmarks.reference_learner import ReferenceLearner
 
-from mcrs.benchmarks import learner as bench
-from mcrs.benchmarks.common import compose_config, synthetic_episodes
-from mcrs.benchmarks.learner import main
-from mcrs.benchmarks.reference_learner import ReferenceLearner
 from mcrs.env.config import from_mapping
 from tests.bench_helpers import run_json
 

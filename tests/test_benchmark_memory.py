@@ -10,9 +10,8 @@ from typing import Any
 
 import pytest
 import torch
-
-from mcrs.benchmarks import memory as bench
-from mcrs.benchmarks import memory_anchors
+from mcrs_benchmarks import memory as bench
+from mcrs_benchmarks import memory_anchors
 
 pytestmark = pytest.mark.slow
 

@@ -6,9 +6,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from mcrs_benchmarks.loop import LoopResult
+from mcrs_benchmarks.overhead import main, project
 
-from mcrs.benchmarks.loop import LoopResult
-from mcrs.benchmarks.overhead import main, project
 from tests.bench_helpers import run_json
 
 pytestmark = pytest.mark.slow

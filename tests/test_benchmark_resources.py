@@ -8,8 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
-from mcrs.benchmarks.resources import Sample, growth, main
+from mcrs_benchmarks.resources import Sample, growth, main
 
 pytestmark = pytest.mark.slow
 

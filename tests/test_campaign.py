@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from mcrs.analysis.records import write_record
-from mcrs.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
-from mcrs.campaign.cli import main as campaign_main
-from mcrs.campaign.matrix import MatrixError, load_matrix, select
 from mcrs.experiment import checkpoint as ckpt
+from mcrs_lab.analysis.records import write_record
+from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
+from mcrs_lab.campaign.cli import main as campaign_main
+from mcrs_lab.campaign.matrix import MatrixError, load_matrix, select
 from tests.test_report import read_csv
 from tests.train_helpers import compose_config
 
@@ -38,7 +38,7 @@ figures:
 """
 
 
-#: The fields every training record has (mcrs.analysis.record_schema refuses a record without them).
+#: The fields every training record has (mcrs_lab.analysis.record_schema refuses a record without them).
 RECORD_FIELDS = {
     "total_env_steps": 200,
     "checkpoint_env_steps": 200,
@@ -238,7 +238,7 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path,
     outputs, records = tmp_path / "outputs", tmp_path / "records"
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
     campaign = subprocess.Popen(
-        [sys.executable, "-m", "mcrs.campaign.cli", "run", *args, "--hours", "1"],
+        [sys.executable, "-m", "mcrs_lab.campaign.cli", "run", *args, "--hours", "1"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -330,7 +330,7 @@ evaluations:
 
 
 def test_the_section6_near_file_evaluates_figure_7_with_and_without_the_shield() -> None:
-    from mcrs.campaign.evaluations import load_evaluations
+    from mcrs_lab.campaign.evaluations import load_evaluations
 
     _, titles = load_matrix(NEAR_MATRIX)
     (shield,) = load_evaluations(NEAR_MATRIX, set(titles))
@@ -366,7 +366,7 @@ def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations
                 "kind": "training",
                 "status": "finished",
                 "run_dir": str(tmp_path / "run"),
-                # the fields every record has (mcrs.analysis.record_schema refuses a record without them)
+                # the fields every record has (mcrs_lab.analysis.record_schema refuses a record without them)
                 "total_env_steps": 40,
                 "checkpoint_env_steps": 40,
                 "final_eval": {},

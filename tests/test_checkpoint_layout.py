@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.analysis import horizon
 from mcrs.env.config import from_mapping
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.trainer import Experiment
 from mcrs.policies.trained import TrainedPolicy
+from mcrs_lab.analysis import horizon
 from tests.train_helpers import compose_config
 
 REFUSAL = (

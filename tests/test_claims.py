@@ -1,4 +1,4 @@
-"""The paper's claims judged on runs (mcrs.analysis.claims): the windows, the test, the verdicts, the file."""
+"""The paper's claims judged on runs (mcrs_lab.analysis.claims): the windows, the test, the verdicts, the file."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ import pytest
 import yaml
 from scipy import stats
 
-from mcrs.analysis.claims import (
+from mcrs.policies import POLICIES
+from mcrs.viz.learning_curves import Curve
+from mcrs_lab.analysis.claims import (
     Claim,
     ClaimsError,
     Samples,
@@ -19,10 +21,8 @@ from mcrs.analysis.claims import (
     verdict,
     window_samples,
 )
-from mcrs.analysis.curves import Curve
-from mcrs.analysis.report import ALGO_ORDER
-from mcrs.analysis.report import main as report_main
-from mcrs.policies import POLICIES
+from mcrs_lab.analysis.report import ALGO_ORDER
+from mcrs_lab.analysis.report import main as report_main
 from tests.test_report import make_evaluation, make_run
 
 STEPS = list(range(0, 110_000, 10_000))  # 0 .. 100k: "end" is 90k and 100k, "start" is 10k .. 30k

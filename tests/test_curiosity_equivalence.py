@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from mcrs_benchmarks.learner import synthetic_episodes
 from tensordict import TensorDictBase
 from torch.nn import functional as F
 
-from mcrs.benchmarks.learner import synthetic_episodes
 from mcrs.env.config import from_mapping
 from mcrs.env.core import N_ACTIONS
 from mcrs.models.agent import RecurrentAgent

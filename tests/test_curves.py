@@ -5,7 +5,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from mcrs.analysis.curves import Curve, Reference, _zoom, plot_curves
+from mcrs.viz.learning_curves import Curve, Reference, _zoom, plot_curves
 
 
 def test_legend_says_seeds_for_learners_and_episodes_for_heuristics(tmp_path: Path, monkeypatch) -> None:
@@ -68,7 +68,7 @@ def test_y_limits_ignore_the_untrained_first_evaluations() -> None:
 def test_iqm_and_its_bootstrap_interval_over_seeds() -> None:
     """The figures' line is the interquartile mean (an outlying seed does not drag it) and the band a
     percentile bootstrap over seeds that stays within what the seeds did (a t band does not)."""
-    from mcrs.analysis.curves import interquartile_mean, iqm_interval
+    from mcrs.viz.learning_curves import interquartile_mean, iqm_interval
 
     values = np.array([[0.0, 1.0], [1.0, 1.0], [2.0, 1.0], [100.0, 1.0]])  # 4 seeds x 2 steps
     assert interquartile_mean(values).tolist() == [1.5, 1.0]  # the middle two seeds

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrs.analysis.doc_tables import DocTableError, check, find_blocks, main, update
+from mcrs_lab.analysis.doc_tables import DocTableError, check, find_blocks, main, update
 
 RECORDS = Path(
     "results/records/near/heuristics/map20"

@@ -319,7 +319,8 @@ def test_embedding_loss_is_eq_31_with_per_value_means() -> None:
 def test_the_return_term_outweighs_the_weighted_state_term_on_real_states(kind: str, name: str) -> None:
     """Eq. 31 with lambda_1 = 0.1 on real rollouts of each map: in every fit (fresh and trained) the
     return term carries at least the weight of lambda_1 times the reconstruction term."""
-    from mcrs.benchmarks.memory import rollout
+    from mcrs_benchmarks.memory import rollout
+
     from mcrs.env.config import scenario
 
     config = scenario(name)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from mcrs_benchmarks.memory import rollout as env_rollout
 from torch import nn
 
-from mcrs.benchmarks.memory import rollout as env_rollout
 from mcrs.env.config import scenario
 from mcrs.memory import EpisodicMemory, InsertStats, StateCodec, discounted_returns, resolution
 from mcrs.memory.index import squared_distance

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from mcrs.analysis.report import main as report_main
 from mcrs.policies import POLICIES
+from mcrs_lab.analysis.report import main as report_main
 from tests.test_report import read_csv
 
 pytestmark = pytest.mark.slow

@@ -68,8 +68,8 @@ def test_report_reads_the_runs_of_every_logger_alike(tmp_path: Path, monkeypatch
 
     import numpy as np
 
-    from mcrs.analysis.report import main as report_main
-    from mcrs.analysis.runs import find_runs
+    from mcrs_lab.analysis.report import main as report_main
+    from mcrs_lab.analysis.runs import find_runs
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     for backend in ("csv", "tensorboard", "wandb"):

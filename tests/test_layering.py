@@ -1,6 +1,8 @@
 """The package's layers (docs/ARCHITECTURE.md): no package imports one above it, no import cycles between
 packages nor between the modules of one package, no module over 500 lines, and ``import mcrs.env`` loads
-neither PettingZoo nor anything above.
+neither PettingZoo nor anything above. The library and the lab apart: ``mcrs`` never imports the lab
+(``mcrs_lab``: campaign, analysis) nor the benchmarks (``mcrs_benchmarks``, the root folder benchmarks/);
+they import ``mcrs``, and the same rules hold inside them (layers, cycles, 500 lines).
 
 The imports are read from the source (``ast``), every ``import`` statement counted: at module level,
 inside functions (lazy imports) and under ``if TYPE_CHECKING``. A "package" is a sub-package of
@@ -16,7 +18,14 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1] / "mcrs"
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ROOT = REPO / "mcrs"
+LAB = REPO / "mcrs_lab"
+BENCHMARKS = REPO / "benchmarks"  # installed as mcrs_benchmarks (pyproject.toml's package-dir)
+#: Each import package of the distribution and its folder.
+TREES = {"mcrs": ROOT, "mcrs_lab": LAB, "mcrs_benchmarks": BENCHMARKS}
 MAX_LINES = 500
 
 #: Bottom to top. A package may import packages of its own layer or below, never above; within a layer
@@ -26,11 +35,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("models", "memory"),  # networks; the episodic buffer (both read env's layouts)
     ("objectives",),  # the losses over the models
     ("experiment", "policies"),  # training, checkpoints; policies (heuristics, trained checkpoints)
-    (  # applications: pictures, analysis, benchmarks, other tasks, the command lines, the package root
+    (  # applications: pictures and tables, other tasks, the command lines, the package root
         "viz",
-        "analysis",
-        "campaign",
-        "benchmarks",
         "tasks",
         "evaluate",
         "render_episode",
@@ -39,6 +45,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ),
 )
 LAYER = {package: level for level, packages in enumerate(LAYERS) for package in packages}
+#: The lab's packages, bottom to top (the campaign records its runs with the analysis' records).
+LAB_LAYERS: tuple[tuple[str, ...], ...] = (("analysis",), ("campaign",), ("mcrs_lab",))
+LAB_LAYER = {package: level for level, packages in enumerate(LAB_LAYERS) for package in packages}
 
 #: Known imports against the layers, each with the change that removes it (none: the list only shrinks).
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
@@ -52,19 +61,34 @@ ALLOWED_LONG: dict[str, str] = {}
 
 
 def package_of(module: str) -> str:
-    """``mcrs.env.core`` -> ``env``; ``mcrs.train`` -> ``train``; ``mcrs`` -> ``mcrs``."""
+    """``mcrs.env.core`` -> ``env``; ``mcrs.train`` -> ``train``; ``mcrs`` -> ``mcrs`` (and
+    ``mcrs_lab.analysis.runs`` -> ``analysis``)."""
     parts = module.split(".")
-    return parts[1] if len(parts) > 1 else "mcrs"
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def _top(root: Path) -> str:
+    """The import name of the tree ``root``: its folder's name, but ``mcrs_benchmarks`` for benchmarks/."""
+    return next((name for name, folder in TREES.items() if folder == root), root.name)
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
-    relative = path.relative_to(root.parent).with_suffix("")
+    relative = path.relative_to(root).with_suffix("")
     parts = relative.parts[:-1] if relative.name == "__init__" else relative.parts
-    return ".".join(parts)
+    return ".".join([_top(root), *parts])
+
+
+def all_imports(path: Path, root: Path = ROOT) -> set[str]:
+    """Every module that ``path`` imports (absolute or relative, anywhere in the file), of any package."""
+    return _imports(path, root, top=None)
 
 
 def imported_modules(path: Path, root: Path = ROOT) -> set[str]:
-    """Every ``mcrs`` module that ``path`` imports (absolute or relative, anywhere in the file)."""
+    """Every module of ``root``'s own package that ``path`` imports (``mcrs`` for mcrs/)."""
+    return _imports(path, root, top=_top(root))
+
+
+def _imports(path: Path, root: Path, top: str | None) -> set[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
     here = module_name(path, root).split(".")
     is_package = path.name == "__init__.py"
@@ -81,13 +105,16 @@ def imported_modules(path: Path, root: Path = ROOT) -> set[str]:
                 target = node.module or ""
             for alias in node.names:  # ``from mcrs.experiment import checkpoint`` imports that module
                 submodule = f"{target}.{alias.name}"
-                found.add(submodule if target == "mcrs" or _is_module(submodule, root) else target)
-    return {m for m in found if m == "mcrs" or m.startswith("mcrs.")}
+                found.add(submodule if target == _top(root) or _is_module(submodule, root) else target)
+    return {m for m in found if top is None or m == top or m.startswith(top + ".")}
 
 
 def _is_module(module: str, root: Path) -> bool:
     """Whether ``mcrs.a.b`` is a file (``mcrs/a/b.py``) or a package (``mcrs/a/b/``) under ``root``."""
-    path = root.parent.joinpath(*module.split("."))
+    first, *rest = module.split(".")
+    if first != _top(root):
+        return False
+    path = root.joinpath(*rest)
     return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
 
 
@@ -103,23 +130,26 @@ def import_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
     return edges
 
 
-def upward(edges: Iterable[tuple[str, str, str]]) -> list[str]:
+def upward(edges: Iterable[tuple[str, str, str]], layer: dict[str, int] = LAYER) -> list[str]:
     """The imports of a package above the importer's layer (allowed ones aside), one line each."""
     return [
-        f"{file}: {source} (layer {LAYER[source]}) imports {target} (layer {LAYER[target]})"
+        f"{file}: {source} (layer {layer[source]}) imports {target} (layer {layer[target]})"
         for file, source, target in edges
-        if LAYER[target] > LAYER[source] and (file, target) not in ALLOWED_UPWARD
+        if layer[target] > layer[source] and (file, target) not in ALLOWED_UPWARD
     ]
 
 
 def module_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
     """``(file relative to mcrs/, importing module, imported module)`` for every import between two modules
-    of one package (``mcrs.experiment.trainer`` -> ``mcrs.experiment.config``)."""
+    of one package (``mcrs.experiment.trainer`` -> ``mcrs.experiment.config``); the benchmarks' modules
+    are one package."""
+    flat = _top(root) == "mcrs_benchmarks"
     edges = []
     for path in sorted(root.rglob("*.py")):
         source = module_name(path, root)
         for module in sorted(imported_modules(path, root)):
-            if module != source and package_of(module) == package_of(source) and _is_module(module, root):
+            same = flat or package_of(module) == package_of(source)
+            if module != source and same and _is_module(module, root):
                 edges.append((path.relative_to(root).as_posix(), source, module))
     return edges
 
@@ -204,6 +234,54 @@ def test_no_import_cycles_between_the_modules_of_a_package() -> None:
     assert not found, "import cycles inside a package:\n" + "\n".join(found)
 
 
+def test_the_library_imports_neither_the_lab_nor_the_benchmarks() -> None:
+    """``mcrs`` is what a user imports: nothing of it may need the research tools (lazy imports count)."""
+    found = [
+        f"{path.relative_to(REPO).as_posix()} imports {module}"
+        for path in sorted(ROOT.rglob("*.py"))
+        for module in sorted(all_imports(path, ROOT))
+        if module.split(".")[0] in ("mcrs_lab", "mcrs_benchmarks", "benchmarks")
+    ]
+    assert not found, "the library imports the lab:\n" + "\n".join(found)
+
+
+def test_the_lab_and_the_benchmarks_import_only_the_library_and_the_lab() -> None:
+    """The lab imports mcrs, never the benchmarks; the benchmarks import mcrs, never the lab."""
+    found = [
+        f"{path.relative_to(REPO).as_posix()} imports {module}"
+        for root, other in (
+            (LAB, ("mcrs_benchmarks", "benchmarks")),
+            (BENCHMARKS, ("mcrs_lab", "benchmarks")),
+        )
+        for path in sorted(root.rglob("*.py"))
+        for module in sorted(all_imports(path, root))
+        if module.split(".")[0] in other
+    ]
+    assert not found, "\n".join(found)
+
+
+def test_the_lab_keeps_its_layers_and_has_no_cycles() -> None:
+    """Inside mcrs_lab: the analysis never imports the campaign; no cycle between the modules of the
+    analysis, the campaign or the benchmarks."""
+    packages = {package_of(module_name(path, LAB)) for path in LAB.rglob("*.py")}
+    assert packages <= set(LAB_LAYER), f"lab packages without a layer (add them to LAB_LAYERS): {packages}"
+    edges = import_edges(LAB)
+    assert upward(edges, LAB_LAYER) == [] and cycles(edges) == []
+    found = module_cycles(module_edges(LAB)) + module_cycles(module_edges(BENCHMARKS))
+    assert not found, "import cycles inside the lab:\n" + "\n".join(found)
+
+
+def test_the_distribution_ships_every_package() -> None:
+    """pyproject.toml lists the packages (the benchmarks' folder is mapped to mcrs_benchmarks): a package
+    folder missing from the list would be left out of wheels, and its command would fail after
+    ``pip install .``."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    settings = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    on_disk = {module_name(init, root) for root in TREES.values() for init in root.rglob("__init__.py")}
+    assert set(settings["packages"]) == on_disk
+    assert settings["package-dir"] == {"mcrs_benchmarks": "benchmarks"}
+
+
 def test_allow_lists_are_current() -> None:
     """An allowed exception that is gone must leave the list, so that it cannot come back unnoticed."""
     edges = {(file, target) for file, _, target in import_edges()}
@@ -219,9 +297,11 @@ def _lines(path: Path) -> int:
 
 
 def test_no_module_over_500_lines() -> None:
+    """In the library, the lab and the benchmarks."""
     long = {
-        path.relative_to(ROOT).as_posix(): _lines(path)
-        for path in sorted(ROOT.rglob("*.py"))
+        path.relative_to(REPO).as_posix(): _lines(path)
+        for root in TREES.values()
+        for path in sorted(root.rglob("*.py"))
         if _lines(path) > MAX_LINES
     }
     offenders = {f: n for f, n in long.items() if f not in ALLOWED_LONG}

@@ -13,9 +13,6 @@ from torchrl.collectors import Collector
 from torchrl.envs import TransformedEnv
 from train_helpers import compose_config
 
-from mcrs.analysis.bound import reading_gains, reward_bound
-from mcrs.analysis.horizon import cut_returns, horizon_gaps
-from mcrs.analysis.runs import TrainingRun
 from mcrs.env import MCRSEnv
 from mcrs.env.config import EnvConfig, scenario, with_legacy_values
 from mcrs.env.core import N_ACTIONS
@@ -25,6 +22,9 @@ from mcrs.experiment.learner import Learner
 from mcrs.experiment.replay import episodes_from_rollout
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.train import resume_config
+from mcrs_lab.analysis.bound import reading_gains, reward_bound
+from mcrs_lab.analysis.horizon import cut_returns, horizon_gaps
+from mcrs_lab.analysis.runs import TrainingRun
 
 
 def tiny_rollout(env_config: EnvConfig, learner: Learner, episodes: int = 3) -> TensorDictBase:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from mcrs.evaluate import METRIC_LABELS
+from mcrs.env.metrics import METRIC_LABELS
 from mcrs.policies import POLICIES
 from tests.device_helpers import available_devices
 from tests.train_helpers import TINY, TINY_MEMORY

@@ -11,12 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.analysis.evaluations import heuristic_references
-from mcrs.analysis.records import make_record, write_record
-from mcrs.analysis.report import main as report_main
-from mcrs.analysis.runs import find_runs
-from mcrs.campaign.cli import main as campaign_main
 from mcrs.experiment import checkpoint as ckpt
+from mcrs_lab.analysis.evaluations import heuristic_references
+from mcrs_lab.analysis.records import make_record, write_record
+from mcrs_lab.analysis.report import main as report_main
+from mcrs_lab.analysis.runs import find_runs
+from mcrs_lab.campaign.cli import main as campaign_main
 from tests.test_report import make_evaluation, make_run, read_csv
 
 pytestmark = pytest.mark.slow

@@ -10,11 +10,11 @@ import pytest
 from omegaconf import OmegaConf
 from scipy import stats
 
-from mcrs.analysis.curves import confidence_half_width
-from mcrs.analysis.report import main as report_main
-from mcrs.analysis.runs import find_runs, run_labels, select_map
-from mcrs.analysis.tsne import return_locality
 from mcrs.experiment.config import Config
+from mcrs.viz.learning_curves import confidence_half_width
+from mcrs_lab.analysis.report import main as report_main
+from mcrs_lab.analysis.runs import find_runs, run_labels, select_map
+from mcrs_lab.analysis.tsne import return_locality
 
 pytestmark = pytest.mark.slow
 

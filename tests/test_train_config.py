@@ -162,7 +162,7 @@ def test_foreground_budgets_show_progress_and_paper_writes_the_report_as_quickst
 
 
 def test_the_campaigns_background_children_keep_the_bar_off(tmp_path) -> None:
-    from mcrs.campaign.matrix import Point
+    from mcrs_lab.campaign.matrix import Point
 
     assert compose_config("budget=campaign", tiny=False).logger.progress_bar is False
     assert compose_config("budget=smoke", tiny=False).logger.progress_bar is False  # seconds a point

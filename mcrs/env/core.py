@@ -25,6 +25,7 @@ from mcrs.env.evidence import EvidenceDecay
 from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
 from mcrs.env.geometry import Geometry
 from mcrs.env.messages import MessageChannel
+from mcrs.env.metrics import METRICS  # noqa: F401 (read from here by mcrs.experiment, mcrs-eval and the lab)
 from mcrs.env.shield import safe_move_table, shielded_mask
 from mcrs.env.targets import TargetWalk
 
@@ -34,15 +35,6 @@ MOVES = ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, -1), (1, 1), (-1, 1))
 N_ACTIONS = len(MOVES)
 # Observation order D_s of the 8 surrounding cells (paper eq. 19).
 SURROUNDING = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
-METRICS = (
-    "episode_reward",
-    "uncertainty",
-    "targets_found",
-    "false_discoveries",
-    "collisions",
-    "no_fly_violations",
-    "coverage",
-)
 
 
 def counts_dtype(config: EnvConfig) -> torch.dtype:

@@ -1,14 +1,24 @@
-"""Greedy evaluation of a trained agent on separate, fixed-seed environments of its task."""
+"""Evaluation: episodes of a policy on separate, fixed-seed environments, and their metrics.
+
+:func:`summarize` gives mean and std over episodes for every evaluation; the episodes come from one of two
+runs: :func:`evaluate` (the trainer's greedy agent on any :class:`~mcrs.experiment.task.Task`) keeps the
+whole rollout, because a task's metrics may need every step (the default sums the rewards);
+:func:`final_metrics` (``mcrs-eval``'s heuristics and checkpoints on MCRS-LCR, whose metrics are running
+totals) keeps only the last step, so nothing is stacked. The std convention is an explicit argument,
+because both are in committed records: ``mcrs-eval`` (its tables, ``metrics.csv`` and the evaluation
+records) takes the sample std (:data:`SAMPLE_STD`), the trainer's ``eval/episode_reward_std`` (the
+training records' scalars) the population std (:data:`POPULATION_STD`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 
@@ -47,6 +57,10 @@ def rollout_greedy(
         return env.rollout(steps, policy, break_when_any_done=False)
 
 
+SAMPLE_STD = 1  # std correction of mcrs-eval (n - 1): its tables, metrics.csv and evaluation records
+POPULATION_STD = 0  # std correction of the trainer's eval/episode_reward_std (n), as training records hold it
+
+
 def episode_metrics(rollout: TensorDictBase, task: Task | None = None) -> dict[str, torch.Tensor]:
     """Final value of every metric per episode: ``{name: [E]}`` (``task.episode_metrics``; default MCRS's)."""
     if task is None:
@@ -54,14 +68,53 @@ def episode_metrics(rollout: TensorDictBase, task: Task | None = None) -> dict[s
     return task.episode_metrics(rollout)
 
 
+@torch.no_grad()
+def final_metrics(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    seed: int | None,
+    on_step: Callable[[], object] | None = None,
+) -> dict[str, torch.Tensor]:
+    """One episode in every environment of an MCRS ``env`` (seeded with ``seed`` first; None: the
+    environments go on from where their generator stands), greedy actions; the final value of every
+    metric per episode, ``{name: [E]}`` in float64 on the CPU whatever the env's device. ``on_step`` is
+    called after every step (a progress bar's ``update``)."""
+    if seed is not None:
+        env.set_seed(seed)
+    steps = getattr(env, "base_env", env).config.max_steps
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        for _ in range(steps):
+            td = env.step(policy(td))["next"]
+            if on_step is not None:
+                on_step()
+    metrics = td.get("metrics")  # copied: a CPU env reuses its buffers
+    return {name: metrics.get(name).to(device="cpu", dtype=torch.float64, copy=True) for name in METRICS}
+
+
+def summarize(
+    values: dict[str, torch.Tensor], correction: int, dtype: torch.dtype = torch.float64
+) -> dict[str, tuple[float, float]]:
+    """Mean and standard deviation over episodes in ``dtype``, the std with ``correction``
+    (:data:`SAMPLE_STD` or :data:`POPULATION_STD`); 0 when there are no more episodes than the correction."""
+    out = {}
+    for name, v in values.items():
+        v = v.to(dtype)
+        std = v.std(correction=correction).item() if v.numel() > correction else 0.0
+        out[name] = (v.mean().item(), std)
+    return out
+
+
 def evaluate(
     env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task: Task | None = None
 ) -> dict[str, float]:
-    """Mean (and std of the episode reward) of every metric over the batch of episodes."""
+    """Mean (and population std of the episode reward) of every metric over the batch of episodes, in
+    float32 as the training records have always held them."""
     steps = None if task is None else task.max_steps
     metrics = episode_metrics(rollout_greedy(env, policy, seed, steps), task)
-    out = {name: values.mean().item() for name, values in metrics.items()}
-    out["episode_reward_std"] = metrics["episode_reward"].std(unbiased=False).item()
+    stats = summarize(metrics, correction=POPULATION_STD, dtype=torch.float32)
+    out = {name: mean for name, (mean, _) in stats.items()}
+    out["episode_reward_std"] = stats["episode_reward"][1]
     return out
 
 

@@ -21,7 +21,9 @@ keeps it to warnings unless ``RL_LOGGING_LEVEL`` (TorchRL's own setting) asks ot
 
 from __future__ import annotations
 
+import csv
 import logging
+import math
 import os
 import sys
 import time
@@ -282,3 +284,36 @@ def quiet_torchrl() -> None:
     if "RL_LOGGING_LEVEL" not in os.environ:
         logger = logging.getLogger("torchrl")
         logger.setLevel(max(logger.level, logging.WARNING))
+
+
+class ScalarFileError(ValueError):
+    """A CSV-logger file with a row that is not ``step,value`` numbers (naming the file and the line)."""
+
+
+def scalar_file(run_dir: Path, name: str) -> Path:
+    """Where ``csv`` (and ``wandb``) log the metric ``name`` (``eval/episode_reward``) of a run."""
+    return run_dir / "logs" / "scalars" / f"{name}.csv"
+
+
+def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
+    """The ``step,value`` rows of a CSV-logger file in the order written (a resumed run repeats steps)."""
+    out = []
+    with open(path, newline="", errors="replace") as f:
+        for line, row in enumerate(csv.reader(f), start=1):
+            if len(row) != 2:
+                continue
+            try:
+                step, value = float(row[0]), float(row[1])
+            except ValueError:
+                raise ScalarFileError(f"{path}:{line}: not a step,value row of numbers: {row!r}") from None
+            if not (step >= 0 and math.isfinite(step)):
+                raise ScalarFileError(f"{path}:{line}: step {row[0]!r} is not a whole number >= 0")
+            out.append((int(step), value))
+    return out
+
+
+def sorted_points(rows: list[tuple[int, float]] | list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, values)`` sorted by step; a repeated step (a resumed run) keeps the last value."""
+    points = {int(step): float(value) for step, value in rows}
+    steps = np.array(sorted(points), dtype=np.int64)
+    return steps, np.array([points[s] for s in steps], dtype=np.float64)

@@ -1,0 +1,22 @@
+"""The episode metrics every environment reports (``metrics`` in its tensordict), and how tables and figures
+name them: the one label table of ``mcrs-eval``, the learning curves and ``mcrs-report``."""
+
+METRICS = (
+    "episode_reward",
+    "uncertainty",
+    "targets_found",
+    "false_discoveries",
+    "collisions",
+    "no_fly_violations",
+    "coverage",
+)
+#: How tables and figures name each metric.
+METRIC_LABELS = {
+    "episode_reward": "episode reward",
+    "uncertainty": "final uncertainty",
+    "targets_found": "targets found",
+    "false_discoveries": "false discoveries",
+    "collisions": "collisions",
+    "no_fly_violations": "no-fly violations",
+    "coverage": "coverage",
+}

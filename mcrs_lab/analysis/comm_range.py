@@ -1,0 +1,111 @@
+"""The communication-range study (paper figure 5): episode metrics against R_c, per policy.
+
+Two sources, both reported when present:
+- ``mcrs-eval`` results at several ``env.comm_range`` (a heuristic, or a trained agent evaluated at
+  every range): mean over the evaluation seeds of each seed's mean over episodes;
+- ``mcrs-train`` runs that differ in ``env.comm_range`` (``experiment=comm_range``): the final
+  greedy evaluation, mean over training seeds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from mcrs.env.metrics import METRIC_LABELS
+from mcrs.viz.learning_curves import confidence_half_width
+from mcrs_lab.analysis.runs import EvaluationRow, is_heuristic_policy
+
+#: The panels of figure 5 (and the reward).
+RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncertainty", "episode_reward")}
+
+
+@dataclass(frozen=True)
+class RangeCurve:
+    """A policy's metrics against R_c: ``mean[metric][k]`` at ``ranges[k]`` over ``seeds[k]`` seeds."""
+
+    label: str
+    ranges: np.ndarray
+    mean: dict[str, np.ndarray]
+    half_width: dict[str, np.ndarray]
+    seeds: np.ndarray
+
+
+def policy_label(policy: str) -> str:
+    """A heuristic's name, or ``trained <algo>`` for a checkpoint (read from its run's config)."""
+    if is_heuristic_policy(policy):
+        return policy
+    path = Path(policy)
+    for run_dir in (path, path.parent, path.parent.parent):
+        config = run_dir / "config.yaml"
+        if config.is_file():
+            try:
+                algo = OmegaConf.load(config).algo.name
+                return f"trained {algo}"
+            except Exception:  # not a readable run config: fall back to the file name
+                break
+    return f"trained {path.stem}"
+
+
+def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
+    """Per policy label, each metric against R_c, averaged over evaluation seeds."""
+    grouped: dict[str, dict[float, list[EvaluationRow]]] = {}
+    for row in rows:
+        grouped.setdefault(row.label or policy_label(row.policy), {}).setdefault(row.comm_range, []).append(
+            row
+        )
+    return {
+        label: _curve(label, by_range, lambda r, m: r.means.get(m)) for label, by_range in grouped.items()
+    }
+
+
+def _curve(label: str, by_range: dict, value_of) -> RangeCurve:
+    ranges = np.array(sorted(by_range), dtype=np.float64)
+    mean, half = {}, {}
+    for metric in RANGE_METRICS:
+        m, h = [], []
+        for r in ranges:
+            values = np.array([v for x in by_range[r] if (v := value_of(x, metric)) is not None])
+            m.append(values.mean() if len(values) else np.nan)
+            h.append(confidence_half_width(values[:, None])[0] if len(values) > 1 else 0.0)
+        mean[metric], half[metric] = np.array(m), np.array(h)
+    seeds = np.array([len(by_range[r]) for r in ranges])
+    return RangeCurve(label, ranges, mean, half, seeds)
+
+
+def curves_from_training(final: dict[tuple[str, float], dict[str, list[float]]]) -> dict[str, RangeCurve]:
+    """From ``{(algo, R_c): {metric: [final value per seed]}}`` of training runs."""
+    grouped: dict[str, dict[float, list[dict[str, float]]]] = {}
+    for (algo, rc), metrics in final.items():
+        n = max(len(v) for v in metrics.values())
+        per_seed = [{m: v[k] for m, v in metrics.items() if k < len(v)} for k in range(n)]
+        grouped.setdefault(f"{algo} (trained at R_c)", {})[rc] = per_seed
+    return {label: _curve(label, by_range, lambda x, m: x.get(m)) for label, by_range in grouped.items()}
+
+
+def plot_range_curves(curves: dict[str, RangeCurve], path: Path, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(RANGE_METRICS), figsize=(5.0 * len(RANGE_METRICS), 3.6))
+    for ax, (metric, name) in zip(axes, RANGE_METRICS.items(), strict=True):
+        for k, (label, c) in enumerate(sorted(curves.items())):
+            colour = plt.cm.tab10(k % 10)
+            ax.plot(c.ranges, c.mean[metric], "o-", color=colour, label=label, ms=3)
+            lo, hi = c.mean[metric] - c.half_width[metric], c.mean[metric] + c.half_width[metric]
+            ax.fill_between(c.ranges, lo, hi, color=colour, alpha=0.2)
+        ax.set_xlabel("communication range R_c (cells)")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title + "  (mean over seeds, 95 % confidence band)", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

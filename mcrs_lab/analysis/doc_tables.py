@@ -1,0 +1,277 @@
+"""``mcrs-results``: the tables and figures of docs/RESULTS.md, regenerated from the committed records.
+
+    mcrs-results check            # exit 1 and a diff when a table (or figure) differs from the records'
+    mcrs-results update           # rewrite those tables in place, and the figures' image files
+    mcrs-results check docs/OTHER.md
+
+A generated table sits between two HTML comments (invisible on GitHub), the first naming the table file
+and the ``mcrs-report`` command that writes it::
+
+    <!-- table final.md of: mcrs-report results/records/baselines/campaign --env map20 -->
+    | method | seeds | ... |
+    <!-- end table -->
+
+A generated figure is the same with ``figure`` and a PNG, around the image line; the image file (relative
+to the document) is what the command draws::
+
+    <!-- figure learning_curves.png of: mcrs-report results/records/baselines/campaign --env map20 -->
+    ![learning curves, map20](results/map20_learning_curves.png)
+    <!-- end figure -->
+
+Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
+the document's ``docs/``), so the paths are the committed records'. A table or image outside these
+blocks is not made from the records: ``check`` names its line and fails (``update`` leaves it alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import difflib
+import io
+import os
+import re
+import shlex
+import sys
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcrs.experiment.untrusted import UntrustedInput, confined
+from mcrs_lab.analysis import report
+
+BLOCK = re.compile(
+    r"<!-- (?P<kind>table|figure) (?P<file>[\w.-]+\.(?:md|png)) of: mcrs-report (?P<args>[^\n]*?) -->\n"
+    r"(?P<body>.*?)<!-- end (?P=kind) -->",
+    re.S,
+)
+#: mcrs-report options that write files besides --out: refused in a document's blocks.
+WRITING_OPTIONS = ("--out", "--marl-eval")
+IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)\s]+\.png)\)")
+
+
+class DocTableError(Exception):
+    """A generated table that cannot be made: its line and why."""
+
+
+@dataclass(frozen=True)
+class Block:
+    """One generated table or figure of a document: where it is, what makes it, what the document holds
+    now (a figure: its image line, whose file is ``image``)."""
+
+    line: int
+    file: str
+    args: tuple[str, ...]
+    body: str
+    start: int  # offsets of ``body`` in the document
+    end: int
+    kind: str = "table"
+    image: str = ""  # a figure's image path, relative to the document
+
+
+def _writes(option: str) -> bool:
+    """``option`` is one of :data:`WRITING_OPTIONS` or an abbreviation argparse would accept for it."""
+    return len(option) > 2 and option.startswith("--") and any(w.startswith(option) for w in WRITING_OPTIONS)
+
+
+def find_blocks(text: str) -> list[Block]:
+    """The generated tables and figures of ``text``, in order. Refuses a ``--out`` (the tool chooses the folder)."""
+    blocks = []
+    for match in BLOCK.finditer(text):
+        line = text.count("\n", 0, match.start()) + 1
+        try:
+            args = tuple(shlex.split(match["args"]))
+        except ValueError as error:
+            raise DocTableError(f"line {line}: the mcrs-report command cannot be read: {error}") from None
+        if "--out" in args:
+            raise DocTableError(
+                f"line {line}: leave --out out of the command; the table is made in a temporary folder"
+            )
+        written = [a for a in args if _writes(a.split("=", 1)[0])]
+        if written:  # a document must not make the tool write a file of its choosing
+            raise DocTableError(
+                f"line {line}: {written[0].split('=', 1)[0]} writes a file: a generated block may not use it "
+                f"(allowed options: --env, --claims, --tsne, --tsne-samples, --seed)"
+            )
+        if (match["kind"] == "table") != match["file"].endswith(".md"):
+            raise DocTableError(f"line {line}: a table is a .md file and a figure a .png: {match['file']}")
+        image = IMAGE.search(match["body"]) if match["kind"] == "figure" else None
+        if match["kind"] == "figure" and image is None:
+            raise DocTableError(f"line {line}: a figure block needs an image line ![...](<path>.png)")
+        blocks.append(
+            Block(
+                line,
+                match["file"],
+                args,
+                match["body"],
+                match.start("body"),
+                match.end("body"),
+                match["kind"],
+                image["path"] if image else "",
+            )
+        )
+    return blocks
+
+
+def _root(doc: Path) -> Path:
+    """The folder the commands run in: the repository root for a document under ``docs/``."""
+    folder = doc.resolve().parent
+    return folder.parent if folder.name == "docs" else folder
+
+
+@contextlib.contextmanager
+def _inside(folder: Path) -> Iterator[None]:
+    """Run in ``folder`` and come back (``contextlib.chdir`` is Python 3.11+)."""
+    before = Path.cwd()
+    os.chdir(folder)
+    try:
+        yield
+    finally:
+        os.chdir(before)
+
+
+def generate(blocks: list[Block], root: Path) -> dict[Block, str | bytes]:
+    """Each table as ``mcrs-report`` writes it now, and each figure's PNG bytes (each distinct command
+    runs once, quietly)."""
+    made: dict[tuple[str, ...], Path] = {}
+    out: dict[Block, str | bytes] = {}
+    with tempfile.TemporaryDirectory(prefix="mcrs-results-") as tmp, _inside(root):
+        for block in blocks:
+            if block.args not in made:
+                folder = Path(tmp) / str(len(made))
+                try:
+                    with contextlib.redirect_stdout(io.StringIO()):
+                        report.main([*block.args, "--out", str(folder)])
+                except SystemExit as error:
+                    raise DocTableError(
+                        f"line {block.line}: mcrs-report {shlex.join(block.args)}: {error}"
+                    ) from None
+                made[block.args] = folder
+            path = made[block.args] / block.file
+            if not path.is_file():
+                suffix = Path(block.file).suffix
+                written = sorted(p.name for p in made[block.args].glob(f"*{suffix}") if p.name != "report.md")
+                raise DocTableError(
+                    f"line {block.line}: mcrs-report {shlex.join(block.args)} writes no {block.file}; "
+                    f"it writes: {', '.join(written) or 'no ' + block.kind}"
+                )
+            out[block] = path.read_bytes() if block.kind == "figure" else path.read_text()
+    return out
+
+
+def hand_made(text: str) -> list[int]:
+    """The lines of tables and images outside the generated blocks (the first line of each table)."""
+    lines = []
+    blocks = [(m.start(), m.end()) for m in BLOCK.finditer(text)]
+    offset, previous = 0, ""
+    for number, line in enumerate(text.splitlines(keepends=True), start=1):
+        inside = any(start <= offset < end for start, end in blocks)
+        starts_table = line.startswith("|") and not previous.startswith("|")
+        if not inside and (starts_table or IMAGE.search(line)):
+            lines.append(number)
+        offset, previous = offset + len(line), line
+    return lines
+
+
+def check(doc: Path) -> list[str]:
+    """A unified diff per table of ``doc`` that differs from what the records give, and a line per table
+    or image not made from them (empty: all agree)."""
+    text = doc.read_text()
+    diffs = [
+        f"{doc}:{line}: a table or figure outside the generated blocks: not made from the records\n"
+        for line in hand_made(text)
+    ]
+    for block, fresh in generate(find_blocks(text), _root(doc)).items():
+        if isinstance(fresh, bytes):
+            image = _image_path(doc, block)
+            if not image.is_file() or image.read_bytes() != fresh:
+                state = "differs from" if image.is_file() else "is missing; it should be"
+                diffs.append(
+                    f"{doc}:{block.line}: figure {block.image} {state} the {block.file} of "
+                    f"mcrs-report {shlex.join(block.args)}\n"
+                )
+            continue
+        if fresh != block.body:
+            lines = difflib.unified_diff(
+                block.body.splitlines(keepends=True),
+                fresh.splitlines(keepends=True),
+                f"{doc}:{block.line} ({block.file}, as committed)",
+                f"mcrs-report {shlex.join(block.args)}",
+            )
+            diffs.append("".join(lines))
+    return diffs
+
+
+def _image_path(doc: Path, block: Block) -> Path:
+    """A figure's image file, which must lie inside the repository (the folder the commands run in)."""
+    try:
+        return confined(doc.parent / block.image, _root(doc), f"line {block.line}: the image")
+    except UntrustedInput as error:
+        raise DocTableError(str(error)) from None
+
+
+def update(doc: Path) -> int:
+    """Rewrite every generated table of ``doc``, and every generated figure's image, from the records
+    (each file atomically, and nothing when one cannot be made); how many changed."""
+    text = doc.read_text()
+    blocks = find_blocks(text)
+    fresh = generate(blocks, _root(doc))
+    changed = 0
+    for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
+        made = fresh[block]
+        if isinstance(made, bytes):
+            image = _image_path(doc, block)
+            if not image.is_file() or image.read_bytes() != made:
+                image.parent.mkdir(parents=True, exist_ok=True)
+                partial = image.with_name(f".{image.name}.partial")
+                partial.write_bytes(made)
+                os.replace(partial, image)
+                changed += 1
+        elif made != block.body:
+            text = text[: block.start] + made + text[block.end :]
+            changed += 1
+    if changed:
+        partial = doc.with_name(f".{doc.name}.partial")
+        partial.write_text(text)
+        os.replace(partial, doc)
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="mcrs-results",
+        description="Check or rewrite the generated tables of a results document from the committed records.",
+    )
+    parser.add_argument("action", choices=["check", "update"])
+    parser.add_argument(
+        "doc", nargs="?", type=Path, default=Path("docs/RESULTS.md"), help="default: docs/RESULTS.md"
+    )
+    args = parser.parse_args(argv)
+    try:
+        text = args.doc.read_text()
+        n, hand = len(find_blocks(text)), len(hand_made(text))
+        if args.action == "update":
+            print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
+            return 0
+        diffs = check(args.doc)
+    except (DocTableError, OSError, UnicodeDecodeError) as error:
+        raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
+    if diffs:
+        print("\n".join(diffs))
+        if len(diffs) > hand:
+            print(
+                f"{args.doc}: {len(diffs) - hand} of {n} generated tables and figures differ from the records "
+                "(mcrs-results update)"
+            )
+        if hand:
+            print(
+                f"{args.doc}: {hand} tables or figures are not generated from the records (make them blocks)"
+            )
+        return 1
+    print(f"{args.doc}: all {n} generated tables and figures agree with the records")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""Evaluations on fixed episodes (``mcrs-eval`` runs and their records) as report rows: the heuristics
+(each evaluation seed one sample) and trained policies (each trained run one sample), and the heuristics as
+the horizontal reference lines of the learning curves."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
+from mcrs_lab.analysis.runs import EvaluationRow
+
+HEURISTIC_ORDER = ("random", "lawnmower", "greedy", "coverage")
+
+
+def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> dict[str, list[EvaluationRow]]:
+    """The heuristics' evaluations at the training runs' R_c (any R_c when None), per policy, in order."""
+    by_policy: dict[str, list[EvaluationRow]] = {}
+    for row in evaluations:
+        if row.is_heuristic and (comm_range is None or row.comm_range == comm_range):
+            by_policy.setdefault(row.policy, []).append(row)
+    names = sorted(by_policy, key=lambda p: (HEURISTIC_ORDER.index(p) if p in HEURISTIC_ORDER else 9, p))
+    return {name: by_policy[name] for name in names}
+
+
+def heuristic_samples(
+    evaluations: list[EvaluationRow], comm_range: float | None, name: str
+) -> dict[str, np.ndarray]:
+    """Per heuristic (``greedy (heuristic)``), its evaluation seeds' means of metric ``name``
+    (``episode_reward``): the samples its mean and spread are taken over."""
+    return {
+        f"{policy} (heuristic)": np.array([g.means[name] for g in group if name in g.means])
+        for policy, group in _heuristics(evaluations, comm_range).items()
+    }
+
+
+def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
+    """The heuristics at the training runs' R_c: mean and std over evaluation seeds of each seed's mean."""
+    rows = []
+    names = [metric.split("/")[-1] for metric in FINAL_METRICS]
+    samples = {name: heuristic_samples(evaluations, comm_range, name) for name in names}
+    for policy, group in _heuristics(evaluations, comm_range).items():
+        row: dict[str, object] = {"method": f"{policy} (heuristic)", "seeds": len(group), "env_steps": 0}
+        for name in names:
+            values = samples[name][f"{policy} (heuristic)"]
+            row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
+            row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def _trained_groups(evaluations: list[EvaluationRow]) -> dict[str, dict[str, list[EvaluationRow]]]:
+    """Evaluations of trained policies: method -> trained run -> its rows (one per evaluation seed). A
+    method is the policy's label (``trained qmix``), plus the run's name without its seed (``[qmix_shield]``)
+    where runs of one label differ in more than their seed."""
+    by_label: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for row in evaluations:
+        if not row.is_heuristic:
+            by_label.setdefault(row.label or f"trained {_run_stem(row.policy)}", {}).setdefault(
+                row.policy, []
+            ).append(row)
+    methods: dict[str, dict[str, list[EvaluationRow]]] = {}
+    for label in sorted(by_label):
+        stems = {policy: _run_stem(policy) for policy in by_label[label]}
+        for policy, rows in by_label[label].items():
+            method = f"{label} [{stems[policy]}]" if len(set(stems.values())) > 1 else label
+            methods.setdefault(method, {})[policy] = rows
+    return dict(sorted(methods.items()))
+
+
+def _run_stem(policy: str) -> str:
+    """A trained run's name without its seed: ``outputs/shield/qmix_shield_seed2`` -> ``qmix_shield``."""
+    path = Path(policy)
+    name = path.parent.name if path.suffix == ".pt" else path.name
+    return re.sub(r"_?seed\d+$", "", name) or name
+
+
+def trained_samples(evaluations: list[EvaluationRow], name: str) -> dict[str, np.ndarray]:
+    """Per trained method (``trained qmix``), each of its runs' mean of metric ``name`` over its
+    evaluation seeds: the samples its mean and spread are taken over."""
+    out = {}
+    for method, runs in _trained_groups(evaluations).items():
+        per_run = [[g.means[name] for g in group if name in g.means] for group in runs.values()]
+        out[method] = np.array([np.mean(v) for v in per_run if v and np.isfinite(np.mean(v))])
+    return out
+
+
+def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
+    """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
+    mean and std over the runs (training seeds)."""
+    rows = []
+    names = [metric.split("/")[-1] for metric in FINAL_METRICS]
+    samples = {name: trained_samples(evaluations, name) for name in names}
+    for method, runs in _trained_groups(evaluations).items():
+        row: dict[str, object] = {"method": method, "seeds": len(runs), "env_steps": 0}
+        for name in names:
+            values = samples[name][method]
+            row[f"{name}_mean"] = float(values.mean()) if len(values) else float("nan")
+            row[f"{name}_std"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def heuristic_references(
+    evaluations: list[EvaluationRow], comm_range: float | None
+) -> dict[str, list[Reference]]:
+    """Per learning-curve panel, each heuristic's mean over evaluation seeds and its 95 % band: the
+    horizontal lines a learner has to beat."""
+    out: dict[str, list[Reference]] = {}
+    for policy, group in _heuristics(evaluations, comm_range).items():
+        for metric, panel in CURVE_METRICS.items():
+            name = metric.split("/")[-1]
+            values = np.array([g.means[name] for g in group if name in g.means])
+            if len(values):
+                half = float(confidence_half_width(values[:, None])[0])
+                out.setdefault(panel, []).append(
+                    Reference(
+                        f"{policy} (heuristic)", float(values.mean()), half, len(values), "evaluation seeds"
+                    )
+                )
+    return out

@@ -1,0 +1,216 @@
+"""``mcrs-campaign``: the section-6 campaign (mcrs_lab/campaign/section6.yaml) on one machine.
+
+    mcrs-campaign status [--only fig7]                  which points are done, partial or missing
+    mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
+    mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
+    mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
+    mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
+
+Records go to results/records/ (commit them); runs to outputs/campaign/. See docs/RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from collections import Counter
+from pathlib import Path
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.viz.tables import markdown
+from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
+from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
+from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
+from mcrs_lab.campaign.progress import STATES
+from mcrs_lab.campaign.runner import Campaign, CampaignBusy
+
+OUTPUTS_DIR = Path("outputs/campaign")
+#: --hours beyond a year is a typo (and time.time() + inf never ends).
+MAX_HOURS = 24 * 366
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mcrs-campaign", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def matrix_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--matrix", type=Path, default=DEFAULT_MATRIX, help="the campaign file")
+        p.add_argument(
+            "--only",
+            action="append",
+            default=[],
+            help="points to keep: a figure, experiment, map, algorithm, seed<k> or point id; comma = or, "
+            "repeated = and",
+        )
+        p.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs go")
+        p.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
+
+    status = sub.add_parser("status", help="done, unrecorded, partial or missing, per point")
+    matrix_options(status)
+    run = sub.add_parser("run", help="run the next points within a time budget")
+    matrix_options(run)
+    run.add_argument("--hours", type=float, required=True, help="no run starts that would end after this")
+    run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
+    run.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
+    run.add_argument("--keep-replay", action="store_true", help="do not prune finished runs' last.pt")
+    run.add_argument(
+        "--no-evaluate", action="store_true", help="do not run the file's evaluations of finished runs"
+    )
+    evaluation = sub.add_parser(
+        "evaluate", help="run the campaign file's evaluations of finished policies not yet recorded"
+    )
+    matrix_options(evaluation)
+    evaluation.add_argument(
+        "--evaluation", action="append", default=[], help="only these evaluations (default: all)"
+    )
+    evaluation.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
+    record = sub.add_parser("record", help="record mcrs-train runs or mcrs-eval results")
+    record.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    record.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
+    record.add_argument(
+        "--prune", action="store_true", help="drop the replay and memory from a finished run's last.pt"
+    )
+    record.add_argument(
+        "--replace", action="store_true", help="overwrite a record of another run of the same point"
+    )
+    report = sub.add_parser(
+        "report", help="mcrs-report on the records of the selected points and the heuristics"
+    )
+    matrix_options(report)
+    report.add_argument("--out", type=Path, required=True, help="folder for the figures and tables")
+    report.add_argument("--env", default=None, help="the map (default: the selected points' only map)")
+    return parser
+
+
+def _points(args: argparse.Namespace) -> tuple[list[Point], int]:
+    points, _ = load_matrix(args.matrix)
+    points = select(points, args.only)
+    return points, budget_steps(points[0].budget) if points else 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    points, total = _points(args)
+    states = Campaign(points, args.outputs, args.records, total).status()
+    rows = [[s.point.id, ",".join(s.point.figures), s.state, f"{s.env_steps:,}", s.note] for s in states]
+    print(markdown(["point", "figures", "state", "env steps", "where"], rows))
+    counts = Counter(s.state for s in states)
+    print(
+        f"\n{len(states)} points ({total:,} env steps each): " + ", ".join(f"{counts[k]} {k}" for k in STATES)
+    )
+    for line in summary(_evaluations(args), points, args.records):
+        print(line)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cores = os.cpu_count() or 1
+    if not 1 <= args.jobs <= cores:  # each run has one torch thread: more runs than cores only queue
+        raise SystemExit(f"mcrs-campaign: error: --jobs={args.jobs}: must be >= 1 and <= {cores} (CPU cores)")
+    if not (math.isfinite(args.hours) and 0 < args.hours <= MAX_HOURS):
+        raise SystemExit(
+            f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"
+        )
+    points, total = _points(args)
+    evaluations = [] if args.no_evaluate else _evaluations(args)
+    campaign = Campaign(
+        points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations
+    )
+    if args.dry_run:
+        print("\n".join(campaign.dry_run(args.hours)))
+        return 0
+    return campaign.run(args.hours)
+
+
+def _evaluations(args: argparse.Namespace) -> list[Evaluation]:
+    """The campaign file's evaluations, only those named by ``--evaluation`` if given."""
+    _, titles = load_matrix(args.matrix)
+    evaluations = load_evaluations(args.matrix, set(titles))
+    names = [e.name for e in evaluations]
+    chosen = getattr(args, "evaluation", [])
+    unknown = [n for n in chosen if n not in names]
+    if unknown:
+        raise MatrixError(
+            f"--evaluation={','.join(unknown)}: allowed values are {', '.join(names) or 'none'}"
+        )
+    return [e for e in evaluations if not chosen or e.name in chosen]
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    points, _ = _points(args)
+    return evaluate(_evaluations(args), points, args.outputs, args.records, args.dry_run)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    failed = 0
+    for run_dir in args.run_dirs:
+        try:
+            path, record = make_record(run_dir, args.records)
+            outcome = write_record(path, record, replace=args.replace)
+        except (RecordError, ckpt.CheckpointError) as error:
+            print(f"mcrs-campaign: error: {error}", file=sys.stderr)
+            failed += 1
+            continue
+        steps = record.get("checkpoint_env_steps")
+        what = (
+            f"{record['status']} at {steps:,} env steps" if record["kind"] == "training" else record["kind"]
+        )
+        print(f"{outcome} {path} ({what})")
+        if args.prune:
+            if record["kind"] != "training" or record["status"] != "finished":
+                print(
+                    f"  not pruned: {run_dir} is not a finished training run (a stopped run stays resumable)"
+                )
+            else:
+                before, after = ckpt.prune_bulk(run_dir)
+                print(
+                    f"  pruned {ckpt.checkpoint_path(run_dir)}: {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB"
+                )
+    return 1 if failed else 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from mcrs_lab.analysis.report import main as report_main
+
+    points, _ = _points(args)
+    paths = [p.record_path(args.records) for p in points if p.record_path(args.records).is_file()]
+    maps = sorted({p.env for p in points})
+    env = args.env or (maps[0] if len(maps) == 1 else None)
+    if env is None:
+        raise SystemExit(
+            f"mcrs-campaign: error: the points are on {', '.join(maps)}: pass --env (one of them)"
+        )
+    heuristics = args.records / "heuristics" / env
+    if not paths:
+        raise SystemExit("mcrs-campaign: error: no record of the selected points yet (mcrs-campaign status)")
+    print(f"{len(paths)} of {len(points)} points recorded", flush=True)
+    return report_main(
+        [
+            *map(str, paths),
+            *([str(heuristics)] if heuristics.is_dir() else []),
+            "--env",
+            env,
+            "--out",
+            str(args.out),
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        commands = {
+            "status": cmd_status,
+            "run": cmd_run,
+            "evaluate": cmd_evaluate,
+            "record": cmd_record,
+            "report": cmd_report,
+        }
+        return commands[args.command](args)
+    except (MatrixError, CampaignBusy, RecordError) as error:
+        raise SystemExit(f"mcrs-campaign: error: {error}") from None
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""The campaign's points (mcrs_lab/campaign/section6.yaml): which mcrs-train runs make which figure.
+
+A point is one run: an experiment preset, a map, an algorithm, its swept values and a seed, at the
+campaign's budget. Its run directory and its record path follow from it, so whether it is done can be
+read from the disk alone (mcrs_lab.campaign.progress).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
+from mcrs_lab.analysis.records import point_name, swept_fields
+
+#: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
+#: a config group.
+DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
+FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also"}
+
+
+class MatrixError(ValueError):
+    """A campaign file or an ``--only`` filter that cannot be used."""
+
+
+#: Seeds are mcrs-train's: in [0, 2**63 - 1].
+MAX_SEED = 2**63 - 1
+
+
+def plain(value: Any, what: str) -> str:
+    """``value`` as a plain name (it becomes a folder of the outputs or the records), else MatrixError."""
+    try:
+        return plain_name(value, what)
+    except UntrustedInput as error:
+        raise MatrixError(str(error)) from None
+
+
+def load_campaign_file(path: Path) -> dict[str, Any]:
+    """The campaign file as plain data, bounded before parsing (no aliases, size and depth limits)."""
+    try:
+        spec = read_yaml(path)
+    except UntrustedInput as error:
+        raise MatrixError(str(error)) from None
+    if not isinstance(spec, dict):
+        raise MatrixError(f"{path}: a mapping with budget, seeds, figures (and overrides, evaluations)")
+    return spec
+
+
+def _option(group: str, value: Any, where: str) -> str:
+    """``value`` as an option of the config group ``group`` (conf/<group>/<value>.yaml)."""
+    name = plain(value, f"{where}: {group}")
+    allowed = sorted(p.stem for p in Path(CONFIG_DIR, group).glob("*.yaml"))
+    if name not in allowed:
+        raise MatrixError(f"{where}: {group}={name!r}: allowed values are {', '.join(allowed)}")
+    return name
+
+
+def _seed(value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
+        raise MatrixError(f"{where}: seeds: {value!r} is not a whole number in [0, 2**63 - 1]")
+    return value
+
+
+@dataclass(frozen=True)
+class Point:
+    """One mcrs-train run of the campaign."""
+
+    experiment: str
+    env: str
+    algo: str
+    seed: int
+    budget: str
+    settings: tuple[tuple[str, Any], ...] = ()  # the swept values: (("algo.memory.delta", 0.13),)
+    overrides: tuple[str, ...] = ()  # fixed per-algorithm overrides (not part of the name)
+    figures: tuple[str, ...] = field(default=(), compare=False)
+
+    @property
+    def name(self) -> str:
+        return point_name(self.env, self.algo, self.seed, dict(self.settings))
+
+    @property
+    def id(self) -> str:
+        return f"{self.experiment}/{self.name}"
+
+    def run_dir(self, outputs: Path) -> Path:
+        return outputs / self.experiment / self.budget / self.name
+
+    def record_path(self, records: Path) -> Path:
+        return records / self.experiment / self.budget / f"{self.name}.json"
+
+    def tags(self) -> set[str]:
+        """What ``--only`` can name: a figure, an experiment, a map, an algorithm, ``seed<k>``, the id."""
+        return {*self.figures, self.experiment, self.env, self.algo, f"seed{self.seed}", self.id}
+
+    def train_command(self, outputs: Path) -> list[str]:
+        """``mcrs-train`` for a fresh run: the preset with every swept field fixed, one run, one thread."""
+        values = [f"{k}={v}" for k, v in self.settings]
+        return [
+            sys.executable,
+            "-m",
+            "mcrs.train",
+            f"experiment={self.experiment}",
+            f"budget={self.budget}",
+            f"env={self.env}",
+            f"algo={self.algo}",
+            *values,
+            *self.overrides,
+            f"seed={self.seed}",
+            "threads=1",
+            "hydra.mode=RUN",
+            f"hydra.run.dir={self.run_dir(outputs)}",
+        ]
+
+    def resume_command(self, outputs: Path, total_env_steps: int) -> list[str]:
+        """``mcrs-train resume=`` to the budget's length; Hydra's own files of the first launch are kept."""
+        run_dir = self.run_dir(outputs)
+        return [
+            sys.executable,
+            "-m",
+            "mcrs.train",
+            f"resume={run_dir}",
+            f"train.total_env_steps={total_env_steps}",
+            "threads=1",
+            # a run first launched before checkpoint_minutes' default of 10 keeps its saved 0 otherwise
+            "train.checkpoint_minutes=10",
+            "logger.progress_bar=false",
+            f"hydra.run.dir={run_dir}",
+            "hydra.output_subdir=null",
+        ]
+
+
+def budget_steps(budget: str) -> int:
+    """``train.total_env_steps`` of ``conf/budget/<budget>.yaml``: the length every point must reach."""
+    path = Path(CONFIG_DIR, "budget", f"{budget}.yaml")
+    if not path.is_file():
+        allowed = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise MatrixError(f"budget={budget!r}: allowed values are {', '.join(allowed)}")
+    return int(OmegaConf.load(path).train.total_env_steps)
+
+
+#: The key of ``overrides`` whose overrides every point gets (before its algorithm's own).
+ALL_POINTS = "all"
+
+
+def _as_list(value: Any) -> list[Any]:
+    return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str]]:
+    """Every point of the campaign file (each once, in the file's order, seed by seed within a
+    figure), and each figure's title."""
+    if not path.is_file():
+        raise MatrixError(f"--matrix={path}: no such file")
+    spec = load_campaign_file(path)
+    budget = plain(spec.get("budget", "campaign"), f"{path}: budget")
+    seeds = [_seed(s, str(path)) for s in _as_list(spec.get("seeds", [0]))]
+    budget_steps(budget)  # an unknown budget fails here, naming the allowed ones
+    overrides = {str(k): tuple(str(o) for o in _as_list(v)) for k, v in (spec.get("overrides") or {}).items()}
+    figures = spec.get("figures") or {}
+    if not isinstance(figures, dict):
+        raise MatrixError(f"{path}: figures: a mapping of figure names to entries")
+    points: dict[Point, list[str]] = {}
+    titles = {}
+    for name, fig in figures.items():
+        where = f"{path}: figure {name}"
+        if not isinstance(fig, dict) or not {"experiment", "env", "algo"} <= set(fig):
+            raise MatrixError(f"{where}: a mapping with experiment, env and algo (and title, sweep, also)")
+        unknown = set(fig) - FIGURE_KEYS
+        if unknown:
+            raise MatrixError(
+                f"{path}: figure {name}: unknown keys {sorted(unknown)}; allowed: {sorted(FIGURE_KEYS)}"
+            )
+        titles[name] = str(fig.get("title", name))
+        experiment = _option("experiment", fig["experiment"], where)
+        envs = [_option("env", e, where) for e in _as_list(fig["env"])]
+        algos = [_option("algo", a, where) for a in _as_list(fig["algo"])]
+        sweep = fig.get("sweep") or {}
+        if not isinstance(sweep, dict):
+            raise MatrixError(f"{where}: sweep: a mapping of fields to lists of values")
+        for key, values in sweep.items():
+            if not all(finite_number(v) or v == math.inf for v in _as_list(values)):
+                raise MatrixError(f"{where}: sweep {key}={values!r}: numbers only (not NaN)")
+        bad = [k for k in sweep if k not in swept_fields(experiment)]
+        if bad:
+            raise MatrixError(
+                f"{path}: figure {name}: sweep {bad} is not swept by experiment={experiment} "
+                f"(it sweeps {list(swept_fields(experiment)) or 'nothing besides map, algo and seed'})"
+            )
+        combos: list[tuple[tuple[str, Any], ...]] = [()]
+        for key, values in sweep.items():
+            combos = [(*c, (key, v)) for c in combos for v in _as_list(values)]
+        for seed in seeds:
+            for env in envs:
+                for algo in algos:
+                    for combo in combos:
+                        fixed = (*overrides.get(ALL_POINTS, ()), *overrides.get(algo, ()))
+                        point = Point(experiment, env, algo, seed, budget, combo, fixed)
+                        points.setdefault(point, []).append(name)
+    for name, fig in figures.items():  # a figure's `also`: points of another figure that serve it too
+        for other, algos in (fig.get("also") or {}).items():
+            if other not in figures:
+                raise MatrixError(f"{path}: figure {name}: also names {other!r}; figures are {list(figures)}")
+            for point, names in points.items():
+                if other in names and point.algo in _as_list(algos) and name not in names:
+                    names.append(name)
+    out = [
+        Point(p.experiment, p.env, p.algo, p.seed, p.budget, p.settings, p.overrides, tuple(names))
+        for p, names in points.items()
+    ]
+    return out, titles
+
+
+def select(points: list[Point], only: list[str]) -> list[Point]:
+    """The points matching every ``--only`` value; within one value, comma-separated names are
+    alternatives (``--only fig7 --only qmix,vdn``: figure 7's QMIX and VDN runs)."""
+    known = set().union(*(p.tags() for p in points)) if points else set()
+    for value in only:
+        names = [n for n in value.split(",") if n]
+        unknown = [n for n in names if n not in known]
+        if unknown or not names:
+            kinds = sorted(n for n in known if "/" not in n)
+            raise MatrixError(
+                f"--only={value}: unknown {', '.join(unknown) or 'empty value'}; allowed: {', '.join(kinds)} "
+                "or a point id (mcrs-campaign status lists them)"
+            )
+        points = [p for p in points if p.tags() & set(names)]
+    return points

@@ -1,0 +1,337 @@
+"""Running the campaign's points on one machine: a few ``mcrs-train`` processes at a time, partial runs
+resumed first, no new start that the time budget cannot hold, a record of every run that ends.
+
+Each child runs in its own session (process group), with one torch thread, its output appended to
+``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
+exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
+recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them. A run that
+finishes is then evaluated as the campaign file's ``evaluations:`` ask (mcrs_lab.campaign.evaluations),
+while the other jobs go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import shlex
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.rundir import lock_holder
+from mcrs_lab.analysis.records import (
+    SESSIONS,
+    RecordError,
+    git_facts,
+    loop_time_s,
+    machine_facts,
+    make_record,
+    write_record,
+)
+from mcrs_lab.analysis.runs import read_record
+from mcrs_lab.campaign.evaluations import Evaluation, plan, run_pending
+from mcrs_lab.campaign.matrix import Point
+from mcrs_lab.campaign.progress import Progress, progress
+
+#: Seconds a stopped child may take to exit after SIGINT before it is killed.
+STOP_GRACE_S = 120.0
+LOG = "campaign.log"
+
+
+@dataclass
+class Job:
+    """A running ``mcrs-train`` child."""
+
+    point: Point
+    command: list[str]
+    process: subprocess.Popen
+    log: IO[str]
+    started: float = field(default_factory=time.time)
+    machine: dict[str, Any] = field(default_factory=machine_facts)
+
+
+def _hours(seconds: float | None) -> str:
+    return "unknown" if seconds is None else f"{seconds / 3600:.2f} h"
+
+
+def _print(*parts: object) -> None:
+    print(*parts, flush=True)
+
+
+class CampaignBusy(RuntimeError):
+    """Another ``mcrs-campaign run`` holds the outputs folder."""
+
+
+class Campaign:
+    """The points to run, where their runs and records go, and how many run at once."""
+
+    def __init__(
+        self,
+        points: list[Point],
+        outputs: Path,
+        records: Path,
+        total_env_steps: int,
+        jobs: int = 2,
+        prune: bool = True,
+        evaluations: list[Evaluation] | None = None,
+    ) -> None:
+        self.points, self.outputs, self.records = points, outputs, records
+        self.total, self.jobs, self.prune = total_env_steps, jobs, prune
+        self.evaluations = evaluations or []
+        self.stop_signal: int | None = None
+        self.failed = 0  # runs of this campaign that ended with a non-zero exit status (not stopped by it)
+
+    def status(self) -> list[Progress]:
+        return [progress(p, self.outputs, self.records, self.total) for p in self.points]
+
+    def plan(self) -> tuple[list[Progress], list[tuple[Progress, list[str]]]]:
+        """Runs to record now (finished, no record), then the launches in order: partial runs first
+        (resumed), then missing ones, each in the campaign file's order."""
+        states = self.status()
+        to_record = [s for s in states if s.state == "unrecorded"]
+        launches = [
+            (s, s.point.resume_command(self.outputs, self.total)) for s in states if s.state == "partial"
+        ]
+        launches += [(s, s.point.train_command(self.outputs)) for s in states if s.state == "missing"]
+        return to_record, launches
+
+    # -------------------------------------------------------------------------------- estimates
+    def _speeds(self) -> dict[tuple[str, str], float]:
+        """Env steps per second of earlier runs, per (map, algorithm), from the records."""
+        per: dict[tuple[str, str], list[float]] = {}
+        for path in sorted(self.records.glob("*/*/*.json")):
+            record = read_record(path)
+            if not record or record.get("kind") != "training":
+                continue
+            seconds = sum(s.get("wall_s", 0.0) for s in record.get("sessions", [])) or record.get(
+                "loop_time_s"
+            )
+            steps = record.get("checkpoint_env_steps") or 0
+            if seconds and steps:
+                key = (record["config"]["env"]["name"], record["config"]["algo"]["name"])
+                per.setdefault(key, []).append(steps / seconds)
+        return {k: sum(v) / len(v) for k, v in per.items()}
+
+    def estimate_s(self, state: Progress, speeds: dict[tuple[str, str], float]) -> float | None:
+        """Seconds left for a point: its own speed so far (a partial run), else that of recorded runs of
+        the same map and algorithm, else the slowest recorded algorithm on that map (an algorithm's first
+        run would otherwise start whatever time is left); None when the map has no record."""
+        speed = speeds.get((state.point.env, state.point.algo))
+        same_map = [v for (env, _), v in speeds.items() if env == state.point.env]
+        if speed is None and same_map:
+            speed = min(same_map)
+        if state.state == "partial":
+            seconds = loop_time_s(state.point.run_dir(self.outputs))
+            if seconds and state.env_steps:
+                speed = state.env_steps / seconds
+        return (self.total - state.env_steps) / speed if speed else None
+
+    # ---------------------------------------------------------------------------------- running
+    def dry_run(self, hours: float) -> list[str]:
+        """The commands ``run`` would start, in order, with their estimated length; nothing is run."""
+        to_record, launches = self.plan()
+        speeds = self._speeds()
+        lines = [f"record {s.point.run_dir(self.outputs)}" for s in to_record]
+        # The same rule as `run`, simulated: a run starts when a job slot frees, and only if its estimate
+        # ends before the deadline (a run without an estimate always starts).
+        deadline = hours * 3600
+        slots = [0.0] * self.jobs
+        for state, command in launches:
+            estimate = self.estimate_s(state, speeds)
+            slot = min(range(self.jobs), key=slots.__getitem__)
+            if estimate is not None and slots[slot] + estimate > deadline:
+                left = max(0.0, deadline - slots[slot])
+                lines.append(
+                    f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(left)} left"
+                )
+                continue
+            slots[slot] += estimate or 0.0
+            what = "resume" if state.state == "partial" else "start"
+            lines.append(
+                f"{what} {state.point.id} (at {state.env_steps} env steps, estimated "
+                f"{_hours(estimate)}): {shlex.join(command)}"
+            )
+        lines.append(f"{len(launches)} runs, {self.jobs} at a time, no new start after {hours:g} h")
+        return lines
+
+    def run(self, hours: float) -> int:
+        """Run the plan within ``hours``; returns 0 when every run it started ended well and the rest were
+        left for lack of time, 1 when a point was refused (its run directory in use by a live run, or not
+        the campaign's) or a run failed, 128 + the signal that stopped it. One campaign at a time per
+        outputs folder: a second one would start the same points."""
+        self.outputs.mkdir(parents=True, exist_ok=True)
+        with open(self.outputs / ".campaign.lock", "a+") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                lock.seek(0)
+                raise CampaignBusy(
+                    f"another mcrs-campaign run uses {self.outputs} (pid {lock.read().strip() or '?'})"
+                ) from None
+            lock.seek(0)
+            lock.truncate()
+            lock.write(str(os.getpid()))
+            lock.flush()
+            return self._run(hours)
+
+    def _run(self, hours: float) -> int:
+        deadline = time.time() + hours * 3600
+        to_record, launches = self.plan()
+        for state in to_record:
+            self._record(state.point)
+        speeds = self._speeds()
+        queue = list(launches)
+        running: list[Job] = []
+        not_started = refused = 0
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            while (queue or running) and self.stop_signal is None:
+                while queue and len(running) < self.jobs and self.stop_signal is None:
+                    state, command = queue.pop(0)
+                    estimate = self.estimate_s(state, speeds)
+                    if estimate is not None and time.time() + estimate > deadline:
+                        left = max(0.0, deadline - time.time())
+                        _print(
+                            f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(left)} left"
+                        )
+                        not_started += 1
+                        continue
+                    job = self._launch(state, command)
+                    if job is None:
+                        refused += 1
+                    else:
+                        running.append(job)
+                time.sleep(1.0)
+                for job in [j for j in running if j.process.poll() is not None]:
+                    running.remove(job)
+                    self._finish(job)
+                    speeds = self._speeds()
+            if self.stop_signal is not None:
+                self._stop(running)
+                return 128 + self.stop_signal
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        ended = len(launches) - not_started - refused
+        _print(f"campaign: {ended} runs ended, {not_started} not started (time budget)")
+        if refused:
+            _print(
+                f"campaign: {refused} runs not started: their directories are in use or not the campaign's "
+                "(exit status 1)"
+            )
+        if self.failed:
+            _print(f"campaign: {self.failed} runs failed (exit status 1)")
+        return 1 if refused or self.failed else 0
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        if self.stop_signal is None:
+            _print(f"campaign: {signal.Signals(signum).name}: stopping the running children")
+        self.stop_signal = signum
+
+    def _refusal(self, point: Point, state: str) -> str | None:
+        """Why the campaign must not touch ``point``'s run directory now, or None. A run whose lock is
+        held (a user's mcrs-train, or another tool) is left alone, and a directory the campaign did not
+        start (no campaign.log) is never moved aside: only its owner knows what it holds."""
+        run_dir = point.run_dir(self.outputs)
+        holder = lock_holder(run_dir)
+        if holder is not None:
+            return (
+                f"{point.id}: its run directory {run_dir} is in use by {holder}: the campaign leaves a "
+                "live run alone; run the campaign again once it has ended"
+            )
+        if state == "missing" and run_dir.exists() and not (run_dir / LOG).is_file():
+            return (
+                f"{point.id}: {run_dir} holds a run that mcrs-campaign did not start (no {LOG}): move it "
+                "away or resume it yourself (mcrs-train resume=); the campaign does not touch it"
+            )
+        return None
+
+    def _launch(self, state: Progress, command: list[str]) -> Job | None:
+        run_dir = state.point.run_dir(self.outputs)
+        refusal = self._refusal(state.point, state.state)
+        if refusal is not None:
+            _print(f"not started: {refusal}")
+            return None
+        if state.state == "missing" and run_dir.exists():  # a start that died before its first checkpoint
+            aside = run_dir.with_name(f"{run_dir.name}.failed-{time.strftime('%Y%m%d-%H%M%S')}")
+            run_dir.rename(aside)
+            _print(f"moved {run_dir} (no checkpoint) to {aside}")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        log = open(run_dir / LOG, "a")  # noqa: SIM115 (closed when the child ends)
+        log.write(f"\n$ {shlex.join(command)}\n")
+        log.flush()
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+        process = subprocess.Popen(
+            command, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )
+        what = "resumed" if state.state == "partial" else "started"
+        _print(f"{what} {state.point.id} (pid {process.pid}): {shlex.join(command)}")
+        return Job(state.point, command, process, log)
+
+    def _finish(self, job: Job, stopped: bool = False) -> None:
+        job.log.close()
+        run_dir = job.point.run_dir(self.outputs)
+        session = {
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(job.started)),
+            "ended": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "wall_s": round(time.time() - job.started, 1),
+            "command": ["python", *job.command[1:]],  # the interpreter's path says nothing elsewhere
+            "returncode": job.process.returncode,
+            "stopped_by_campaign": stopped,
+            "git": git_facts(),
+            "machine": job.machine,
+            "load_avg_end": [round(x, 2) for x in os.getloadavg()],
+        }
+        with open(run_dir / SESSIONS, "a") as f:
+            f.write(json.dumps(session) + "\n")
+        if job.process.returncode != 0 and not stopped:
+            self.failed += 1
+            tail = (run_dir / LOG).read_text().strip().splitlines()[-5:]
+            _print(
+                f"failed: {job.point.id} (exit {job.process.returncode}); {run_dir / LOG} ends:\n  "
+                + "\n  ".join(tail)
+            )
+        self._record(job.point)
+
+    def _record(self, point: Point) -> None:
+        run_dir = point.run_dir(self.outputs)
+        holder = lock_holder(run_dir)
+        if holder is not None:  # a live run: its checkpoint may change under the record (and the pruning)
+            _print(f"not recorded: {point.id}: {run_dir} is in use by {holder}")
+            return
+        try:
+            path, record = make_record(run_dir, self.records)
+            outcome = write_record(path, record)
+        except (RecordError, ckpt.CheckpointError) as error:
+            _print(f"not recorded: {point.id}: {error}")
+            return
+        _print(f"{outcome} {path} ({record['status']} at {record['checkpoint_env_steps']} env steps)")
+        if record["status"] != "finished":
+            return
+        if self.prune:
+            before, after = ckpt.prune_bulk(run_dir)
+            if after < before:
+                _print(
+                    f"pruned {ckpt.checkpoint_path(run_dir)}: {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB"
+                )
+        if self.evaluations and self.stop_signal is None:
+            run_pending(plan(self.evaluations, [point], self.records)[0], self.outputs, self.records)
+
+    def _stop(self, running: list[Job]) -> None:
+        for job in running:
+            with contextlib.suppress(ProcessLookupError):  # already gone
+                os.killpg(job.process.pid, signal.SIGINT)
+        end = time.time() + STOP_GRACE_S
+        for job in running:
+            try:
+                job.process.wait(timeout=max(0.0, end - time.time()))
+            except subprocess.TimeoutExpired:
+                os.killpg(job.process.pid, signal.SIGKILL)
+                job.process.wait()
+            self._finish(job, stopped=True)
