@@ -1,7 +1,9 @@
 """The batched MCRS-LCR simulator: pure torch, every tensor ``[num_envs, ...]``, no loop over envs or UAVs.
 
 This is the one implementation of the environment's dynamics. :class:`~mcrs.env.torchrl_env.MCRSEnv`
-(TorchRL) and :class:`~mcrs.env.pettingzoo_env.MCRSParallelEnv` (PettingZoo) are thin adapters over it.
+(TorchRL) and :class:`~mcrs.env.pettingzoo_env.MCRSParallelEnv` (PettingZoo) are thin adapters over it. What a
+reset or step hands out (:class:`StepResult`: observations, state, mask, metrics) is built in
+:mod:`mcrs.env.outputs`.
 
 Conventions: cell ``(x, y)`` has flat index ``x * height + y`` (x-major, as in the state); count channel 0
 holds positive readings ("F", target), channel 1 negative readings ("E", empty).
@@ -14,8 +16,6 @@ evidence ("dynamic"), discoveries are judged at the targets' current cells.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from mcrs.env.belief import belief_masses
@@ -26,6 +26,7 @@ from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within,
 from mcrs.env.geometry import Geometry
 from mcrs.env.messages import MessageChannel
 from mcrs.env.metrics import METRICS  # noqa: F401 (read from here by mcrs.experiment, mcrs-eval and the lab)
+from mcrs.env.outputs import CoreOutputs, StepResult  # StepResult: read from here by the adapters
 from mcrs.env.shield import safe_move_table, shielded_mask
 from mcrs.env.targets import TargetWalk
 
@@ -42,29 +43,7 @@ def counts_dtype(config: EnvConfig) -> torch.dtype:
     return torch.int16 if config.n_uavs * (config.max_steps + 1) < 2**15 else torch.int32
 
 
-@dataclass
-class StepResult:
-    """What one reset or step produces, every entry batched over environments."""
-
-    observation: torch.Tensor  # [E, N, obs_dim]
-    action_mask: torch.Tensor  # [E, N, 8] bool
-    state: torch.Tensor  # [E, state_dim]
-    state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
-    state_counts: (
-        torch.Tensor
-    )  # [E, cells, 2] global (positive, negative) counts per cell: int, float32 if decayed
-    position: torch.Tensor  # [E, N, 2] int64
-    reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
-    reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
-    reward_terms: torch.Tensor  # [E, 4]: r1 uncertainty, r2 discovery, r3 no-fly, r4 collision
-    step_count: torch.Tensor  # [E] int64: steps taken in the episode
-    truncated: torch.Tensor  # [E] bool: the time limit T is reached
-    metrics: dict[str, torch.Tensor]  # each [E] float32, running values of the episode
-    belief_map: torch.Tensor | None = None  # [E, N, 2, width, height] each UAV's fused m(U), m(F)
-    neighbours: torch.Tensor | None = None  # [E, N, N] bool communication graph of this step
-
-
-class MCRSCore:
+class MCRSCore(CoreOutputs):
     """Holds the state of ``num_envs`` independent episodes and advances them together."""
 
     def __init__(self, config: EnvConfig, device: torch.device | str | None = None) -> None:
@@ -405,88 +384,3 @@ class MCRSCore:
         cell = self._uav_cells() if cell is None else cell
         unshielded = self._mask_of_cell[cell]
         return unshielded if self._safe_moves is None else shielded_mask(self._safe_moves, cell, unshielded)
-
-    def _observation(self, geometry: Geometry, cell: torch.Tensor) -> torch.Tensor:
-        c = self.config
-        E, N = self.num_envs, self.n_uavs
-        around = self.counts.gather(2, self._around_counts[cell]).view(E, N, 2, 8)
-        if self.decay is not None:
-            around = self.decay.now(around, self.step_count)
-        on_grid = self._around_on_grid[cell]
-        _, full, unknown = belief_masses(around[:, :, 0], around[:, :, 1], c.m_f, c.m_e)
-
-        # Relative positions: every other UAV in index order, then every no-fly zone ([E, N, K]).
-        def objects(uav_plane: torch.Tensor, no_fly_plane: torch.Tensor) -> torch.Tensor:
-            others = uav_plane.view(E, N * N).index_select(1, self._other_pairs).view(E, N, N - 1)
-            return torch.cat([others, no_fly_plane], dim=2)
-
-        squared = objects(geometry.uav_squared, geometry.no_fly_squared)
-        scale = (squared <= c.sight_range**2).to(torch.float32) / c.sight_range  # zero beyond sight
-        relative = torch.stack(
-            [
-                squared.sqrt() * scale,
-                objects(geometry.uav_dx, geometry.no_fly_dx) * scale,
-                objects(geometry.uav_dy, geometry.no_fly_dy) * scale,
-            ],
-            dim=-1,
-        )  # (d, dx, dy) / R_sight
-        return torch.cat(
-            [
-                self.uav_pos.to(torch.float32) / self._pos_scale,
-                unknown * on_grid,
-                full * on_grid,
-                relative.view(E, N, -1),
-            ],
-            dim=-1,
-        )
-
-    def _result(
-        self, terms: torch.Tensor, geometry: Geometry | None = None, neighbours: torch.Tensor | None = None
-    ) -> StepResult:
-        c = self.config
-        E = self.num_envs
-        geometry = geometry if geometry is not None else self._geometry()
-        if neighbours is None:
-            neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
-        cell = self._uav_cells()
-        self._mask = self._action_mask(cell)
-        positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
-        state = torch.cat(
-            [self.global_belief.view(E, -1)]
-            + [(p.to(torch.float32) / self._pos_scale).reshape(E, -1) for p in positions],
-            dim=-1,
-        )
-        metrics = {
-            "episode_reward": self.episode_reward.clone(),
-            "uncertainty": self.total_uncertainty.clone(),
-            "targets_found": self.targets_found.clone(),
-            "false_discoveries": self.false_discoveries.clone(),
-            "collisions": self.collisions.clone(),
-            "no_fly_violations": self.no_fly_violations.clone(),
-            "coverage": self.cells_sensed / self.n_cells,
-        }
-        result = StepResult(
-            observation=self._observation(geometry, cell),
-            action_mask=self._mask.clone(),
-            state=state,
-            state_map=state[:, : 2 * self.n_cells].view(E, 2, c.width, c.height),  # a view, no copy
-            state_counts=self.global_counts.view(E, self.n_cells, 2).clone(),
-            position=self.uav_pos.clone(),
-            reading=self.reading.clone(),
-            reward=terms.sum(-1),
-            reward_terms=terms,
-            step_count=self.step_count.clone(),
-            truncated=self.step_count >= c.max_steps,
-            metrics=metrics,
-        )
-        if c.expose_beliefs:
-            result.belief_map = self.belief_maps()
-            result.neighbours = neighbours
-        return result
-
-    def belief_maps(self) -> torch.Tensor:
-        """``[E, N, 2, width, height]``: each UAV's own fused m(U) and m(F) maps."""
-        c = self.config
-        counts = self.counts_now()
-        _, full, unknown = belief_masses(counts[..., 0::2], counts[..., 1::2], c.m_f, c.m_e)
-        return torch.stack([unknown, full], dim=2).view(self.num_envs, self.n_uavs, 2, c.width, c.height)

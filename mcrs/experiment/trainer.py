@@ -10,7 +10,8 @@
     every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
         checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
         only the blocks with episodes added since the previous one (mcrs.experiment.replay_store); the
-        newest keep_checkpoints weight files model_<steps>.pt are kept
+        newest keep_checkpoints weight files model_<steps>.pt are kept (what a checkpoint holds, how it is
+        written and restored: mcrs.experiment.run_state, a base class of Experiment)
 
     Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run").run()
     Experiment(compose("algo=qplex"), "outputs/game", task=MatrixGameTask()).run()   # any Task
@@ -23,9 +24,7 @@ checkpoint. So a run resumed from a checkpoint repeats the straight run exactly 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -41,22 +40,10 @@ from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.learner import Learner
 from mcrs.experiment.logging import log_event, log_scalars, make_logger, metrics_line, progress_bar
-from mcrs.experiment.replay import (
-    episodes_from_rollout,
-    load_replay_state_dict,
-    make_episode_buffer,
-    replay_state_dict,
-)
+from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.rundir import (
-    RunDirError,
-    RunLock,
-    describe_os_error,
-    fingerprint,
-    io_errors,
-    prepare_fresh,
-    truncate_csv_logs,
-)
+from mcrs.experiment.run_state import RunState
+from mcrs.experiment.rundir import RunDirError, RunLock, describe_os_error, io_errors, prepare_fresh
 from mcrs.experiment.task import MCRSTask, Task, check_supported, with_agent_state
 from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
@@ -77,9 +64,10 @@ def algorithm_callbacks(
     return algorithm_for(config.algo).callbacks(config, env_config, learner, device)
 
 
-class Experiment:
+class Experiment(RunState):
     """A training run built from a config; :meth:`run` trains it, :meth:`evaluate` evaluates the greedy
-    policy, :meth:`state_dict` is everything a checkpoint holds.
+    policy, :meth:`state_dict` is everything a checkpoint holds (the checkpoint half, :meth:`save`,
+    :meth:`load_state_dict` and :meth:`fingerprint` included, is :class:`~mcrs.experiment.run_state.RunState`).
 
     Args:
         config: the typed :class:`~mcrs.experiment.config.Config` (or the Hydra ``DictConfig`` it is
@@ -180,11 +168,7 @@ class Experiment:
             t.num_envs,
         )
         if resume:  # last: building the collector may draw random numbers
-            rng = self._resume_rng
-            del self._resume_rng
-            torch.set_rng_state(rng["torch"].cpu())
-            if "cuda" in rng and torch.cuda.is_available():
-                torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
+            self._restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
 
     def callback(self, name: str) -> Callback:
@@ -382,112 +366,3 @@ class Experiment:
         if self.last_eval:
             post["eval_reward"] = f"{self.last_eval['episode_reward']:.1f}"
         return post
-
-    # ------------------------------------------------------------------ checkpoints
-    def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
-        """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
-        block files that :meth:`save` writes for ``last.pt``."""
-        state = {
-            "config": to_container(self.config),
-            "fingerprint": self.fingerprint(),
-            "logs": {"rows": dict(self._log_rows)},
-            "counters": asdict(self.counters),
-            "learner": self.learner.state_dict(),
-            "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
-            "last_eval": dict(self.last_eval),
-            "rng": {"torch": torch.get_rng_state()},
-        }
-        if torch.cuda.is_available():
-            state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
-        if self.config.train.save_replay:
-            if replay_inline:
-                state["replay"] = replay_state_dict(self.replay)
-            else:
-                state["replay_blocks"] = self.replay_store.save(self.replay, state["fingerprint"])
-        return state
-
-    def fingerprint(
-        self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
-    ) -> dict:
-        """What a checkpoint must share with this run (:func:`mcrs.experiment.rundir.fingerprint`): of this
-        run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
-        from mcrs.experiment.config import RESUME_MUTABLE
-
-        learner = self.learner.weights() if learner is None else learner
-        config = to_container(self.config) if config is None else config
-        networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
-        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second:
-        return {"format.version": out.pop("format.version"), **self.task.fingerprint(), **out}
-
-    def save(self, name: str = ckpt.LAST) -> Path:
-        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
-
-        An I/O error (a full disk, a read-only directory) stops the run in one line; the atomic write
-        leaves the previous checkpoint as it was and no temporary behind. ``last.pt`` names the replay's
-        block files (only the changed blocks are written); any other name (``last_good.pt``) carries the
-        episodes inline, so it stays whole whatever later saves delete.
-        """
-        target = ckpt.checkpoint_path(self.run_dir, name)
-        with io_errors(f"write checkpoint {target}", self._intact):  # judged after the failure
-            path = self._save(name)
-        log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
-        return path
-
-    def _intact(self, advice: str = "free space or fix the directory, then ") -> str:
-        """What survives an I/O error (or a dead collector worker): the checkpoint a resume would start from."""
-        last = ckpt.checkpoint_path(self.run_dir)
-        if not last.is_file():
-            return "; no checkpoint had been written yet"
-        return f"; the last checkpoint {last} is intact: {advice}resume={self.run_dir}"
-
-    def _save(self, name: str) -> Path:
-        last = name == ckpt.LAST
-        path = ckpt.save_atomic(
-            self.state_dict(replay_inline=not last), ckpt.checkpoint_path(self.run_dir, name)
-        )
-        if last:
-            self.replay_store.commit()
-            self._last_save = time.monotonic()
-            weights = {
-                "config": to_container(self.config),
-                "fingerprint": self.fingerprint(),
-                "counters": asdict(self.counters),
-                "learner": self.learner.weights(),
-            }
-            ckpt.save_atomic(weights, ckpt.weights_path(self.run_dir, self.counters.env_steps))
-            ckpt.prune_weights(self.run_dir, self.config.train.keep_checkpoints)
-        return path
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
-        restored by the caller once everything is built."""
-        self.learner.load_state_dict(state["learner"])
-        if "replay_blocks" in state:
-            self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())
-        else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
-            load_replay_state_dict(self.replay, state["replay"])
-        saved = state.get("callbacks", {})
-        for callback in self.callbacks:
-            if callback.name not in saved:
-                raise ckpt.CheckpointError(
-                    f"the checkpoint has no state for this run's {callback.name!r} callback"
-                )
-            callback.load_state_dict(saved[callback.name])
-        known = {f.name for f in fields(Counters)}
-        self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
-        self.last_eval = dict(state.get("last_eval", {}))
-        self.epsilon.set_env_steps(self.counters.env_steps)
-
-    def _load(self, path: Path) -> None:
-        state = ckpt.load_resumable(path, self.fingerprint(), self.fingerprint, self.device)
-        self._resume_rng = state["rng"]  # restored last, once everything is built
-        try:
-            self.load_state_dict(state)
-        except ckpt.CheckpointError as error:
-            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {error}") from None
-        except (KeyError, TypeError, ValueError, RuntimeError) as error:  # what a fingerprint cannot see
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
-            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
-        rows = state.get("logs", {}).get("rows")
-        with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
-            self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)

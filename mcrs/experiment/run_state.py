@@ -1,0 +1,147 @@
+"""The run's state in checkpoints: what :class:`~mcrs.experiment.trainer.Experiment` saves, checks and restores.
+
+Apart from the loop because it is the other half of a run's life: the loop changes the state, this module
+writes it (``last.pt`` with the replay's block files, the weights at each step, ``last_good.pt`` inline),
+judges a checkpoint against the run (the fingerprint) and puts it back, the random state last. The file
+formats are :mod:`mcrs.experiment.checkpoint`'s; :class:`RunState` is a base class of ``Experiment`` and
+reads the attributes ``Experiment`` builds (config, task, learner, replay, callbacks, counters, ...).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.config import to_container
+from mcrs.experiment.counters import Counters
+from mcrs.experiment.logging import log_event
+from mcrs.experiment.replay import load_replay_state_dict, replay_state_dict
+from mcrs.experiment.rundir import fingerprint, io_errors, truncate_csv_logs
+
+__all__ = ["RunState"]
+
+
+class RunState:
+    """The checkpoint half of :class:`~mcrs.experiment.trainer.Experiment`: :meth:`state_dict`,
+    :meth:`load_state_dict`, :meth:`save`, :meth:`fingerprint` and the resume's random state."""
+
+    def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
+        """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
+        block files that :meth:`save` writes for ``last.pt``."""
+        state = {
+            "config": to_container(self.config),
+            "fingerprint": self.fingerprint(),
+            "logs": {"rows": dict(self._log_rows)},
+            "counters": asdict(self.counters),
+            "learner": self.learner.state_dict(),
+            "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
+            "last_eval": dict(self.last_eval),
+            "rng": {"torch": torch.get_rng_state()},
+        }
+        if torch.cuda.is_available():
+            state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
+        if self.config.train.save_replay:
+            if replay_inline:
+                state["replay"] = replay_state_dict(self.replay)
+            else:
+                state["replay_blocks"] = self.replay_store.save(self.replay, state["fingerprint"])
+        return state
+
+    def fingerprint(
+        self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
+    ) -> dict:
+        """What a checkpoint must share with this run (:func:`mcrs.experiment.rundir.fingerprint`): of this
+        run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
+        from mcrs.experiment.config import RESUME_MUTABLE
+
+        learner = self.learner.weights() if learner is None else learner
+        config = to_container(self.config) if config is None else config
+        networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
+        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second:
+        return {"format.version": out.pop("format.version"), **self.task.fingerprint(), **out}
+
+    def save(self, name: str = ckpt.LAST) -> Path:
+        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
+
+        An I/O error (a full disk, a read-only directory) stops the run in one line; the atomic write
+        leaves the previous checkpoint as it was and no temporary behind. ``last.pt`` names the replay's
+        block files (only the changed blocks are written); any other name (``last_good.pt``) carries the
+        episodes inline, so it stays whole whatever later saves delete.
+        """
+        target = ckpt.checkpoint_path(self.run_dir, name)
+        with io_errors(f"write checkpoint {target}", self._intact):  # judged after the failure
+            path = self._save(name)
+        log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
+        return path
+
+    def _intact(self, advice: str = "free space or fix the directory, then ") -> str:
+        """What survives an I/O error (or a dead collector worker): the checkpoint a resume would start from."""
+        last = ckpt.checkpoint_path(self.run_dir)
+        if not last.is_file():
+            return "; no checkpoint had been written yet"
+        return f"; the last checkpoint {last} is intact: {advice}resume={self.run_dir}"
+
+    def _save(self, name: str) -> Path:
+        last = name == ckpt.LAST
+        path = ckpt.save_atomic(
+            self.state_dict(replay_inline=not last), ckpt.checkpoint_path(self.run_dir, name)
+        )
+        if last:
+            self.replay_store.commit()
+            self._last_save = time.monotonic()
+            weights = {
+                "config": to_container(self.config),
+                "fingerprint": self.fingerprint(),
+                "counters": asdict(self.counters),
+                "learner": self.learner.weights(),
+            }
+            ckpt.save_atomic(weights, ckpt.weights_path(self.run_dir, self.counters.env_steps))
+            ckpt.prune_weights(self.run_dir, self.config.train.keep_checkpoints)
+        return path
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
+        restored by the caller once everything is built."""
+        self.learner.load_state_dict(state["learner"])
+        if "replay_blocks" in state:
+            self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())
+        else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
+            load_replay_state_dict(self.replay, state["replay"])
+        saved = state.get("callbacks", {})
+        for callback in self.callbacks:
+            if callback.name not in saved:
+                raise ckpt.CheckpointError(
+                    f"the checkpoint has no state for this run's {callback.name!r} callback"
+                )
+            callback.load_state_dict(saved[callback.name])
+        known = {f.name for f in fields(Counters)}
+        self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
+        self.last_eval = dict(state.get("last_eval", {}))
+        self.epsilon.set_env_steps(self.counters.env_steps)
+
+    def _load(self, path: Path) -> None:
+        state = ckpt.load_resumable(path, self.fingerprint(), self.fingerprint, self.device)
+        self._resume_rng = state["rng"]  # restored last (_restore_rng), once everything is built
+        try:
+            self.load_state_dict(state)
+        except ckpt.CheckpointError as error:
+            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {error}") from None
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:  # what a fingerprint cannot see
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
+        rows = state.get("logs", {}).get("rows")
+        with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
+            self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
+
+    def _restore_rng(self) -> None:
+        """The checkpoint's random state, put back last: building the run may draw random numbers."""
+        rng = self._resume_rng
+        del self._resume_rng
+        torch.set_rng_state(rng["torch"].cpu())
+        if "cuda" in rng and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
