@@ -17,13 +17,12 @@ from torch.nn import functional as F
 
 from mcrs.env.config import scenario
 from mcrs.env.core import MCRSCore
+from mcrs.models.embedding_training import EmbeddingTrainer, embedding_loss
 from mcrs.models.embeddings import (
     EMBEDDINGS,
     CNNEmbedding,
-    EmbeddingTrainer,
     RandomProjection,
     default_cnn_kernels,
-    embedding_loss,
     make_embedding,
 )
 

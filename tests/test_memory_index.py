@@ -6,7 +6,8 @@ import pytest
 import torch
 
 import mcrs.memory.index as index_module
-from mcrs.memory.index import GridIndex, Records, float_order, merge_records, squared_distance
+from mcrs.memory.index import GridIndex, squared_distance
+from mcrs.memory.sorted_records import Records, float_order, merge_records
 
 INF = float("inf")
 

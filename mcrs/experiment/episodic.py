@@ -25,7 +25,8 @@ from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
 from mcrs.memory.transform import EpisodicLookup
-from mcrs.models.embeddings import EmbeddingTrainer, make_embedding
+from mcrs.models.embedding_training import EmbeddingTrainer
+from mcrs.models.embeddings import make_embedding
 from mcrs.objectives.incentive import Incentive, make_incentive
 
 

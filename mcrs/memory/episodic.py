@@ -30,7 +30,8 @@ at every index rebuild, and only then:
   ``stale_fraction`` of the live entries (a purge);
 - at :meth:`EpisodicMemory.refresh_keys` (re-embedding).
 
-:meth:`EpisodicMemory.load_state_dict` restores the saved statistics instead. Between refreshes a look-up
+:meth:`EpisodicMemory.load_state_dict` restores the saved statistics instead (the saved format:
+:mod:`mcrs.memory.persistence`). Between refreshes a look-up
 equals the brute-force nearest neighbour over the current keys standardised with the current statistics.
 """
 
@@ -46,11 +47,10 @@ from torch import nn
 
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.index import MAX_KEY_DIM, GridIndex
+from mcrs.memory.persistence import UNKNOWN_EPISODE, memory_state, restore_memory
 from mcrs.memory.resolution import Stored, apply_outcome, in_order, resolve
 
-STATE_VERSION = 2  # 2: the writing episode of every entry
 MAX_STEPS_LIMIT = 2**15  # steps are stored as int16
-UNKNOWN_EPISODE = -1
 
 
 @dataclass
@@ -158,7 +158,7 @@ class EpisodicMemory:
     def __len__(self) -> int:
         return self.size
 
-    def _columns(self) -> dict[str, torch.Tensor]:
+    def columns(self) -> dict[str, torch.Tensor]:
         """Every per-entry array that an entry's data lives in (``[capacity, ...]``; ``live`` aside)."""
         columns = {"keys": self.keys, "returns": self.returns, "step": self.step, "codes": self.codes}
         columns.update(positions=self.positions, episode=self.episode)
@@ -168,7 +168,7 @@ class EpisodicMemory:
 
     def nbytes(self) -> int:
         """Bytes held by the buffer: storage, index records and decode tables."""
-        tensors = [*self._columns().values(), self.live]
+        tensors = [*self.columns().values(), self.live]
         return sum(t.numel() * t.element_size() for t in tensors) + self.index.nbytes() + self.codec.nbytes()
 
     def live_slots(self) -> torch.Tensor:
@@ -429,24 +429,10 @@ class EpisodicMemory:
     def state_dict(self) -> dict[str, Any]:
         """The filled part (oldest first), the ring position, the statistics and the codec's identity.
 
-        Plain tensors, ints, floats, strings, bools and dicts only: ``torch.load(weights_only=True)`` reads it.
+        Plain tensors, ints, floats, strings, bools and dicts only: ``torch.load(weights_only=True)`` reads it
+        (the format: :mod:`mcrs.memory.persistence`).
         """
-        slots = self.live_slots()
-        state: dict[str, Any] = {
-            "version": STATE_VERSION,
-            "codec": self.codec.identity(),
-            "key_dim": self.key_dim,
-            "delta": self.delta,
-            "capacity": self.capacity,
-            "start": self.start,
-            "size": self.size,
-            "stats_size": self.stats_size,
-            "mean": self.index.mean.cpu(),
-            "std": self.index.std.cpu(),
-            "track_desirability": self.track_desirability,
-        }
-        state.update({name: values[slots].cpu() for name, values in self._columns().items()})
-        return state
+        return memory_state(self)
 
     @torch.inference_mode(False)
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -456,33 +442,4 @@ class EpisodicMemory:
         (slots included); otherwise they are laid out oldest first from slot 0. The saved statistics are
         restored (not recomputed); this memory's own delta and gamma apply from now on.
         """
-        if state.get("version") != STATE_VERSION:
-            raise ValueError(
-                f"episodic memory state version {state.get('version')!r}, expected {STATE_VERSION}"
-            )
-        mismatch = self.codec.identity_mismatch(state["codec"])
-        if mismatch:
-            raise ValueError(f"episodic memory saved for another map or sensor model ({mismatch})")
-        if state["key_dim"] != self.key_dim:
-            raise ValueError(
-                f"episodic memory saved with key_dim={state['key_dim']}, this one has key_dim={self.key_dim}"
-            )
-        size = int(state["size"])
-        if size > self.capacity:
-            raise ValueError(f"episodic memory holds {size} entries, more than capacity={self.capacity}")
-        if self.track_desirability and not state["track_desirability"]:
-            raise ValueError("episodic memory saved without desirability counters (EMU) cannot restore them")
-        start = int(state["start"]) if state["capacity"] == self.capacity else 0
-        dev = self.device
-        self.live.zero_()
-        self.episode.fill_(UNKNOWN_EPISODE)
-        self.start, self.size = start, size
-        slots = self.live_slots()
-        self.codes = torch.empty(self.capacity, *self.codes.shape[1:], dtype=state["codes"].dtype, device=dev)
-        for name, values in self._columns().items():
-            values[slots] = state[name].to(dev, values.dtype)
-        self.live[slots] = True
-        self.index.mean = state["mean"].to(dev, torch.float32)
-        self.index.std = state["std"].to(dev, torch.float32)
-        self.stats_size = int(state["stats_size"])
-        self.rebuild_index(refresh=False)
+        restore_memory(self, state)

@@ -30,6 +30,7 @@ float32 to an order-preserving integer. So for each of the at most ``2^(d-1)`` c
 them dimension by dimension, dropping a pair as soon as a coordinate leaves the box (or the ball's
 partial sum, which can only grow, reaches delta^2). Added records go to a small sorted *recent* array,
 merged into the main one past a sixteenth of it (a full copy, amortised over many insertions).
+The record arrays and their merge live in :mod:`mcrs.memory.sorted_records`; this module is the grid.
 
 **Exactness.** Cells have side ``2 delta (1 + 2^-10)``, computed in float64 from the float32 z. A point
 within delta of a query differs from it by less than ``reach = delta (1 + 2^-11)`` in every dimension (in
@@ -55,8 +56,18 @@ import itertools
 from collections.abc import Iterator
 from typing import NamedTuple
 
-import numpy as np
 import torch
+
+from mcrs.memory.sorted_records import (
+    Records,
+    flatnonzero,
+    float_order,
+    merge_records,
+    repeat,
+    search_sorted,
+    slot_bits_for,
+    unique_pairs,
+)
 
 MAX_KEY_DIM = 8  # 2^(d-1) cells per query
 STD_FLOOR = 1e-6  # a dimension where every key is equal is not magnified beyond this
@@ -84,50 +95,6 @@ def squared_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def slot_bits_for(capacity: int) -> int:
-    """Bits that hold a slot number below ``capacity``."""
-    return max(1, (capacity - 1).bit_length())
-
-
-def float_order(x: torch.Tensor) -> torch.Tensor:
-    """An int64 in ``[0, 2^32)`` per float32 of ``x`` that orders like the floats (-0.0 counts as 0.0)."""
-    bits = (x.to(torch.float32) + 0.0).view(torch.int32).to(torch.int64)  # + 0.0: -0.0 becomes 0.0
-    return torch.where(bits >= 0, bits + 2**31, 2**31 - 1 - (bits & 0x7FFFFFFF))
-
-
-def flatnonzero(mask: torch.Tensor) -> torch.Tensor:
-    """Indices ``[k]`` of the True elements of a 1-D ``mask`` (numpy's on the CPU: about 10x torch's)."""
-    if mask.device.type == "cpu":
-        return torch.from_numpy(np.flatnonzero(mask.numpy()))
-    return mask.nonzero().squeeze(1)
-
-
-def repeat(values: torch.Tensor, counts: torch.Tensor, total: int) -> torch.Tensor:
-    """``values[i]`` repeated ``counts[i]`` times (``total`` in all; numpy's on the CPU: about 2x torch's)."""
-    if values.device.type == "cpu":
-        return torch.from_numpy(np.repeat(values.numpy(), counts.numpy()))
-    return torch.repeat_interleave(values, counts, output_size=total)
-
-
-def search_sorted(sequence: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """``torch.searchsorted(sequence, values)`` (left); numpy's on the CPU, faster for sorted values."""
-    if sequence.device.type == "cpu":
-        return torch.from_numpy(np.searchsorted(sequence.numpy(), values.numpy()))
-    return torch.searchsorted(sequence, values)
-
-
-class Records(NamedTuple):
-    """Index records sorted by ``order`` (int64 sort keys), with their ``slot`` (int32) and the copy of the
-    slot's standardised key they were made from (``coords [d, n]`` float32, one row per dimension)."""
-
-    order: torch.Tensor
-    slot: torch.Tensor
-    coords: torch.Tensor
-
-    def prefix(self, n: int) -> Records:
-        return Records(self.order[:n], self.slot[:n], self.coords[:, :n])
-
-
 class QueryPlan(NamedTuple):
     """For each (query, cell) pair its ``query [R]``; the sort-key bounds (R starts, R exclusive stops)
     ascending (``sorted [2R]``) with the permutation that sorted them (``order``)."""
@@ -135,42 +102,6 @@ class QueryPlan(NamedTuple):
     query: torch.Tensor
     sorted: torch.Tensor
     order: torch.Tensor
-
-
-def merge_records(a: Records, b: Records, out: Records | None = None) -> Records:
-    """Merge sorted records ``b`` (few) into sorted records ``a`` (many): one masked copy per array.
-
-    ``out`` (capacity at least the sum, not overlapping ``a``) may provide the memory.
-    """
-    total = a.order.numel() + b.order.numel()
-    if out is None:
-        out = Records(
-            a.order.new_empty(total), a.slot.new_empty(total), a.coords.new_empty((len(a.coords), total))
-        )
-    out = out.prefix(total)
-    # Where b's records go (after a's records of equal key), and the mask of a's.
-    position = torch.searchsorted(a.order, b.order, right=True) + torch.arange(
-        b.order.numel(), device=a.order.device
-    )
-    keep = torch.ones(total, dtype=torch.bool, device=a.order.device)
-    keep[position] = False
-    for source, extra, target in zip(a, b, out, strict=True):
-        _merge_into(source, extra, target, keep, position)
-    return out
-
-
-def _merge_into(
-    a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, keep: torch.Tensor, position: torch.Tensor
-) -> None:
-    """``out[..., keep] = a`` and ``out[..., position] = b`` (along the last dimension)."""
-    if a.device.type == "cpu":  # numpy's boolean-mask copy is one pass, torch's CPU one much slower
-        # (docs/PERFORMANCE.md, "Figures behind constants")
-        target = out.numpy()
-        target[..., keep.numpy()] = a.numpy()
-        target[..., position.numpy()] = b.numpy()
-        return
-    out[..., keep] = a
-    out[..., position] = b
 
 
 class GridIndex:
@@ -378,7 +309,7 @@ class GridIndex:
         sorted by query then slot."""
         cubes = self.query_cubes(z) if cubes is None else cubes
         parts = list(self._candidates(z, cubes, keys, live))
-        return _unique_pairs(parts, self.slot_bits, z.device)
+        return unique_pairs(parts, self.slot_bits, z.device)
 
     def pairs(
         self, z: torch.Tensor, cubes: QueryPlan | None = None
@@ -391,7 +322,7 @@ class GridIndex:
         for i, j, d2 in self._verified(z, records, cubes):
             other = i != j
             parts.append((i[other], j[other], d2[other]))
-        return _unique_pairs(parts, slot_bits_for(max(n, 2)), z.device)
+        return unique_pairs(parts, slot_bits_for(max(n, 2)), z.device)
 
     def _candidates(
         self, z: torch.Tensor, cubes: QueryPlan, keys: torch.Tensor, live: torch.Tensor
@@ -482,19 +413,3 @@ class GridIndex:
         if self.shape == "box":
             return (a - b).abs().amax(-1) <= self.delta_f32
         return (squared_distance(a, b) if d2 is None else d2) < self.delta_sq
-
-
-def _unique_pairs(
-    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], bits: int, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Concatenate (query, slot, d2) parts, sorted by query then slot, each pair once (a slot can be found
-    twice: a stale record and a current one with the same key)."""
-    if not parts:
-        empty = torch.zeros(0, dtype=torch.int64, device=device)
-        return empty, empty, torch.zeros(0, dtype=torch.float32, device=device)
-    query, slot, d2 = (torch.cat(x) for x in zip(*parts, strict=True))
-    pair, order = torch.sort((query << bits) | slot)
-    first = torch.ones_like(pair, dtype=torch.bool)
-    first[1:] = pair[1:] != pair[:-1]
-    order = order[first]
-    return query[order], slot[order], d2[order]

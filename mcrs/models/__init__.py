@@ -6,14 +6,13 @@ the experiment (``mcrs.experiment``) sit above them. From the environment they r
 
 from mcrs.models.acting import AgentStep, EpsilonGreedy, make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
+from mcrs.models.embedding_training import EmbeddingTrainer, embedding_loss
 from mcrs.models.embeddings import (
     EMBEDDINGS,
     CNNEmbedding,
-    EmbeddingTrainer,
     FCEmbedding,
     RandomProjection,
     StateEmbedding,
-    embedding_loss,
     make_embedding,
 )
 from mcrs.models.mixers import (

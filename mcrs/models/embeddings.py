@@ -9,7 +9,8 @@ The three memories of the paper differ only here:
 
 Every embedding maps ``state [*B, D]`` (float32) and ``time [*B]`` (t/T in [0, 1]) to keys ``[*B, key_dim]``.
 The trainable ones also have a decoder, ``reconstruct(keys, time) -> (state_hat [*B, D], return_hat [*B])``,
-trained by :class:`EmbeddingTrainer` on :func:`embedding_loss` (eq. 31).
+trained by :class:`~mcrs.models.embedding_training.EmbeddingTrainer` on
+:func:`~mcrs.models.embedding_training.embedding_loss` (eq. 31).
 
 The state layout is the env's, read from :class:`mcrs.env.layout.MapImage`: the maps m(U) and m(F) come
 first, as an image ``[2, width, height]`` (the env's ``state_map``); the remaining values are the scaled
@@ -22,7 +23,7 @@ seed are identical, and building one leaves the global RNG where it was.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -37,7 +38,8 @@ Kernel = int | tuple[int, int]
 
 
 # ------------------------------------------------------------------------------------------------ helpers
-def _positive_int(name: str, value: Any) -> int:
+def positive_int(name: str, value: Any) -> int:
+    """``value`` if it is a positive int (not a bool), else a ValueError naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ValueError(f"{name} must be a positive int, got {value!r}")
     return value
@@ -106,8 +108,8 @@ class StateEmbedding(nn.Module):
 
     def __init__(self, state_dim: int, key_dim: int) -> None:
         super().__init__()
-        self.state_dim = _positive_int("state_dim", state_dim)
-        self.key_dim = _positive_int("key_dim", key_dim)
+        self.state_dim = positive_int("state_dim", state_dim)
+        self.key_dim = positive_int("key_dim", key_dim)
 
     def forward(self, state: torch.Tensor, time: torch.Tensor | float) -> torch.Tensor:
         lead, flat, flat_time = _flatten_inputs(state, time, self.state_dim)
@@ -191,7 +193,7 @@ class _EncoderDecoder(StateEmbedding):
 
     def __init__(self, state_dim: int, key_dim: int, hidden_dim: int) -> None:
         super().__init__(state_dim, key_dim)
-        self.hidden_dim = _positive_int("hidden_dim", hidden_dim)
+        self.hidden_dim = positive_int("hidden_dim", hidden_dim)
         self.decoder = Decoder(key_dim, state_dim, hidden_dim)
 
     def reconstruct(
@@ -353,124 +355,3 @@ def make_embedding(
         if kind == "fc":
             return FCEmbedding(state_dim, key_dim, hidden_dim)
         return CNNEmbedding(state_dim, map_shape, key_dim, hidden_dim, cnn_channels)  # type: ignore[arg-type]
-
-
-# ---------------------------------------------------------------------------------------------- training
-def embedding_loss(
-    embedding: StateEmbedding,
-    state: torch.Tensor,
-    time: torch.Tensor,
-    returns: torch.Tensor,
-    state_weight: float = 0.1,
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Paper eq. 31: ``mean (H - H_hat)^2 + state_weight * mean (s - s_hat)^2``.
-
-    Both terms are means over their values: this project's choice (EMU's code sums both, ``MSELoss
-    (reduction="sum")``, on raw H; docs/MEMORY.md). A sum over the D values (hundreds of belief cells)
-    would make the reconstruction outweigh the return by that factor, and eq. 31 with lambda_1 = 0.1
-    means the return term to dominate, so that keys carry return semantics.
-    ``returns`` must already be scaled (see :class:`EmbeddingTrainer`).
-    """
-    if not embedding.trainable:
-        raise TypeError(f"{type(embedding).__name__} is not trainable: it has no decoder and no loss")
-    keys = embedding(state, time)
-    state_hat, return_hat = embedding.reconstruct(keys, time)
-    loss_return = (return_hat - returns).square().mean()
-    loss_state = (state_hat - state).square().mean()
-    loss = loss_return + state_weight * loss_state
-    stats = {
-        "loss": loss.item(),
-        "loss_return": loss_return.item(),
-        "loss_state": loss_state.item(),
-        "loss_state_weighted": state_weight * loss_state.item(),
-    }
-    return loss, stats
-
-
-Sampler = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
-
-
-class EmbeddingTrainer:
-    """Trains a trainable embedding on a sample of the episodic buffer (EMU: 102,400 samples, batches of 1024).
-
-    ``fit(sample)`` draws ``samples`` entries in one call ``sample(samples) -> (state [n, D], time [n],
-    returns [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches, each gradient
-    clipped to norm ``grad_clip`` (EMU clips at pymarl's 10). The returns are standardised by the mean and
-    std of the drawn sample before the loss: ours reach hundreds, a decoder head would need thousands of
-    Adam steps to reach raw returns, and the affine map keeps their ranking, which is what shapes the
-    keys. In raw units the return term would outweigh the state term std(H)^2 times more, so standardised
-    returns are the conservative choice: the return term still dominates (eq. 31's lambda_1 = 0.1, both
-    terms per-value means), and the trainer reports both terms, weighted, for every fit.
-    """
-
-    def __init__(
-        self,
-        embedding: StateEmbedding,
-        lr: float = 5e-4,
-        batch_size: int = 1024,
-        samples: int = 102_400,
-        state_weight: float = 0.1,
-        grad_clip: float = 10.0,
-    ) -> None:
-        if not embedding.trainable:
-            raise TypeError(f"{type(embedding).__name__} is not trainable: there is nothing to fit")
-        if not lr > 0:
-            raise ValueError(f"lr must be positive, got {lr!r}")
-        _positive_int("batch_size", batch_size)
-        _positive_int("samples", samples)
-        if samples < batch_size:
-            raise ValueError(
-                f"samples ({samples}) must be at least batch_size ({batch_size}): no step otherwise"
-            )
-        if not state_weight >= 0:
-            raise ValueError(f"state_weight must be non-negative, got {state_weight!r}")
-        if not grad_clip > 0:
-            raise ValueError(f"grad_clip must be positive (inf: no clipping), got {grad_clip!r}")
-        self.embedding = embedding
-        self.batch_size = batch_size
-        self.samples = samples
-        self.state_weight = state_weight
-        self.grad_clip = float(grad_clip)
-        self.optimizer = torch.optim.Adam(embedding.parameters(), lr=lr)
-
-    def fit(self, sample: Sampler, generator: torch.Generator | None = None) -> dict[str, float]:
-        """Draw ``samples`` entries, take ``samples // batch_size`` Adam steps; mean stats over the steps.
-
-        The minibatches are a permutation drawn from ``generator`` (the global RNG when None). The stats
-        also give the return standardisation used (``return_mean``, ``return_std``).
-        """
-        device = next(self.embedding.parameters()).device
-        state, time, returns = (torch.as_tensor(x).to(device, torch.float32) for x in sample(self.samples))
-        n = state.shape[0]
-        if n < self.batch_size or time.shape != (n,) or returns.shape != (n,):
-            raise ValueError(
-                f"sample({self.samples}) must return state [n, D], time [n], returns [n] with n >= batch_size "
-                f"({self.batch_size}); got {tuple(state.shape)}, {tuple(time.shape)}, {tuple(returns.shape)}"
-            )
-        mean, std = returns.mean(), returns.std(unbiased=False).clamp_min(1e-6)
-        returns = (returns - mean) / std
-        steps = n // self.batch_size
-        order = torch.randperm(n, generator=generator).to(device)
-        totals = {"loss": 0.0, "loss_return": 0.0, "loss_state": 0.0, "loss_state_weighted": 0.0}
-        self.embedding.train()
-        for step in range(steps):
-            idx = order[step * self.batch_size : (step + 1) * self.batch_size]
-            loss, stats = embedding_loss(
-                self.embedding, state[idx], time[idx], returns[idx], state_weight=self.state_weight
-            )
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.embedding.parameters(), self.grad_clip)
-            self.optimizer.step()
-            for key in totals:
-                totals[key] += stats[key]
-        result = {key: value / steps for key, value in totals.items()}
-        result.update(steps=float(steps), return_mean=mean.item(), return_std=std.item())
-        return result
-
-    def state_dict(self) -> dict[str, Any]:
-        """The optimizer's state (Adam moments), for checkpoints; the embedding saves its own."""
-        return {"optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
