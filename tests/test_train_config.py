@@ -169,3 +169,34 @@ def test_the_campaigns_background_children_keep_the_bar_off(tmp_path) -> None:
     point = Point("baselines", "map20", "qmix", 0, "campaign")
     assert "budget=campaign" in point.train_command(tmp_path)  # a fresh child: the budget's bar, off
     assert "logger.progress_bar=false" in point.resume_command(tmp_path, 1000)
+
+
+def test_a_budget_off_whole_batches_from_a_preset_or_python_is_said_not_rounded_silently() -> None:
+    from mcrs.experiment.budget import rounding_notes
+
+    assert rounding_notes(3200, 1_000_000, 9600) == [
+        "train.total_env_steps=1000000 is not a whole number of collector batches of 3200 env steps: "
+        "the run trains 1,001,600 env steps"
+    ]
+    assert rounding_notes(40, 50, 60) == [
+        "train.total_env_steps=50 is not a whole number of collector batches of 40 env steps: "
+        "the run trains 80 env steps",
+        "train.eval_interval=60 is not a whole number of collector batches of 40 env steps: "
+        "the run evaluates every 80 env steps",
+    ]
+    assert rounding_notes(40, 200, 120) == []  # whole batches: nothing to say
+
+
+def test_the_experiment_logs_the_rounding_of_a_python_built_budget(tmp_path, caplog) -> None:
+    import logging
+
+    from mcrs.experiment.config import compose
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import TINY
+
+    with caplog.at_level(logging.INFO, logger="mcrs.run"):
+        Experiment(compose("algo=qmix", *TINY, "train.total_env_steps=50"), tmp_path / "run").close()
+    assert (
+        "train.total_env_steps=50 is not a whole number of collector batches of 40 env steps: the run "
+        "trains 80 env steps" in caplog.text
+    )

@@ -29,7 +29,7 @@ def budget_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
     A run collects ``num_envs`` whole episodes at a time, so ``train.total_env_steps=4000`` with batches of
     1600 would train 4800 steps and ``train.eval_interval=800`` evaluate every 1600: refused instead of
     rounded silently. A preset's values (``budget=``) are not checked: the runs already recorded with them
-    must stay comparable with new ones."""
+    must stay comparable with new ones; :func:`rounding_notes` says what such a run trains instead."""
     batch, explicit = collector_batch(cfg), set(explicit)
     t = cfg.train
     errors = []
@@ -44,3 +44,19 @@ def budget_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
             f"the nearest exact values: {' or '.join(map(str, nearest))}"
         )
     return errors
+
+
+def rounding_notes(batch: int, total_env_steps: int, eval_interval: int) -> list[str]:
+    """What a run trains when a preset or a Python-built config sets a length or interval that is not a
+    whole number of collector batches of ``batch`` env steps (the command line refuses those): one line
+    each, for the run's log, so that the rounding is never silent."""
+    notes = []
+    for name, value in (("train.total_env_steps", total_env_steps), ("train.eval_interval", eval_interval)):
+        if value > 0 and batch > 0 and value % batch:
+            rounded = -(-value // batch) * batch
+            what = "trains" if name == "train.total_env_steps" else "evaluates every"
+            notes.append(
+                f"{name}={value} is not a whole number of collector batches of {batch} env steps: "
+                f"the run {what} {rounded:,} env steps"
+            )
+    return notes

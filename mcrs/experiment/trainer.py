@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from mcrs.env.config import EnvConfig
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.algorithms import algorithm_for
+from mcrs.experiment.budget import rounding_notes
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
@@ -170,6 +171,8 @@ class Experiment(RunState):
         if resume:  # last: building the collector may draw random numbers
             self._restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
+        for note in rounding_notes(t.num_envs * self.T, t.total_env_steps, t.eval_interval):
+            log_event(note)
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
