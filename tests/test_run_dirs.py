@@ -160,6 +160,12 @@ def test_a_refused_command_into_an_existing_run_leaves_every_file_of_it_as_it_wa
     _assert_one_line_error(rc, err, "holds files that no run wrote (notes.txt)")
     assert _hashes(run_dir) == before
 
+    (run_dir / "notes.txt").unlink()  # overwrite=true may replace the run, but not for a refused config
+    before = _hashes(run_dir)
+    rc, _, err = _finish(start_train(*args, "overwrite=true", "train.lr=-1", cwd=tmp_path))
+    _assert_one_line_error(rc, err, "invalid config: train.lr=-1")
+    assert _hashes(run_dir) == before
+
 
 def test_the_lock_is_held_while_the_trainer_lives_and_released_by_train(tmp_path: Path) -> None:
     trainer = Experiment(compose_config("train.total_env_steps=40"), tmp_path / "run")

@@ -173,9 +173,12 @@ class RunDirCheck(Callback):
     sweep) directory, create it and check that it can be written, so that a read-only or impossible path is
     one line, not Hydra's traceback; the directories made are remembered for :func:`remove_refused_dirs`."""
 
-    def __init__(self, command: str = "mcrs", fresh_run: bool = False) -> None:
+    def __init__(self, command: str = "mcrs", fresh_run: bool = False, validate: str | None = None) -> None:
         self.command = command
         self.fresh_run = fresh_run  # mcrs-train: the directory of a fresh run is checked as Experiment does
+        # mcrs-train: the command's own early check (``mcrs.train.early_errors``, named, not imported: it
+        # sits above this package), asked first when the run directory already holds a run
+        self.validate = validate
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         resume = OmegaConf.select(config, "resume", default=None)  # mcrs-train's resume=<run>
@@ -185,10 +188,25 @@ class RunDirCheck(Callback):
             problem = _in_use(Path(str(resume)).expanduser())
         elif problem is None and self.fresh_run:  # before Hydra writes .hydra/ and the log into a run
             overwrite = bool(OmegaConf.select(config, "overwrite", default=False))
-            problem = _in_use(run_dir) or fresh_problem(run_dir, overwrite)
+            problem = _in_use(run_dir) or fresh_problem(run_dir, overwrite) or self._invalid(config, run_dir)
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
         self._make(run_dir)
+
+    def _invalid(self, config: DictConfig, run_dir: Path) -> str | None:
+        """A config the command will refuse, judged before Hydra rewrites the ``.hydra/`` files of the run
+        already in ``run_dir`` (``overwrite=true``); elsewhere the command's own check is enough."""
+        if self.validate is None or not (run_dir.is_dir() and any(run_dir.iterdir())):
+            return None
+        from hydra.utils import get_method
+
+        job_config = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
+        problems = get_method(self.validate)(job_config, list(config.hydra.overrides.task))
+        if not problems:
+            return None
+        return "invalid config: " + (
+            problems[0] if len(problems) == 1 else "\n  - " + "\n  - ".join(problems)
+        )
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._make(Path(str(config.hydra.sweep.dir)))
