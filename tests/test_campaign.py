@@ -23,7 +23,7 @@ from tests.train_helpers import compose_config
 
 pytestmark = pytest.mark.slow
 
-NEAR_MATRIX = Path(__file__).resolve().parents[1] / "mcrs" / "campaign" / "section6_near.yaml"
+NEAR_MATRIX = Path(__file__).resolve().parents[1] / "mcrs_lab" / "campaign" / "section6_near.yaml"
 OLD_TASK = ("env.safety_rule=near", "algo.time_limit=bootstrap")
 
 TWO_POINTS = """

@@ -227,6 +227,9 @@ def test_ctrl_c_before_training_is_one_line_and_exit_130(tmp_path: Path, when: s
     process = subprocess.Popen(
         [command[0], "-X", "importtime", *command[1:]], cwd=tmp_path, env=env,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # as from a terminal: a child inherits an ignored SIGINT (a background shell, a test worker that
+        # ignored it), and Python then keeps ignoring it, as mcrs-train does
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     try:
         assert process.stderr is not None

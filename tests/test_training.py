@@ -242,7 +242,11 @@ def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 def test_cli_trains_from_any_directory_and_sweeps(tmp_path: Path) -> None:
     done = cli("-m", *TINY, "train.total_env_steps=40", "algo=qmix,vdn", "seed=0,1", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
-    runs = sorted(p.name for p in (tmp_path / "outputs" / "multirun").glob("*/*") if p.is_dir())
+    runs = sorted(
+        p.name
+        for p in (tmp_path / "outputs" / "multirun").glob("*/*")
+        if p.is_dir() and not p.name.startswith(".")
+    )  # .sweep: the sweep summary's rows
     assert runs == ["0_map10_qmix_seed0", "1_map10_qmix_seed1", "2_map10_vdn_seed0", "3_map10_vdn_seed1"]
     for log in (tmp_path / "outputs" / "multirun").glob("*/*/train.log"):  # the run's own log, plain text
         text = log.read_text()
