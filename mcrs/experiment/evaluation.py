@@ -61,13 +61,6 @@ SAMPLE_STD = 1  # std correction of mcrs-eval (n - 1): its tables, metrics.csv a
 POPULATION_STD = 0  # std correction of the trainer's eval/episode_reward_std (n), as training records hold it
 
 
-def episode_metrics(rollout: TensorDictBase, task: Task | None = None) -> dict[str, torch.Tensor]:
-    """Final value of every metric per episode: ``{name: [E]}`` (``task.episode_metrics``; default MCRS's)."""
-    if task is None:
-        return {name: rollout.get(("next", "metrics", name))[:, -1].float() for name in METRICS}
-    return task.episode_metrics(rollout)
-
-
 @torch.no_grad()
 def final_metrics(
     env: EnvBase,
@@ -105,13 +98,10 @@ def summarize(
     return out
 
 
-def evaluate(
-    env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task: Task | None = None
-) -> dict[str, float]:
-    """Mean (and population std of the episode reward) of every metric over the batch of episodes, in
-    float32 as the training records have always held them."""
-    steps = None if task is None else task.max_steps
-    metrics = episode_metrics(rollout_greedy(env, policy, seed, steps), task)
+def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task: Task) -> dict[str, float]:
+    """Mean (and population std of the episode reward) of every metric of ``task`` over the batch of
+    episodes, in float32 as the training records have always held them."""
+    metrics = task.episode_metrics(rollout_greedy(env, policy, seed, task.max_steps))
     stats = summarize(metrics, correction=POPULATION_STD, dtype=torch.float32)
     out = {name: mean for name, (mean, _) in stats.items()}
     out["episode_reward_std"] = stats["episode_reward"][1]
