@@ -138,7 +138,7 @@ def evaluate_policy(
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
     """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
-    from mcrs.viz.tables import markdown, mean_std
+    from mcrs.experiment.tables import markdown, mean_std
 
     header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
     return markdown(header, [[name] + [mean_std(*r[m]) for m in METRICS] for name, r in results.items()])

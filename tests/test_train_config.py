@@ -125,6 +125,33 @@ def test_all_problems_are_reported_at_once() -> None:
     assert len(validation_errors(cfg)) == 3
 
 
+def test_a_python_built_config_of_wrong_types_is_refused_field_by_field() -> None:
+    """OmegaConf never sees a Config built in Python: validate names every mistyped field in full."""
+    from mcrs.experiment.config import AlgoConfig, Config, MemoryConfig, TrainConfig
+
+    cfg = Config(
+        seed="3",
+        train=TrainConfig(lr="abc", total_env_steps=True),
+        algo=AlgoConfig(gamma=None, memory=MemoryConfig(delta="a")),
+    )
+    with pytest.raises(ConfigError) as info:
+        validate(cfg)
+    message = str(info.value)
+    for expected in (
+        "seed='3': must be of type int (got str)",
+        "train.lr='abc': must be of type float (got str)",
+        "train.total_env_steps=True: must be of type int (got bool)",
+        "algo.gamma=None: must be of type float (got NoneType)",
+        "algo.memory.delta='a': must be of type float (got str)",
+    ):
+        assert expected in message, message
+    # what the schema admits passes: an int where a float is wanted, None where None is allowed, a count
+    # of threads (its own check), a choice by its name
+    assert validation_errors(
+        Config(train=TrainConfig(lr=1), resume=None, threads=2, algo=AlgoConfig(mixer="vdn")), deep=False
+    ) == []
+
+
 def test_launcher_configs_compose() -> None:
     import importlib.util
 

@@ -20,6 +20,10 @@ live in this module without an import cycle.
 from __future__ import annotations
 
 import math
+import types
+import typing
+from dataclasses import fields, is_dataclass
+from enum import Enum
 from typing import Any
 
 from omegaconf import DictConfig
@@ -111,6 +115,53 @@ def _positive(errors: list[str], name: str, value: float, allow_zero: bool = Fal
         errors.append(f"{name}={value}: must be {'>= 0' if allow_zero else '> 0'}")
 
 
+#: Fields whose own check takes any value and names what is allowed (``threads``: "auto" or a count; the
+#: scenario: :class:`mcrs.env.EnvConfig`'s rules).
+_OWN_TYPE_CHECK = frozenset({"threads", "env"})
+
+
+def _fits(value: Any, kind: Any) -> bool:
+    """Whether ``value`` has the type ``kind`` of a schema field (bool is neither int nor float; an int
+    is a float; a choice is checked by :func:`_choice`)."""
+    if kind is type(None):
+        return value is None
+    if kind is bool:
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is str:
+        return isinstance(value, str)
+    if isinstance(kind, type) and issubclass(kind, Enum):
+        return isinstance(value, (str, Enum))
+    if typing.get_origin(kind) is list:
+        return isinstance(value, (list, tuple))
+    return True
+
+
+def _type_errors(node: Any, prefix: str = "") -> list[str]:
+    """Fields of a :class:`Config` built in Python whose value has the wrong type, each named in full
+    (``train.lr='abc': must be of type float (got str)``). OmegaConf checks a composed config's types; a dataclass built in
+    Python reaches :func:`validate` unchecked, and the value checks would fail on a comparison."""
+    errors = []
+    hints = typing.get_type_hints(type(node))
+    for f in fields(node):
+        name, value = prefix + f.name, getattr(node, f.name)
+        if name in _OWN_TYPE_CHECK:
+            continue
+        if is_dataclass(value):
+            errors += _type_errors(value, f"{name}.")
+            continue
+        hint = hints[f.name]
+        union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+        kinds = typing.get_args(hint) if union else (hint,)
+        if not any(_fits(value, kind) for kind in kinds):
+            wanted = " or ".join("None" if k is type(None) else getattr(k, "__name__", str(k)) for k in kinds)
+            errors.append(f"{name}={value!r}: must be of type {wanted} (got {type(value).__name__})")
+    return errors
+
+
 def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> None:
     """A choice of a :class:`Config` built in Python, which OmegaConf never sees (``as_typed`` returns it
     as it is): a composed config's choices were refused by OmegaConf's structured schema already, so this
@@ -133,7 +184,9 @@ def validation_errors(cfg: Config | DictConfig, deep: bool = True) -> list[str]:
 
 def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | None]:
     """Every problem of a config, and the env config it runs on (None when the env part is wrong)."""
-    errors: list[str] = []
+    errors: list[str] = _type_errors(cfg)
+    if errors:  # the value checks below compare values: they need the types right
+        return errors, None
     a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
     env_config = None
     problem = device_problem(cfg.device)  # no torch import for "cpu"; a GPU asked for is checked at once

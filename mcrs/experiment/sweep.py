@@ -26,6 +26,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from mcrs.experiment.tables import markdown
+
 #: Where the rows live inside the sweep directory, and the table's file.
 STATE_DIR = ".sweep"
 SUMMARY = "sweep_summary.md"
@@ -190,7 +192,7 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
             str(row.get("job", "")), " ".join(own) or "-", row.get("reward") or "-", row.get("no_fly") or "-",
             clock(wall) if isinstance(wall, (int, float)) else "-", status,
         ])  # fmt: skip
-    table = _markdown(COLUMNS, body)
+    table = markdown(COLUMNS, body, left=len(COLUMNS))
     return (f"every job: {' '.join(common)}\n\n" if common else "") + table
 
 
@@ -246,16 +248,6 @@ def _number(value: Any) -> str:
 def _one_line(error: Any) -> str:
     text = str(error).strip().splitlines()
     return (text[0] if text else type(error).__name__)[:200]
-
-
-def _markdown(header: list[str], rows: list[list[str]]) -> str:
-    widths = [max(len(str(r[k])) for r in [header, *rows]) for k in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(str(c).ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
-
-    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-    return "\n".join([line(header), rule, *(line(r) for r in rows)])
 
 
 def _write_atomic(path: Path, text: str) -> None:

@@ -19,8 +19,8 @@ import numpy as np
 import yaml
 from scipy import stats
 
+from mcrs.experiment.tables import markdown
 from mcrs.viz.learning_curves import Curve
-from mcrs.viz.tables import markdown
 from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
 from mcrs_lab.analysis.runs import EvaluationRow
 

@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.experiment.tables import markdown, mean_std, write_csv
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
-from mcrs.viz.tables import markdown, mean_std, write_csv
 from mcrs_lab.analysis import comm_range as cr
 from mcrs_lab.analysis import tsne
 from mcrs_lab.analysis.claims import Claim, ClaimsError, claims_table, default_claims_path, load_claims

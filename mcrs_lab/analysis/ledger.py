@@ -1,0 +1,166 @@
+"""The reward ledger: where a policy's episode reward goes, term by term, and why it pays its penalties.
+
+For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluation episodes as
+``mcrs-eval`` (one seeded batch, greedy actions) and sums, per episode,
+
+- the four reward terms r1 (uncertainty), r2 (discovery), r3 (no-fly), r4 (collision);
+- r1 reached by a quarter, a half and three quarters of the episode: how fast the map is read;
+- the no-fly charges r3 counts, by the UAV's move that caused them: onto a cell no UAV had read yet (the
+  charge buys a first reading, worth up to ``m_E`` of uncertainty), onto a cell already read (it buys
+  little), and of those, how many were made while the UAV had an allowed move that r3 does not charge to
+  a cell it still held unread (its own m(U) = 1 in its observation): a charge it could have avoided
+  without giving up a first reading.
+
+``--shield`` plays with ``env.no_fly_shield=true`` (the moves r3 would charge masked): what a policy
+scores when it cannot enter a zone. Issue 30 item 4 and docs/RESULTS.md ("Why the learners trail the
+coverage heuristic") use it.
+
+    python -m mcrs_lab.analysis.ledger --env map20 --policy coverage --policy outputs/<run> [--shield]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mcrs.env.config import PRESETS, EnvConfig, scenario
+from mcrs.env.core import MOVES
+from mcrs.env.layout import ObservationLayout, StateLayout
+from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.policies import POLICIES, make_policy
+from mcrs.policies.base import ACTION, ACTION_MASK, OBSERVATION
+
+TERMS = ("r1 uncertainty", "r2 discovery", "r3 no-fly", "r4 collision")
+#: Fractions of the episode at which the uncertainty reward r1 gathered so far is reported.
+CHECKPOINTS = (0.25, 0.5, 0.75)
+#: An own m(U) at or above this is a cell the UAV holds unread (m(U) = 1 exactly in float32).
+UNREAD = 1.0 - 1e-6
+
+
+@dataclass
+class Ledger:
+    """Per-episode sums ``[K]`` (``terms`` ``[K, 4]``, ``r1_by`` ``[K, len(CHECKPOINTS)]``)."""
+
+    terms: torch.Tensor
+    r1_by: torch.Tensor
+    charged_first: torch.Tensor  # r3 charges of moves onto a cell no UAV had read
+    charged_read: torch.Tensor  # r3 charges of moves onto a cell already read
+    charged_avoidable: torch.Tensor  # charges made while an uncharged move to an own-unread cell was allowed
+
+    @property
+    def reward(self) -> torch.Tensor:
+        return self.terms.sum(-1)
+
+    def means(self) -> dict[str, float]:
+        out = {"reward": self.reward.mean().item()}
+        out.update({name: self.terms[:, k].mean().item() for k, name in enumerate(TERMS)})
+        out.update({f"r1 by {f:g} T": self.r1_by[:, k].mean().item() for k, f in enumerate(CHECKPOINTS)})
+        out["charges onto unread cells"] = self.charged_first.mean().item()
+        out["charges onto read cells"] = self.charged_read.mean().item()
+        out["charges with an uncharged unread move"] = self.charged_avoidable.mean().item()
+        return out
+
+
+def _charges(config: EnvConfig, cells: torch.Tensor, zones: torch.Tensor) -> torch.Tensor:
+    """``[...]`` how many zones r3 charges at each cell ``[..., 2]`` (zones ``[E, Z, 2]``, broadcast)."""
+    shape = cells.shape[:-1]
+    flat = cells.reshape(cells.shape[0], -1, 1, 2)
+    squared = (flat - zones.unsqueeze(1)).pow(2).sum(-1).to(torch.float32)  # [E, M, Z]
+    return config.violates(squared, config.no_fly_safety).sum(-1).view(shape)
+
+
+@torch.no_grad()
+def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledger:
+    """One batch of ``episodes`` evaluation episodes of ``policy_name`` on ``config``, seeded with ``seed``."""
+    config = config.replace(num_envs=episodes, expose_beliefs=False)
+    env = MCRSEnv(config)
+    policy = make_policy(policy_name, config, seed)
+    obs_layout, state_layout = ObservationLayout.from_config(config), StateLayout.from_config(config)
+    moves = torch.tensor(MOVES, dtype=torch.int64)
+    E, T = episodes, config.max_steps
+    terms = torch.zeros(E, len(TERMS), dtype=torch.float64)
+    r1_by = torch.zeros(E, len(CHECKPOINTS), dtype=torch.float64)
+    marks = {round(f * T): k for k, f in enumerate(CHECKPOINTS)}
+    first = torch.zeros(E, dtype=torch.float64)
+    read = torch.zeros(E, dtype=torch.float64)
+    avoidable = torch.zeros(E, dtype=torch.float64)
+    env.set_seed(seed)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        zones = state_layout.cells(td.get("state"), state_layout.no_fly_position)  # [E, Z, 2]: static
+        for t in range(T):
+            td = policy(td)
+            position = td.get(("agents", "position"))  # [E, N, 2]
+            every = position.unsqueeze(2) + moves  # [E, N, 8, 2]: each move's cell (off-grid ones masked)
+            charged_every = _charges(config, every, zones)  # [E, N, 8]
+            charged = charged_every.gather(2, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
+            dest = position + moves[td.get(ACTION)]
+            flat = (dest[..., 0] * config.height + dest[..., 1]).clamp(0, config.n_cells - 1)
+            unread = td.get("state_counts").sum(-1).gather(1, flat) == 0  # [E, N]: no UAV had read it
+            own_unread = obs_layout.unknown_by_action(td.get(OBSERVATION)) >= UNREAD
+            safe_unread = (td.get(ACTION_MASK) & (charged_every == 0) & own_unread).any(-1)
+            charged = charged.to(torch.float64)
+            first += (charged * unread).sum(1)
+            read += (charged * ~unread).sum(1)
+            avoidable += (charged * safe_unread).sum(1)
+            td = env.step(td)["next"]
+            terms += td.get("reward_terms").to(torch.float64)
+            if t + 1 in marks:
+                r1_by[:, marks[t + 1]] = terms[:, 0]
+    return Ledger(terms, r1_by, first, read, avoidable)
+
+
+def table(ledgers: dict[str, Ledger]) -> str:
+    """Markdown: one row per policy, the means over episodes of :meth:`Ledger.means`."""
+    rows = {name: ledger.means() for name, ledger in ledgers.items()}
+    columns = list(next(iter(rows.values())))
+    lines = ["| policy | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
+    for name, means in rows.items():
+        lines.append(f"| {name} | " + " | ".join(f"{means[c]:.2f}" for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m mcrs_lab.analysis.ledger", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument("--env", default="map20", choices=PRESETS, help="the scenario preset")
+    parser.add_argument(
+        "--policy",
+        action="append",
+        metavar="POLICY",
+        help=f"a heuristic ({', '.join(POLICIES)}) or an mcrs-train run directory or .pt file; repeatable "
+        "(default: every heuristic)",
+    )
+    parser.add_argument("--episodes", type=int, default=32, help="evaluation episodes, one batch")
+    parser.add_argument("--seed", type=int, default=0, help="the evaluation seed (mcrs-eval's)")
+    parser.add_argument("--shield", action="store_true", help="play with env.no_fly_shield=true")
+    args = parser.parse_args(argv)
+    if not 1 <= args.episodes <= 4096:
+        raise SystemExit(f"ledger: error: --episodes={args.episodes}: must be in [1, 4096]")
+    if not 0 <= args.seed < 2**63:
+        raise SystemExit(f"ledger: error: --seed={args.seed}: must be in [0, 2**63 - 1]")
+    config = scenario(args.env, no_fly_shield=args.shield)
+    ledgers = {}
+    for name in args.policy or list(POLICIES):
+        label = name if name in POLICIES else Path(name).name
+        try:
+            ledgers[label] = play(config, name, args.episodes, args.seed)
+        except (CheckpointError, ValueError, OSError) as error:
+            raise SystemExit(f"ledger: error: --policy={name}: {error}") from None
+    print(
+        f"{args.env}, safety_rule={config.safety_rule}, no_fly_shield={str(args.shield).lower()}: means over "
+        f"{args.episodes} episodes (seed {args.seed}), T = {config.max_steps}"
+    )
+    print(table(ledgers))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
