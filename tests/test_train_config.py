@@ -147,9 +147,8 @@ def test_a_python_built_config_of_wrong_types_is_refused_field_by_field() -> Non
         assert expected in message, message
     # what the schema admits passes: an int where a float is wanted, None where None is allowed, a count
     # of threads (its own check), a choice by its name
-    assert validation_errors(
-        Config(train=TrainConfig(lr=1), resume=None, threads=2, algo=AlgoConfig(mixer="vdn")), deep=False
-    ) == []
+    admitted = Config(train=TrainConfig(lr=1), resume=None, threads=2, algo=AlgoConfig(mixer="vdn"))
+    assert validation_errors(admitted, deep=False) == []
 
 
 def test_launcher_configs_compose() -> None:
