@@ -33,6 +33,7 @@ from mcrs.env.core import MOVES
 from mcrs.env.layout import ObservationLayout, StateLayout
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.experiment.tables import markdown
 from mcrs.policies import POLICIES, make_policy
 from mcrs.policies.base import ACTION, ACTION_MASK, OBSERVATION
 
@@ -120,10 +121,8 @@ def table(ledgers: dict[str, Ledger]) -> str:
     """Markdown: one row per policy, the means over episodes of :meth:`Ledger.means`."""
     rows = {name: ledger.means() for name, ledger in ledgers.items()}
     columns = list(next(iter(rows.values())))
-    lines = ["| policy | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
-    for name, means in rows.items():
-        lines.append(f"| {name} | " + " | ".join(f"{means[c]:.2f}" for c in columns) + " |")
-    return "\n".join(lines)
+    body = [[name, *(f"{means[c]:.2f}" for c in columns)] for name, means in rows.items()]
+    return markdown(["policy", *columns], body)
 
 
 def main(argv: list[str] | None = None) -> int:
