@@ -16,6 +16,7 @@ import pytest
 from mcrs.experiment import checkpoint as ckpt
 from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
+from mcrs_lab.campaign import runner
 from mcrs_lab.campaign.cli import main as campaign_main
 from mcrs_lab.campaign.matrix import MatrixError, load_matrix, select
 from tests.test_report import read_csv
@@ -214,6 +215,13 @@ def test_run_resumes_a_partial_point_first_and_records_every_run(tmp_path: Path,
     assert methods == ["qmix R_c=0", "qmix R_c=2"]
 
 
+#: One point with small batches and the cpu budget: it checkpoints within seconds and never ends in a test.
+SLOW_POINT = TWO_POINTS.replace("budget: smoke", "budget: cpu").replace("[0, 2]", "[0]") + (
+    "overrides:\n  qmix: [train.num_envs=2, train.batch_episodes=2, train.replay_episodes=8, "
+    "train.eval_episodes=2, train.eval_interval=100, train.checkpoint_interval=100, env.max_steps=10]\n"
+)
+
+
 def _running_members(pgid: int) -> list[int]:
     """PIDs of the processes of group ``pgid`` that are not zombies (from /proc)."""
     members = []
@@ -229,11 +237,7 @@ def _running_members(pgid: int) -> list[int]:
 
 def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path, capsys) -> None:
     matrix = tmp_path / "m.yaml"
-    fast = "[train.num_envs=2, train.batch_episodes=2, train.replay_episodes=8, train.eval_episodes=2, train.eval_interval=100, train.checkpoint_interval=100, env.max_steps=10]"
-    matrix.write_text(
-        TWO_POINTS.replace("budget: smoke", "budget: cpu").replace("[0, 2]", "[0]")
-        + f"overrides:\n  qmix: {fast}\n"
-    )
+    matrix.write_text(SLOW_POINT)
     (point,), _ = load_matrix(matrix)
     outputs, records = tmp_path / "outputs", tmp_path / "records"
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
@@ -273,6 +277,31 @@ def test_a_signal_stops_the_children_and_records_them_as_stopped(tmp_path: Path,
     assert listing.startswith(f"resume {point.id} (at {record['checkpoint_env_steps']} env steps, estimated ")
 
 
+def test_fill_keeps_the_slots_busy_and_stops_the_runs_at_the_deadline(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(SLOW_POINT)
+    (point,), _ = load_matrix(matrix)
+    outputs, records = tmp_path / "outputs", tmp_path / "records"
+    args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
+    monkeypatch.setattr(runner, "FILL_FLOOR_S", 0.0)  # the budget below is under the 10-minute floor
+    # 144 s: long enough for the child to be training when it is stopped, far too short for its budget.
+    assert campaign_main(["run", *args, "--hours", "0.04", "--fill"]) == 0
+    out = capsys.readouterr().out
+    assert f"started {point.id} " in out and "campaign: the 0.04 h are over: stopping 1 runs (--fill)" in out
+    assert "campaign: 0 runs ended, 1 stopped at the deadline (resumable), 0 not started" in out
+    record = read_record(point.record_path(records))
+    assert record["status"] == "stopped" and 0 < record["checkpoint_env_steps"] < 200_000
+    (session,) = [
+        json.loads(line) for line in (point.run_dir(outputs) / "campaign.jsonl").read_text().splitlines()
+    ]
+    assert session["stopped_by_campaign"] and session["returncode"] == 128 + signal.SIGINT
+    assert "replay_blocks" in ckpt.load(ckpt.checkpoint_path(point.run_dir(outputs)))  # resumable
+    assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
+    assert capsys.readouterr().out.startswith(f"resume {point.id} (at {record['checkpoint_env_steps']} ")
+
+
 def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) -> None:
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS)
@@ -310,6 +339,18 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
         "env": {"name": "map10"}, "algo": {"name": "vdn"}, "seed": 0}})  # fmt: skip
     assert campaign_main(["run", *args, "--hours", "1.5"]) == 0
     assert f"not started: {first.id} needs about 2.00 h, 1.50 h left" in capsys.readouterr().out
+    # --fill: the budget is a hard stop; the first run starts though it cannot end in time, the second
+    # would start when the slot frees at the deadline, under the floor a start needs.
+    assert campaign_main(["run", *args, "--hours", "1.5", "--dry-run", "--jobs", "1", "--fill"]) == 0
+    plan = capsys.readouterr().out
+    assert f"start {first.id} (at 0 env steps, estimated 2.00 h, stopped at the deadline): " in plan
+    assert f"not started: {second.id}: 0.00 h left, under the 0.17 h a start needs (--fill)" in plan
+    assert plan.strip().endswith("runs going then are stopped and resume next time after 1.5 h")
+    assert campaign_main(["run", *args, "--hours", "0.1", "--fill"]) == 0  # 6 minutes: under the floor
+    out = capsys.readouterr().out
+    assert f"not started: {first.id}: 0.10 h left, under the 0.17 h a start needs (--fill)" in out
+    assert "campaign: 0 runs ended, 0 stopped at the deadline (resumable), 2 not started" in out
+    assert not first.run_dir(outputs).exists()
     with open(outputs / ".campaign.lock", "a+") as lock:  # a campaign already running here
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         with pytest.raises(SystemExit, match="another mcrs-campaign run uses"):

@@ -2,6 +2,7 @@
 
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
+    mcrs-campaign run --hours 2.5 --fill                 the same, every slot busy, stopped (resumable) at 2.5 h
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
@@ -24,7 +25,7 @@ from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, wri
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs_lab.campaign.progress import STATES
-from mcrs_lab.campaign.runner import Campaign, CampaignBusy
+from mcrs_lab.campaign.runner import FILL_FLOOR_S, Campaign, CampaignBusy
 
 OUTPUTS_DIR = Path("outputs/campaign")
 #: --hours beyond a year is a typo (and time.time() + inf never ends).
@@ -51,7 +52,15 @@ def build_parser() -> argparse.ArgumentParser:
     matrix_options(status)
     run = sub.add_parser("run", help="run the next points within a time budget")
     matrix_options(run)
-    run.add_argument("--hours", type=float, required=True, help="no run starts that would end after this")
+    run.add_argument(
+        "--hours", type=float, required=True, help="no run starts that would end after this (see --fill)"
+    )
+    run.add_argument(
+        "--fill",
+        action="store_true",
+        help="keep every slot busy until --hours, then stop the runs still going (each checkpoints and "
+        f"is resumed first next time); no start in the last {FILL_FLOOR_S / 60:g} minutes",
+    )
     run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
     run.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
     run.add_argument("--keep-replay", action="store_true", help="do not prune finished runs' last.pt")
@@ -118,9 +127,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations
     )
     if args.dry_run:
-        print("\n".join(campaign.dry_run(args.hours)))
+        print("\n".join(campaign.dry_run(args.hours, args.fill)))
         return 0
-    return campaign.run(args.hours)
+    return campaign.run(args.hours, args.fill)
 
 
 def _evaluations(args: argparse.Namespace) -> list[Evaluation]:

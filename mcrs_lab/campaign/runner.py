@@ -1,6 +1,10 @@
 """Running the campaign's points on one machine: a few ``mcrs-train`` processes at a time, partial runs
 resumed first, no new start that the time budget cannot hold, a record of every run that ends.
 
+With ``fill`` the budget is a hard stop instead: every slot is kept busy until shortly before it, and the
+runs still going at the deadline are stopped as on SIGINT (checkpointed, recorded as stopped, resumed
+first by the next ``run``), so that a working session that ends at a known time loses no core-hours.
+
 Each child runs in its own session (process group), with one torch thread, its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
 exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
@@ -41,6 +45,9 @@ from mcrs_lab.campaign.progress import Progress, progress
 
 #: Seconds a stopped child may take to exit after SIGINT before it is killed.
 STOP_GRACE_S = 120.0
+#: With ``fill``: no start with less time than this left before the deadline (a run's set-up, its
+#: first evaluation and its checkpoint would be most of it).
+FILL_FLOOR_S = 600.0
 LOG = "campaign.log"
 
 
@@ -133,38 +140,54 @@ class Campaign:
         return (self.total - state.env_steps) / speed if speed else None
 
     # ---------------------------------------------------------------------------------- running
-    def dry_run(self, hours: float) -> list[str]:
+    def dry_run(self, hours: float, fill: bool = False) -> list[str]:
         """The commands ``run`` would start, in order, with their estimated length; nothing is run."""
         to_record, launches = self.plan()
         speeds = self._speeds()
         lines = [f"record {s.point.run_dir(self.outputs)}" for s in to_record]
         # The same rule as `run`, simulated: a run starts when a job slot frees, and only if its estimate
-        # ends before the deadline (a run without an estimate always starts).
+        # ends before the deadline (a run without an estimate always starts); with `fill`, if the slot
+        # frees FILL_FLOOR_S or more before the deadline, and what is not done by then is stopped.
         deadline = hours * 3600
         slots = [0.0] * self.jobs
         for state, command in launches:
             estimate = self.estimate_s(state, speeds)
             slot = min(range(self.jobs), key=slots.__getitem__)
-            if estimate is not None and slots[slot] + estimate > deadline:
-                left = max(0.0, deadline - slots[slot])
-                lines.append(
-                    f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(left)} left"
-                )
+            refusal = self._start_refusal(state, estimate, deadline - slots[slot], fill)
+            if refusal is not None:
+                lines.append(refusal)
                 continue
-            slots[slot] += estimate or 0.0
             what = "resume" if state.state == "partial" else "start"
-            lines.append(
-                f"{what} {state.point.id} (at {state.env_steps} env steps, estimated "
-                f"{_hours(estimate)}): {shlex.join(command)}"
-            )
-        lines.append(f"{len(launches)} runs, {self.jobs} at a time, no new start after {hours:g} h")
+            line = f"{what} {state.point.id} (at {state.env_steps} env steps, estimated {_hours(estimate)}"
+            if fill and (estimate is None or slots[slot] + estimate > deadline):
+                line += ", stopped at the deadline"
+                slots[slot] = deadline
+            else:
+                slots[slot] += estimate or 0.0
+            lines.append(f"{line}): {shlex.join(command)}")
+        rule = "runs going then are stopped and resume next time" if fill else "no new start"
+        lines.append(f"{len(launches)} runs, {self.jobs} at a time, {rule} after {hours:g} h")
         return lines
 
-    def run(self, hours: float) -> int:
-        """Run the plan within ``hours``; returns 0 when every run it started ended well and the rest were
-        left for lack of time, 1 when a point was refused (its run directory in use by a live run, or not
-        the campaign's) or a run failed, 128 + the signal that stopped it. One campaign at a time per
-        outputs folder: a second one would start the same points."""
+    def _start_refusal(self, state: Progress, estimate: float | None, left: float, fill: bool) -> str | None:
+        """Why a run must not start with ``left`` seconds to the deadline, or None."""
+        if fill and left < FILL_FLOOR_S:
+            return (
+                f"not started: {state.point.id}: {_hours(max(0.0, left))} left, under the "
+                f"{_hours(FILL_FLOOR_S)} a start needs (--fill)"
+            )
+        if not fill and estimate is not None and estimate > left:
+            return (
+                f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(max(0.0, left))} left"
+            )
+        return None
+
+    def run(self, hours: float, fill: bool = False) -> int:
+        """Run the plan within ``hours`` (with ``fill``: stop what still runs then); returns 0 when every
+        run it started ended well or was stopped at the deadline and the rest were left for lack of time,
+        1 when a point was refused (its run directory in use by a live run, or not the campaign's) or a
+        run failed, 128 + the signal that stopped it. One campaign at a time per outputs folder: a second
+        one would start the same points."""
         self.outputs.mkdir(parents=True, exist_ok=True)
         with open(self.outputs / ".campaign.lock", "a+") as lock:
             try:
@@ -178,9 +201,9 @@ class Campaign:
             lock.truncate()
             lock.write(str(os.getpid()))
             lock.flush()
-            return self._run(hours)
+            return self._run(hours, fill)
 
-    def _run(self, hours: float) -> int:
+    def _run(self, hours: float, fill: bool) -> int:
         deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
@@ -188,18 +211,23 @@ class Campaign:
         speeds = self._speeds()
         queue = list(launches)
         running: list[Job] = []
-        not_started = refused = 0
+        not_started = refused = stopped_at_deadline = 0
         previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
             while (queue or running) and self.stop_signal is None:
+                if fill and time.time() >= deadline:
+                    _print(f"campaign: the {hours:g} h are over: stopping {len(running)} runs (--fill)")
+                    stopped_at_deadline = len(running)
+                    self._stop(running)
+                    running = []
+                    not_started += len(queue)
+                    break
                 while queue and len(running) < self.jobs and self.stop_signal is None:
                     state, command = queue.pop(0)
                     estimate = self.estimate_s(state, speeds)
-                    if estimate is not None and time.time() + estimate > deadline:
-                        left = max(0.0, deadline - time.time())
-                        _print(
-                            f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(left)} left"
-                        )
+                    refusal = self._start_refusal(state, estimate, deadline - time.time(), fill)
+                    if refusal is not None:
+                        _print(refusal)
                         not_started += 1
                         continue
                     job = self._launch(state, command)
@@ -218,8 +246,9 @@ class Campaign:
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-        ended = len(launches) - not_started - refused
-        _print(f"campaign: {ended} runs ended, {not_started} not started (time budget)")
+        ended = len(launches) - not_started - refused - stopped_at_deadline
+        stopped = f", {stopped_at_deadline} stopped at the deadline (resumable)" if fill else ""
+        _print(f"campaign: {ended} runs ended{stopped}, {not_started} not started (time budget)")
         if refused:
             _print(
                 f"campaign: {refused} runs not started: their directories are in use or not the campaign's "
