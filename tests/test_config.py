@@ -39,6 +39,7 @@ OVERRIDES = {
     "invalid_action": ("clip", "clip"),
     "expose_beliefs": ("true", True),
     "no_fly_shield": ("true", True),
+    "uav_shield": ("true", True),
     "comm_delay": ("2", 2),
     "comm_budget": ("6", 6),
     "target_motion": ("random_walk", "random_walk"),

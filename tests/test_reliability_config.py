@@ -226,6 +226,7 @@ WRONG_TYPES = [
     "env.w_no_fly=abc",
     "env.expose_beliefs=maybe",
     "env.no_fly_shield=maybe",
+    "env.uav_shield=maybe",
     "env.comm_delay=1.5",
     "env.comm_budget=wide",
     "env.evidence_decay=slow",

@@ -1,4 +1,7 @@
-"""The no-fly shield (env option ``no_fly_shield``): which moves it masks, its fallback, and that it is off by default."""
+"""The safety shields (env options ``no_fly_shield`` and ``uav_shield``): which moves they mask, their fallback,
+and that they are off by default."""
+
+import math
 
 import pytest
 import torch
@@ -150,3 +153,144 @@ def test_masked_unsafe_action_is_refused_naming_the_shield():
     core, _ = scene([[5, 3], [0, 0]], [[5, 5]], safety_rule="near")  # (5, 4), beside the zone: charged
     with pytest.raises(ValueError, match=r"is masked: .*no_fly_shield"):
         core.step(torch.tensor([[3, 1]]))
+
+
+# ----------------------------------------------------------------------------- the right of way (r4)
+def unsafe_moves(positions, masks, index: int, d2: float, sight: float, rule: str = "enter") -> set[int]:
+    """UAV ``index``'s allowed moves that end where r4 charges with some allowed move of a lower-indexed
+    UAV within ``sight``, by brute force."""
+
+    def charged(squared: int) -> bool:
+        return squared < d2**2 if rule == "enter" else squared <= d2**2
+
+    x, y = positions[index]
+    unsafe = set()
+    for j in range(index):
+        jx, jy = positions[j]
+        if (jx - x) ** 2 + (jy - y) ** 2 > sight**2:
+            continue
+        for a in (a for a in range(8) if masks[index][a]):
+            ax, ay = x + MOVES[a][0], y + MOVES[a][1]
+            for b in (b for b in range(8) if masks[j][b]):
+                if charged((ax - jx - MOVES[b][0]) ** 2 + (ay - jy - MOVES[b][1]) ** 2):
+                    unsafe.add(a)
+    return unsafe
+
+
+def expected_right_of_way(
+    positions, masks, index: int, d2: float, sight: float, rule: str = "enter"
+) -> set[int]:
+    """UAV ``index``'s moves under ``uav_shield``: its allowed moves less the unsafe ones, or all of them
+    if that leaves none."""
+    own = {a for a in range(8) if masks[index][a]}
+    return (own - unsafe_moves(positions, masks, index, d2, sight, rule)) or own
+
+
+def test_right_of_way_masks_the_cells_a_lower_indexed_uav_in_sight_may_reach():
+    # UAV 0 at (5, 5), UAV 1 at (5, 7): UAV 0 might move to any cell of row y = 6 around it, so UAV 1 may
+    # not; UAV 2 far away is unaffected; UAV 0 never gives way.
+    def reset(**overrides):
+        cfg = scenario(
+            "map10", n_uavs=3, n_no_fly=1, n_targets=1, uav_shield=True, **EXACT_SENSOR, **overrides
+        )
+        uavs, zone, target = (
+            torch.tensor([[5, 5], [5, 7], [0, 0]]),
+            torch.tensor([[9, 9]]),
+            torch.tensor([[9, 0]]),
+        )
+        return MCRSCore(cfg).reset_to(uavs, zone, target)
+
+    result = reset()
+    row_6 = {a for a, (dx, dy) in enumerate(MOVES) if dy == -1}
+    assert len(row_6) == 3
+    assert allowed(result, 0) == set(range(8))
+    assert allowed(result, 1) == set(range(8)) - row_6
+    assert allowed(result, 2) == {1, 3, 6}  # the grid mask only
+    # Out of sight (sight_range 1.5 < 2), UAV 1 does not see UAV 0 and keeps every move.
+    assert allowed(reset(sight_range=1.5), 1) == set(range(8))
+    # Under near with d2 = 1, side by side is charged too: UAV 1 may not end next to any cell UAV 0 may reach.
+    near = reset(safety_rule="near")
+    assert allowed(near, 1) == {a for a, (dx, dy) in enumerate(MOVES) if dy == 1}
+
+
+@pytest.mark.parametrize("rule", ["enter", "near"])
+@pytest.mark.parametrize("d2", [0.0, 1.0, 2.0, 5.5, math.inf])
+def test_right_of_way_matches_brute_force_on_random_scenes(d2, rule):
+    options = {"num_envs": 16, "uav_safety": d2, "safety_rule": rule, "no_fly_shield": True}
+    shielded = MCRSCore(scenario("map10", uav_shield=True, **options))
+    plain = MCRSCore(scenario("map10", **options))
+    shielded.seed(5)
+    plain.seed(5)
+    a, b = shielded.reset(), plain.reset()
+    cfg = shielded.config
+    generator = torch.Generator().manual_seed(5)
+    for _ in range(6):
+        assert torch.equal(shielded.uav_pos, plain.uav_pos)
+        for env in range(cfg.num_envs):
+            positions = shielded.uav_pos[env].tolist()
+            masks = b.action_mask[env].tolist()  # the no-fly shield's mask, before the right of way
+            for uav in range(cfg.n_uavs):
+                want = expected_right_of_way(positions, masks, uav, d2, cfg.sight_range, rule)
+                assert allowed(a, uav, env) == want
+        action = random_allowed(a.action_mask, generator)
+        a, b = shielded.step(action), plain.step(action)
+
+
+def test_random_allowed_episodes_collide_only_where_the_right_of_way_fell_back():
+    cfg = scenario("map20", num_envs=32, uav_shield=True)
+    core = MCRSCore(cfg)
+    core.seed(11)
+    result = core.reset()
+    generator = torch.Generator().manual_seed(11)
+    avoided = 0
+    for _ in range(cfg.max_steps):
+        # An env where some UAV had every move unsafe (the shield then keeps them all), computed here.
+        grid = [
+            [[bool(v) for v in row] for row in env] for env in core._mask_of_cell[core._uav_cells()].tolist()
+        ]
+        fell_back = torch.zeros(cfg.num_envs, dtype=torch.bool)
+        for env in range(cfg.num_envs):
+            positions = core.uav_pos[env].tolist()
+            for uav in range(cfg.n_uavs):
+                unsafe = unsafe_moves(positions, grid[env], uav, cfg.uav_safety, cfg.sight_range)
+                own = {a for a in range(8) if grid[env][uav][a]}
+                fell_back[env] |= own <= unsafe
+                avoided += len(unsafe) > 0
+        result = core.step(random_allowed(result.action_mask, generator))
+        assert (result.reward_terms[~fell_back, 3] == 0).all()
+    assert avoided > 100  # the UAVs met often enough for the shield to matter
+    unshielded = MCRSCore(scenario("map20", num_envs=32))
+    unshielded.seed(11)
+    result = unshielded.reset()
+    for _ in range(cfg.max_steps):
+        result = unshielded.step(random_allowed(result.action_mask, generator))
+    assert unshielded.collisions.sum() > 100  # the same play without it collides
+
+
+def test_right_of_way_is_off_by_default_and_changes_nothing_but_the_mask():
+    assert scenario("map10").uav_shield is False
+    shielded = MCRSCore(scenario("map10", num_envs=8, uav_shield=True))
+    plain = MCRSCore(scenario("map10", num_envs=8))
+    shielded.seed(2)
+    plain.seed(2)
+    a, b = shielded.reset(), plain.reset()
+    generator = torch.Generator().manual_seed(2)
+    for _ in range(50):
+        assert (a.action_mask <= b.action_mask).all()  # the shield only removes moves
+        for field in ("observation", "state", "reward_terms", "position"):
+            assert torch.equal(getattr(a, field), getattr(b, field)), field
+        action = random_allowed(a.action_mask, generator)
+        a, b = shielded.step(action), plain.step(action)
+
+
+def test_bad_right_of_way_value_is_refused_naming_the_field():
+    with pytest.raises(ValueError, match="uav_shield=1: must be true or false"):
+        scenario("map10", uav_shield=1)
+
+
+def test_masked_move_towards_a_uav_is_refused_naming_the_right_of_way():
+    core = MCRSCore(scenario("map10", n_uavs=2, n_no_fly=1, n_targets=1, uav_shield=True, **EXACT_SENSOR))
+    core.reset_to(torch.tensor([[5, 5], [5, 7]]), torch.tensor([[9, 9]]), torch.tensor([[9, 0]]))
+    towards = next(a for a, (dx, dy) in enumerate(MOVES) if (dx, dy) == (0, -1))
+    with pytest.raises(ValueError, match=r"is masked: .*uav_shield"):
+        core.step(torch.tensor([[0, towards]]))

@@ -39,7 +39,8 @@ def check_action(
             env, uav = (~allowed).nonzero()[0].tolist()
             raise ValueError(
                 f"action[{env}, {uav}] = {action[env, uav].item()} is masked: it would leave the grid "
-                f"{'or enter d1 of a no-fly zone (no_fly_shield) ' if config.no_fly_shield else ''}from "
+                f"{'or enter d1 of a no-fly zone (no_fly_shield) ' if config.no_fly_shield else ''}"
+                f"{'or may meet a lower-indexed UAV within d2 (uav_shield) ' if config.uav_shield else ''}from "
                 f"{uav_pos[env, uav].tolist()}; allowed here: "
                 f"{mask[env, uav].nonzero().squeeze(-1).tolist()} "
                 "(set invalid_action=clip to clip such moves instead)"

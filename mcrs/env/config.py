@@ -63,6 +63,7 @@ class EnvConfig:
     invalid_action: str = "raise"
     expose_beliefs: bool = False
     no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
+    uav_shield: bool = False  # mask moves that could meet a lower-indexed UAV in sight within d2 (the same)
     # Beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets"); defaults = the paper.
     comm_delay: int = 0  # steps between sending and receiving a message
     comm_budget: Optional[int] = None  # noqa: UP045 (OmegaConf needs Optional) detections per link and step; None: unlimited
@@ -226,7 +227,7 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         )
     if cfg.invalid_action not in INVALID_ACTION_MODES:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
-    for name in ("expose_beliefs", "no_fly_shield"):
+    for name in ("expose_beliefs", "no_fly_shield", "uav_shield"):
         if not isinstance(getattr(cfg, name), bool):
             errors.append(f"{name}={getattr(cfg, name)!r}: must be true or false")
     errors += _variant_errors(cfg)

@@ -27,7 +27,7 @@ from mcrs.env.geometry import Geometry
 from mcrs.env.messages import MessageChannel
 from mcrs.env.metrics import METRICS  # noqa: F401 (read from here by mcrs.experiment, mcrs-eval and the lab)
 from mcrs.env.outputs import CoreOutputs, StepResult  # StepResult: read from here by the adapters
-from mcrs.env.shield import safe_move_table, shielded_mask
+from mcrs.env.shield import RightOfWay, safe_move_table, shielded_mask
 from mcrs.env.targets import TargetWalk
 
 # Paper eq. 1: action -> (dx, dy). 0 left, 1 right, 2 down, 3 up, 4 lower-left, 5 lower-right,
@@ -120,6 +120,8 @@ class MCRSCore(CoreOutputs):
         self._safe_moves = (
             safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
         )
+        # uav_shield: the table of which moves may meet (mcrs/env/shield.py).
+        self._right_of_way = RightOfWay(self._moves, c) if c.uav_shield else None
         self._mask = self._action_mask()  # the action mask of the current positions
 
     # ------------------------------------------------------------------ public API
@@ -379,8 +381,16 @@ class MCRSCore(CoreOutputs):
     def _uav_cells(self) -> torch.Tensor:
         return self.uav_pos[..., 0] * self.config.height + self.uav_pos[..., 1]
 
-    def _action_mask(self, cell: torch.Tensor | None = None) -> torch.Tensor:
-        """``[E, N, 8]``: on-grid moves, less those that r3 would charge under ``no_fly_shield``."""
+    def _action_mask(
+        self, cell: torch.Tensor | None = None, geometry: Geometry | None = None
+    ) -> torch.Tensor:
+        """``[E, N, 8]``: on-grid moves, less those that r3 would charge under ``no_fly_shield``, less
+        those that give way to a lower-indexed UAV under ``uav_shield`` (mcrs/env/shield.py)."""
         cell = self._uav_cells() if cell is None else cell
-        unshielded = self._mask_of_cell[cell]
-        return unshielded if self._safe_moves is None else shielded_mask(self._safe_moves, cell, unshielded)
+        mask = self._mask_of_cell[cell]
+        if self._safe_moves is not None:
+            mask = shielded_mask(self._safe_moves, cell, mask)
+        if self._right_of_way is not None:
+            geometry = self._geometry() if geometry is None else geometry
+            mask = self._right_of_way.mask(mask, self.uav_pos, geometry.uav_squared, self._earlier)
+        return mask

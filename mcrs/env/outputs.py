@@ -88,7 +88,7 @@ class CoreOutputs:
         if neighbours is None:
             neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
         cell = self._uav_cells()
-        self._mask = self._action_mask(cell)
+        self._mask = self._action_mask(cell, geometry)
         positions = [self.uav_pos, self.no_fly_pos, self.target_pos]
         state = torch.cat(
             [self.global_belief.view(E, -1)]

@@ -1,15 +1,27 @@
-"""The no-fly safety shield (scenario option ``no_fly_shield``): mask the moves that would cost r3.
+"""The safety shields (scenario options, off by default, not in the paper): masks of the moves that a
+penalty would charge, as a safety layer under a deployed policy would apply them.
 
-Reward term r3 charges ``w_no_fly`` for every (UAV, zone) pair closer than ``no_fly_safety`` (d1) after a
-move (``safety_rule``: ``enter``, the default, charges distances < d1, i.e. the zone's own cell at d1 = 1;
-``near`` charges distances <= d1). The shield masks exactly the moves that r3 would charge.
-The shield removes such moves from the action mask, so that every policy that respects the mask (learners,
-their exploration, the heuristics) cannot take them. Zones are static within an episode, so the table of
-safe moves is built once per environment when its episode starts; each step is then one gather.
-A UAV whose every on-grid move is unsafe keeps its unshielded mask: the mask never empties.
+``no_fly_shield`` (r3). Reward term r3 charges ``w_no_fly`` for every (UAV, zone) pair closer than
+``no_fly_safety`` (d1) after a move (``safety_rule``: ``enter``, the default, charges distances < d1, i.e.
+the zone's own cell at d1 = 1; ``near`` charges distances <= d1). The shield masks exactly the moves that
+r3 would charge, so that every policy that respects the mask (learners, their exploration, the
+heuristics) cannot take them. Zones are static within an episode, so the table of safe moves is built once
+per environment when its episode starts; each step is then one gather.
+
+``uav_shield`` (r4), the right of way. UAVs move at once, and every action is a move, so two UAVs collide
+only by moving into the same place together: no mask on what a UAV sees now can forbid that alone. Each
+UAV gives way to the lower-indexed UAVs in its sight (``sight_range``, as its observation shows them): a
+move is masked if it could end where r4 charges with any move such a UAV is allowed. UAV 0 never gives
+way, and two UAVs in sight of each other cannot collide, since the higher-indexed one avoids every cell the
+other might reach. This is the coverage heuristic's rule (mcrs/policies/coverage.py) made hard; each
+UAV needs only its own observation and the fixed order of the indices.
+
+A UAV whose every move a shield would mask keeps the mask it had before that shield: the mask never empties.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -38,3 +50,51 @@ def shielded_mask(safe_moves: torch.Tensor, cell: torch.Tensor, unshielded: torc
     """``[E, N, 8]`` mask of the UAVs on ``cell`` ``[E, N]``: the safe moves, or ``unshielded`` where none is."""
     safe = safe_moves.gather(1, cell.unsqueeze(-1).expand(-1, -1, safe_moves.shape[-1]))
     return torch.where(safe.any(-1, keepdim=True), safe, unshielded)
+
+
+class RightOfWay:
+    """The ``uav_shield`` mask of a step as lookups in one table built at construction.
+
+    Whether UAV i's move a may meet one of UAV j's allowed moves depends only on the offset
+    ``pos_i - pos_j``, on a, and on the set of j's allowed moves (8 bits): ``table[offset, a, j's mask
+    as a byte]``. Offsets farther apart than two moves plus d2 never meet and share one all-False row, so
+    a step is a gather over the UAV pairs rather than a test of their 8 x 8 moves.
+    """
+
+    def __init__(self, moves: torch.Tensor, config: EnvConfig) -> None:
+        d2, dev = config.uav_safety, moves.device
+        span = max(config.width, config.height) - 1  # no offset on the grid is larger
+        self.radius = min(span, math.ceil(d2) + 2) if math.isfinite(d2) else span
+        side = 2 * self.radius + 1
+        ticks = torch.arange(-self.radius, self.radius + 1, device=dev)
+        offset = torch.stack(torch.meshgrid(ticks, ticks, indexing="ij"), -1).view(
+            -1, 1, 1, 2
+        )  # [O, 1, 1, 2]
+        gap = offset + moves.view(1, 8, 1, 2) - moves.view(1, 1, 8, 2)  # [O, a, b, 2]
+        close = config.violates(gap.pow(2).sum(-1).to(torch.float32), d2).to(torch.float32)  # [O, 8, 8]
+        self.bit = 2 ** torch.arange(8, device=dev)
+        allowed = (torch.arange(256, device=dev).unsqueeze(-1) & self.bit).ne(0).to(torch.float32)  # [256, b]
+        meets = (close @ allowed.T).gt(0)  # [O, a, 256]
+        self.table = torch.cat([meets, meets.new_zeros(1, 8, 256)]).view(-1)  # the last row: too far apart
+        self.far, self.side = side * side, side
+        self.sight_squared = config.sight_range**2
+
+    def mask(
+        self, mask: torch.Tensor, uav_pos: torch.Tensor, uav_squared: torch.Tensor, earlier: torch.Tensor
+    ) -> torch.Tensor:
+        """``[E, N, 8]``: ``mask`` less the moves of UAV i that could end where r4 charges with an allowed
+        move of a lower-indexed UAV j in i's sight; a UAV left with no move keeps ``mask``.
+
+        ``uav_pos`` ``[E, N, 2]``, ``uav_squared`` ``[E, N, N]`` (squared distances now), ``earlier``
+        ``[N, N]`` (``[i, j]``: j < i).
+        """
+        offset = uav_pos.unsqueeze(2) - uav_pos.unsqueeze(1)  # [E, i, j, 2]: pos_i - pos_j
+        near = offset.abs().amax(-1) <= self.radius
+        gives_way = earlier & (uav_squared <= self.sight_squared) & near
+        row = (offset[..., 0] + self.radius) * self.side + offset[..., 1] + self.radius
+        row = torch.where(gives_way, row, self.far)  # [E, i, j]
+        byte = (mask.to(torch.int64) * self.bit).sum(-1)  # [E, j]
+        cell = (row * 8).unsqueeze(-1) + torch.arange(8, device=mask.device)  # [E, i, j, a]
+        conflict = self.table[cell * 256 + byte.unsqueeze(1).unsqueeze(-1)].any(2)  # [E, i, a]
+        safe = mask & ~conflict
+        return torch.where(safe.any(-1, keepdim=True), safe, mask)

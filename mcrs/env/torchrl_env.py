@@ -3,7 +3,7 @@
 Keys (``E = num_envs``, ``N = n_uavs``)::
 
     ("agents", "observation")   [E, N, obs_dim]  float32, paper eqs. 18-21
-    ("agents", "action_mask")   [E, N, 8]        bool, moves that stay on the grid (no_fly_shield: and out of d1)
+    ("agents", "action_mask")   [E, N, 8]        bool, moves that stay on the grid (and the shields': mcrs/env/shield.py)
     ("agents", "action")        [E, N]           int64 in 0..7 (the action spec)
     ("agents", "reading")       [E, N]           bool, this step's sensor reading (True = "F")
     ("agents", "position")      [E, N, 2]        int64 cell (x, y)

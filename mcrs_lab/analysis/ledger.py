@@ -12,10 +12,11 @@ For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluat
   without giving up a first reading.
 
 ``--shield`` plays with ``env.no_fly_shield=true`` (the moves r3 would charge masked): what a policy
-scores when it cannot enter a zone. Issue 30 item 4 and docs/RESULTS.md ("Why the learners trail the
-coverage heuristic") use it.
+scores when it cannot enter a zone; ``--uav-shield`` with ``env.uav_shield=true`` (each UAV gives way to
+the lower-indexed UAVs in sight): what it scores when it cannot collide. Issue 30 item 4 and
+docs/DIAGNOSTICS.md use them.
 
-    python -m mcrs_lab.analysis.ledger --env map20 --policy coverage --policy outputs/<run> [--shield]
+    python -m mcrs_lab.analysis.ledger --env map20 --policy coverage --policy outputs/<run> [--shield] [--uav-shield]
 """
 
 from __future__ import annotations
@@ -140,12 +141,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=32, help="evaluation episodes, one batch")
     parser.add_argument("--seed", type=int, default=0, help="the evaluation seed (mcrs-eval's)")
     parser.add_argument("--shield", action="store_true", help="play with env.no_fly_shield=true")
+    parser.add_argument("--uav-shield", action="store_true", help="play with env.uav_shield=true")
     args = parser.parse_args(argv)
     if not 1 <= args.episodes <= 4096:
         raise SystemExit(f"ledger: error: --episodes={args.episodes}: must be in [1, 4096]")
     if not 0 <= args.seed < 2**63:
         raise SystemExit(f"ledger: error: --seed={args.seed}: must be in [0, 2**63 - 1]")
-    config = scenario(args.env, no_fly_shield=args.shield)
+    config = scenario(args.env, no_fly_shield=args.shield, uav_shield=args.uav_shield)
     ledgers = {}
     for name in args.policy or list(POLICIES):
         label = name if name in POLICIES else Path(name).name
@@ -154,8 +156,9 @@ def main(argv: list[str] | None = None) -> int:
         except (CheckpointError, ValueError, OSError) as error:
             raise SystemExit(f"ledger: error: --policy={name}: {error}") from None
     print(
-        f"{args.env}, safety_rule={config.safety_rule}, no_fly_shield={str(args.shield).lower()}: means over "
-        f"{args.episodes} episodes (seed {args.seed}), T = {config.max_steps}"
+        f"{args.env}, safety_rule={config.safety_rule}, no_fly_shield={str(args.shield).lower()}, "
+        f"uav_shield={str(args.uav_shield).lower()}: means over {args.episodes} episodes (seed {args.seed}), "
+        f"T = {config.max_steps}"
     )
     print(table(ledgers))
     return 0
