@@ -37,7 +37,11 @@ PRESETS = {
             for d in (1.3e-4, 1.3e-3, 1.3e-2, 1.3e-1)
         ],
     ),
+    "shield": (2, ["qmix", "cnn_semu"]),
+    "shields": (2, ["qmix", "cnn_semu"]),
 }
+#: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
+SHIELDS = {"shield": (True, False), "shields": (True, True)}
 
 
 def run_preset(name: str, sweep_dir: Path) -> subprocess.CompletedProcess:
@@ -80,6 +84,7 @@ def test_preset_smoke_run_and_report(name: str, tmp_path: Path, baselines: Path)
     for run in runs:
         config = OmegaConf.load(run / "config.yaml")
         assert (config.experiment, config.budget, config.train.total_env_steps) == (name, "smoke", 200)
+        assert (config.env.no_fly_shield, config.env.uav_shield) == SHIELDS.get(name, (False, False))
         assert (run / "checkpoints" / "last.pt").is_file()
     maps = sorted({OmegaConf.load(r / "config.yaml").env.name for r in runs})
     out = tmp_path / "report"
