@@ -74,6 +74,19 @@ def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
     assert str(cfg.algo.time_limit) == "terminal"
 
 
+def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:
+    beyond = Path(__file__).resolve().parents[1] / "mcrs_lab" / "campaign" / "beyond_paper.yaml"
+    points, _ = load_matrix(beyond)
+    seeds = {fig: sorted({p.seed for p in select(points, [fig])}) for fig in ("shield", "shields")}
+    assert seeds == {"shield": [0], "shields": [0, 1, 2]}  # the file's seeds, and the figure's own
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("    sweep:", "    seeds: [3, 5]\n    sweep:"))
+    assert sorted(p.seed for p in load_matrix(matrix)[0]) == [3, 3, 5, 5]
+    matrix.write_text(TWO_POINTS.replace("    sweep:", "    seeds: [-1]\n    sweep:"))
+    with pytest.raises(MatrixError, match=r"figure figa: seeds: -1 is not a whole number"):
+        load_matrix(matrix)
+
+
 def test_section6_near_matrix_keeps_the_old_task_for_every_point() -> None:
     points, titles = load_matrix(NEAR_MATRIX)
     assert list(titles) == ["fig7", "table4", "fig5", "fig10", "fig6"]

@@ -22,7 +22,7 @@ from mcrs_lab.analysis.records import point_name, swept_fields
 #: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
 #: a config group.
 DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
-FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also"}
+FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also", "seeds"}
 
 
 class MatrixError(ValueError):
@@ -170,7 +170,9 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
     for name, fig in figures.items():
         where = f"{path}: figure {name}"
         if not isinstance(fig, dict) or not {"experiment", "env", "algo"} <= set(fig):
-            raise MatrixError(f"{where}: a mapping with experiment, env and algo (and title, sweep, also)")
+            raise MatrixError(
+                f"{where}: a mapping with experiment, env and algo (and title, sweep, also, seeds)"
+            )
         unknown = set(fig) - FIGURE_KEYS
         if unknown:
             raise MatrixError(
@@ -195,7 +197,9 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
         combos: list[tuple[tuple[str, Any], ...]] = [()]
         for key, values in sweep.items():
             combos = [(*c, (key, v)) for c in combos for v in _as_list(values)]
-        for seed in seeds:
+        # A figure's own `seeds` replace the file's: a probe at one seed beside a result at three.
+        figure_seeds = [_seed(s, where) for s in _as_list(fig["seeds"])] if "seeds" in fig else seeds
+        for seed in figure_seeds:
             for env in envs:
                 for algo in algos:
                     for combo in combos:
