@@ -156,9 +156,16 @@ def test_masked_unsafe_action_is_refused_naming_the_shield():
 
 
 # ----------------------------------------------------------------------------- the right of way (r4)
-def unsafe_moves(positions, masks, index: int, d2: float, sight: float, rule: str = "enter") -> set[int]:
-    """UAV ``index``'s allowed moves that end where r4 charges with some allowed move of a lower-indexed
-    UAV within ``sight``, by brute force."""
+def on_grid_moves(position, width: int, height: int) -> set[int]:
+    x, y = position
+    return {a for a, (dx, dy) in enumerate(MOVES) if 0 <= x + dx < width and 0 <= y + dy < height}
+
+
+def unsafe_moves(
+    positions, own: set[int], index: int, d2: float, sight: float, size: int, rule: str = "enter"
+) -> set[int]:
+    """Of UAV ``index``'s moves ``own``, those that end where r4 charges with some on-grid move of a
+    lower-indexed UAV within ``sight`` (on a ``size`` x ``size`` grid), by brute force."""
 
     def charged(squared: int) -> bool:
         return squared < d2**2 if rule == "enter" else squared <= d2**2
@@ -169,21 +176,20 @@ def unsafe_moves(positions, masks, index: int, d2: float, sight: float, rule: st
         jx, jy = positions[j]
         if (jx - x) ** 2 + (jy - y) ** 2 > sight**2:
             continue
-        for a in (a for a in range(8) if masks[index][a]):
+        for a in own:
             ax, ay = x + MOVES[a][0], y + MOVES[a][1]
-            for b in (b for b in range(8) if masks[j][b]):
+            for b in on_grid_moves((jx, jy), size, size):
                 if charged((ax - jx - MOVES[b][0]) ** 2 + (ay - jy - MOVES[b][1]) ** 2):
                     unsafe.add(a)
     return unsafe
 
 
 def expected_right_of_way(
-    positions, masks, index: int, d2: float, sight: float, rule: str = "enter"
+    positions, own: set[int], index: int, d2: float, sight: float, size: int, rule: str = "enter"
 ) -> set[int]:
-    """UAV ``index``'s moves under ``uav_shield``: its allowed moves less the unsafe ones, or all of them
+    """UAV ``index``'s moves under ``uav_shield``: its moves ``own`` less the unsafe ones, or all of them
     if that leaves none."""
-    own = {a for a in range(8) if masks[index][a]}
-    return (own - unsafe_moves(positions, masks, index, d2, sight, rule)) or own
+    return (own - unsafe_moves(positions, own, index, d2, sight, size, rule)) or own
 
 
 def test_right_of_way_masks_the_cells_a_lower_indexed_uav_in_sight_may_reach():
@@ -228,9 +234,9 @@ def test_right_of_way_matches_brute_force_on_random_scenes(d2, rule):
         assert torch.equal(shielded.uav_pos, plain.uav_pos)
         for env in range(cfg.num_envs):
             positions = shielded.uav_pos[env].tolist()
-            masks = b.action_mask[env].tolist()  # the no-fly shield's mask, before the right of way
             for uav in range(cfg.n_uavs):
-                want = expected_right_of_way(positions, masks, uav, d2, cfg.sight_range, rule)
+                own = allowed(b, uav, env)  # the no-fly shield's mask, before the right of way
+                want = expected_right_of_way(positions, own, uav, d2, cfg.sight_range, cfg.width, rule)
                 assert allowed(a, uav, env) == want
         action = random_allowed(a.action_mask, generator)
         a, b = shielded.step(action), plain.step(action)
@@ -245,15 +251,12 @@ def test_random_allowed_episodes_collide_only_where_the_right_of_way_fell_back()
     avoided = 0
     for _ in range(cfg.max_steps):
         # An env where some UAV had every move unsafe (the shield then keeps them all), computed here.
-        grid = [
-            [[bool(v) for v in row] for row in env] for env in core._mask_of_cell[core._uav_cells()].tolist()
-        ]
         fell_back = torch.zeros(cfg.num_envs, dtype=torch.bool)
         for env in range(cfg.num_envs):
             positions = core.uav_pos[env].tolist()
             for uav in range(cfg.n_uavs):
-                unsafe = unsafe_moves(positions, grid[env], uav, cfg.uav_safety, cfg.sight_range)
-                own = {a for a in range(8) if grid[env][uav][a]}
+                own = on_grid_moves(positions[uav], cfg.width, cfg.height)
+                unsafe = unsafe_moves(positions, own, uav, cfg.uav_safety, cfg.sight_range, cfg.width)
                 fell_back[env] |= own <= unsafe
                 avoided += len(unsafe) > 0
         result = core.step(random_allowed(result.action_mask, generator))

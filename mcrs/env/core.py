@@ -387,10 +387,9 @@ class MCRSCore(CoreOutputs):
         """``[E, N, 8]``: on-grid moves, less those that r3 would charge under ``no_fly_shield``, less
         those that give way to a lower-indexed UAV under ``uav_shield`` (mcrs/env/shield.py)."""
         cell = self._uav_cells() if cell is None else cell
-        mask = self._mask_of_cell[cell]
-        if self._safe_moves is not None:
-            mask = shielded_mask(self._safe_moves, cell, mask)
+        on_grid = self._mask_of_cell[cell]
+        mask = on_grid if self._safe_moves is None else shielded_mask(self._safe_moves, cell, on_grid)
         if self._right_of_way is not None:
             geometry = self._geometry() if geometry is None else geometry
-            mask = self._right_of_way.mask(mask, self.uav_pos, geometry.uav_squared, self._earlier)
+            mask = self._right_of_way.mask(mask, on_grid, self.uav_pos, geometry.uav_squared, self._earlier)
         return mask

@@ -11,7 +11,7 @@ per environment when its episode starts; each step is then one gather.
 ``uav_shield`` (r4), the right of way. UAVs move at once, and every action is a move, so two UAVs collide
 only by moving into the same place together: no mask on what a UAV sees now can forbid that alone. Each
 UAV gives way to the lower-indexed UAVs in its sight (``sight_range``, as its observation shows them): a
-move is masked if it could end where r4 charges with any move such a UAV is allowed. UAV 0 never gives
+move is masked if it could end where r4 charges with any on-grid move of such a UAV. UAV 0 never gives
 way, and two UAVs in sight of each other cannot collide, since the higher-indexed one avoids every cell the
 other might reach. This is the coverage heuristic's rule (mcrs/policies/coverage.py) made hard; each
 UAV needs only its own observation and the fixed order of the indices.
@@ -55,9 +55,9 @@ def shielded_mask(safe_moves: torch.Tensor, cell: torch.Tensor, unshielded: torc
 class RightOfWay:
     """The ``uav_shield`` mask of a step as lookups in one table built at construction.
 
-    Whether UAV i's move a may meet one of UAV j's allowed moves depends only on the offset
-    ``pos_i - pos_j``, on a, and on the set of j's allowed moves (8 bits): ``table[offset, a, j's mask
-    as a byte]``. Offsets farther apart than two moves plus d2 never meet and share one all-False row, so
+    Whether UAV i's move a may meet one of UAV j's on-grid moves depends only on the offset
+    ``pos_i - pos_j``, on a, and on the set of j's on-grid moves (8 bits): ``table[offset, a, j's grid
+    mask as a byte]``. Offsets farther apart than two moves plus d2 never meet and share one all-False row, so
     a step is a gather over the UAV pairs rather than a test of their 8 x 8 moves.
     """
 
@@ -80,20 +80,26 @@ class RightOfWay:
         self.sight_squared = config.sight_range**2
 
     def mask(
-        self, mask: torch.Tensor, uav_pos: torch.Tensor, uav_squared: torch.Tensor, earlier: torch.Tensor
+        self,
+        mask: torch.Tensor,
+        on_grid: torch.Tensor,
+        uav_pos: torch.Tensor,
+        uav_squared: torch.Tensor,
+        earlier: torch.Tensor,
     ) -> torch.Tensor:
-        """``[E, N, 8]``: ``mask`` less the moves of UAV i that could end where r4 charges with an allowed
+        """``[E, N, 8]``: ``mask`` less the moves of UAV i that could end where r4 charges with an on-grid
         move of a lower-indexed UAV j in i's sight; a UAV left with no move keeps ``mask``.
 
-        ``uav_pos`` ``[E, N, 2]``, ``uav_squared`` ``[E, N, N]`` (squared distances now), ``earlier``
-        ``[N, N]`` (``[i, j]``: j < i).
+        ``on_grid`` ``[E, N, 8]`` is each UAV's grid mask: all that i can tell of j's moves from j's
+        position (j's no-fly mask depends on zones i may not see). ``uav_pos`` ``[E, N, 2]``,
+        ``uav_squared`` ``[E, N, N]`` (squared distances now), ``earlier`` ``[N, N]`` (``[i, j]``: j < i).
         """
         offset = uav_pos.unsqueeze(2) - uav_pos.unsqueeze(1)  # [E, i, j, 2]: pos_i - pos_j
         near = offset.abs().amax(-1) <= self.radius
         gives_way = earlier & (uav_squared <= self.sight_squared) & near
         row = (offset[..., 0] + self.radius) * self.side + offset[..., 1] + self.radius
         row = torch.where(gives_way, row, self.far)  # [E, i, j]
-        byte = (mask.to(torch.int64) * self.bit).sum(-1)  # [E, j]
+        byte = (on_grid.to(torch.int64) * self.bit).sum(-1)  # [E, j]
         cell = (row * 8).unsqueeze(-1) + torch.arange(8, device=mask.device)  # [E, i, j, a]
         conflict = self.table[cell * 256 + byte.unsqueeze(1).unsqueeze(-1)].any(2)  # [E, i, a]
         safe = mask & ~conflict
