@@ -35,6 +35,38 @@ def test_full_episodes_use_only_allowed_actions(name: str, policy: str) -> None:
     assert allowed.all()
 
 
+@pytest.mark.parametrize("policy", sorted(POLICIES))
+def test_every_heuristic_obeys_both_shields(policy: str) -> None:
+    # The shields narrow the mask (mcrs/env/shield.py); a policy that ignored it would abort the rollout.
+    td = _rollout("map20", policy, num_envs=4, seed=3, no_fly_shield=True, uav_shield=True)
+    allowed = td.get(("agents", "action_mask")).gather(-1, td.get(ACTION).unsqueeze(-1))
+    assert allowed.all()
+    assert td.get(("next", "agents", "action_mask")).logical_not().any()  # the shields did mask moves
+
+
+def test_lawnmower_under_a_mask_takes_the_allowed_move_nearest_its_waypoint() -> None:
+    cfg = scenario("map10", num_envs=1)
+    policy = LawnmowerPolicy(cfg, 0)
+    layout = ObservationLayout.from_config(cfg)
+    obs = torch.zeros(1, cfg.n_uavs, cfg.obs_dim)
+    position = torch.tensor([[9, 9], [2, 0], [5, 5], [7, 9]])
+    obs[0, :, layout.position] = position / 9.0
+    mask = torch.ones(1, cfg.n_uavs, 8, dtype=torch.bool)
+    down_left = MOVES.index((-1, -1))
+    mask[0, 0, down_left] = False  # UAV 0 heads for (0, 0) along the diagonal: that move is masked
+    td = TensorDict(
+        {
+            "agents": TensorDict({"observation": obs, "action_mask": mask}, batch_size=[1, cfg.n_uavs]),
+            "step_count": torch.zeros(1, 1, dtype=torch.int64),
+        },
+        batch_size=[1],
+    )
+    action = policy(td).get(ACTION)[0]
+    # (8, 9) and (9, 8) are equally near (0, 0) (squared 145); the lower action of the two is taken.
+    assert action[0] == min(MOVES.index((-1, 0)), MOVES.index((0, -1)))
+    assert MOVES[action[1]] == (0, 1)  # unmasked UAVs keep the sign move
+
+
 def test_registry_and_unknown_name() -> None:
     cfg = scenario("map10")
     assert set(POLICIES) == {"random", "lawnmower", "greedy", "coverage"}

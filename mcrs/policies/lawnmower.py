@@ -29,7 +29,9 @@ class LawnmowerPolicy(Policy):
     The pointer ``s`` runs over a cycle of length ``2P - 2`` (``P`` cells in the strip): ``s < P`` walks
     the snake forwards, ``s >= P`` walks it back. At the start of an episode (``step_count == 0``) each
     UAV aims at the nearer end of its snake. Every step the UAV takes the 8-neighbour move whose
-    (dx, dy) is the sign of (waypoint - position); such a move never leaves the grid.
+    (dx, dy) is the sign of (waypoint - position); such a move never leaves the grid. Where the action
+    mask forbids it (a shield: mcrs/env/shield.py), the UAV takes the allowed move that ends nearest the
+    waypoint instead (the lowest action among equals): the pattern stays, the mask is obeyed.
     """
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
@@ -45,6 +47,7 @@ class LawnmowerPolicy(Policy):
         for action, (dx, dy) in enumerate(MOVES):
             lookup[dx + 1, dy + 1] = action
         self.move_lookup = lookup.to(dev)
+        self.moves = torch.tensor(MOVES, dtype=torch.int64, device=dev)
         self.pointer: torch.Tensor | None = None  # [E, N] position in the ping-pong cycle
 
     def waypoint(self, pointer: torch.Tensor) -> torch.Tensor:
@@ -79,7 +82,12 @@ class LawnmowerPolicy(Policy):
         self._restart_pointer(position, new_episode)
         arrived = (self.waypoint(self.pointer) == position).all(-1)
         self.pointer = torch.where(arrived, (self.pointer + 1) % self.cycle, self.pointer)
-        step = (self.waypoint(self.pointer) - position).sign()
+        waypoint = self.waypoint(self.pointer)
+        step = (waypoint - position).sign()
         action = self.move_lookup[step[..., 0] + 1, step[..., 1] + 1]
-        # Only a one-cell strip can leave the UAV on its waypoint; then any allowed move will do.
-        return torch.where(action >= 0, action, mask.to(torch.int64).argmax(-1))
+        # -1 only where a one-cell strip leaves the UAV on its waypoint.
+        allowed = (action >= 0) & mask.gather(-1, action.clamp(min=0).unsqueeze(-1)).squeeze(-1)
+        destination = position.unsqueeze(-2) + self.moves  # [E, N, 8, 2]
+        distance = (waypoint.unsqueeze(-2) - destination).pow(2).sum(-1).to(torch.float32)
+        nearest = distance.masked_fill(~mask, float("inf")).argmin(-1)
+        return torch.where(allowed, action, nearest)
