@@ -63,7 +63,7 @@ class EnvConfig:
     invalid_action: str = "raise"
     expose_beliefs: bool = False
     no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
-    uav_shield: bool = False  # mask moves that could meet a lower-indexed UAV in sight within d2 (the same)
+    uav_shield: bool = False  # mask moves that could meet a lower-indexed UAV in sight within d2 (shield.py)
     # Beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets"); defaults = the paper.
     comm_delay: int = 0  # steps between sending and receiving a message
     comm_budget: Optional[int] = None  # noqa: UP045 (OmegaConf needs Optional) detections per link and step; None: unlimited
