@@ -36,6 +36,17 @@ def test_the_shield_leaves_no_charge() -> None:
     assert float((ledger.charged_first + ledger.charged_read).sum()) == 0.0
 
 
+def test_a_lone_greedy_reader_never_rereads_and_a_random_walker_does() -> None:
+    # One UAV, zones masked: greedy takes the allowed move of largest own m(U), so it moves onto a read
+    # cell only when no unread one is allowed; a random walker wastes moves, more of them late.
+    config = scenario("map10", n_uavs=1, no_fly_shield=True)
+    greedy = play(config, "greedy", EPISODES, seed=2)
+    assert float(greedy.rereads.sum()) == 0.0
+    walker = play(config, "random", EPISODES, seed=2)
+    assert bool((walker.rereads.sum(1) > 0).all())
+    assert float(walker.rereads[:, 1].sum()) > float(walker.rereads[:, 0].sum())
+
+
 class ZoneSeeker(Policy):
     """One UAV that walks onto the visible zone, steps off it (its first allowed move) and back on."""
 

@@ -9,7 +9,10 @@ For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluat
   charge buys a first reading, worth up to ``m_E`` of uncertainty), onto a cell already read (it buys
   little), and of those, how many were made while the UAV had an allowed move that r3 does not charge to
   a cell it still held unread (its own m(U) = 1 in its observation): a charge it could have avoided
-  without giving up a first reading.
+  without giving up a first reading;
+- the moves onto a cell the UAV holds read (its own m(U) < 1) made while an allowed move onto a cell it
+  holds unread was at hand, in the first and the second half of the episode: the steps a one-step greedy
+  reader would not waste.
 
 ``--shield`` plays with ``env.no_fly_shield=true`` (the moves r3 would charge masked): what a policy
 scores when it cannot enter a zone; ``--uav-shield`` with ``env.uav_shield=true`` (each UAV gives way to
@@ -54,6 +57,7 @@ class Ledger:
     charged_first: torch.Tensor  # r3 charges of moves onto a cell no UAV had read
     charged_read: torch.Tensor  # r3 charges of moves onto a cell already read
     charged_avoidable: torch.Tensor  # charges made while an uncharged move to an own-unread cell was allowed
+    rereads: torch.Tensor  # [K, 2] moves onto an own-read cell while an own-unread one was allowed, by half
 
     @property
     def reward(self) -> torch.Tensor:
@@ -66,6 +70,8 @@ class Ledger:
         out["charges onto unread cells"] = self.charged_first.mean().item()
         out["charges onto read cells"] = self.charged_read.mean().item()
         out["charges with an uncharged unread move"] = self.charged_avoidable.mean().item()
+        out["rereads, first half"] = self.rereads[:, 0].mean().item()
+        out["rereads, second half"] = self.rereads[:, 1].mean().item()
         return out
 
 
@@ -92,6 +98,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
     first = torch.zeros(E, dtype=torch.float64)
     read = torch.zeros(E, dtype=torch.float64)
     avoidable = torch.zeros(E, dtype=torch.float64)
+    rereads = torch.zeros(E, 2, dtype=torch.float64)
     env.set_seed(seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
@@ -107,6 +114,9 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             unread = td.get("state_counts").sum(-1).gather(1, flat) == 0  # [E, N]: no UAV had read it
             own_unread = obs_layout.unknown_by_action(td.get(OBSERVATION)) >= UNREAD
             safe_unread = (td.get(ACTION_MASK) & (charged_every == 0) & own_unread).any(-1)
+            chosen_read = ~own_unread.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
+            unread_allowed = (td.get(ACTION_MASK) & own_unread).any(-1)
+            rereads[:, int(t >= T // 2)] += (chosen_read & unread_allowed).sum(1).to(torch.float64)
             charged = charged.to(torch.float64)
             first += (charged * unread).sum(1)
             read += (charged * ~unread).sum(1)
@@ -115,7 +125,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             terms += td.get("reward_terms").to(torch.float64)
             if t + 1 in marks:
                 r1_by[:, marks[t + 1]] = terms[:, 0]
-    return Ledger(terms, r1_by, first, read, avoidable)
+    return Ledger(terms, r1_by, first, read, avoidable, rereads)
 
 
 def table(ledgers: dict[str, Ledger]) -> str:
