@@ -45,6 +45,10 @@ def test_a_lone_greedy_reader_never_rereads_and_a_random_walker_does() -> None:
     walker = play(config, "random", EPISODES, seed=2)
     assert bool((walker.rereads.sum(1) > 0).all())
     assert float(walker.rereads[:, 1].sum()) > float(walker.rereads[:, 0].sum())
+    # Stranded steps (no unread cell next) and rereads never overlap, and the map runs out of unread cells
+    # late: a lone greedy UAV on map10 is stranded more in the second half than in the first.
+    assert bool((walker.stranded + walker.rereads <= config.max_steps / 2).all())
+    assert float(greedy.stranded[:, 1].sum()) > float(greedy.stranded[:, 0].sum())
 
 
 class ZoneSeeker(Policy):

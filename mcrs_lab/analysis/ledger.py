@@ -12,7 +12,8 @@ For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluat
   without giving up a first reading;
 - the moves onto a cell the UAV holds read (its own m(U) < 1) made while an allowed move onto a cell it
   holds unread was at hand, in the first and the second half of the episode: the steps a one-step greedy
-  reader would not waste.
+  reader would not waste; and the steps with no allowed move onto a cell it holds unread (stranded in
+  read ground), by half.
 
 ``--shield`` plays with ``env.no_fly_shield=true`` (the moves r3 would charge masked): what a policy
 scores when it cannot enter a zone; ``--uav-shield`` with ``env.uav_shield=true`` (each UAV gives way to
@@ -58,6 +59,7 @@ class Ledger:
     charged_read: torch.Tensor  # r3 charges of moves onto a cell already read
     charged_avoidable: torch.Tensor  # charges made while an uncharged move to an own-unread cell was allowed
     rereads: torch.Tensor  # [K, 2] moves onto an own-read cell while an own-unread one was allowed, by half
+    stranded: torch.Tensor  # [K, 2] (UAV, step)s with no allowed move onto an own-unread cell, by half
 
     @property
     def reward(self) -> torch.Tensor:
@@ -72,6 +74,8 @@ class Ledger:
         out["charges with an uncharged unread move"] = self.charged_avoidable.mean().item()
         out["rereads, first half"] = self.rereads[:, 0].mean().item()
         out["rereads, second half"] = self.rereads[:, 1].mean().item()
+        out["stranded, first half"] = self.stranded[:, 0].mean().item()
+        out["stranded, second half"] = self.stranded[:, 1].mean().item()
         return out
 
 
@@ -99,6 +103,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
     read = torch.zeros(E, dtype=torch.float64)
     avoidable = torch.zeros(E, dtype=torch.float64)
     rereads = torch.zeros(E, 2, dtype=torch.float64)
+    stranded = torch.zeros(E, 2, dtype=torch.float64)
     env.set_seed(seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
@@ -117,6 +122,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             chosen_read = ~own_unread.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
             unread_allowed = (td.get(ACTION_MASK) & own_unread).any(-1)
             rereads[:, int(t >= T // 2)] += (chosen_read & unread_allowed).sum(1).to(torch.float64)
+            stranded[:, int(t >= T // 2)] += (~unread_allowed).sum(1).to(torch.float64)
             charged = charged.to(torch.float64)
             first += (charged * unread).sum(1)
             read += (charged * ~unread).sum(1)
@@ -125,7 +131,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             terms += td.get("reward_terms").to(torch.float64)
             if t + 1 in marks:
                 r1_by[:, marks[t + 1]] = terms[:, 0]
-    return Ledger(terms, r1_by, first, read, avoidable, rereads)
+    return Ledger(terms, r1_by, first, read, avoidable, rereads, stranded)
 
 
 def table(ledgers: dict[str, Ledger]) -> str:
