@@ -49,6 +49,11 @@ def test_a_lone_greedy_reader_never_rereads_and_a_random_walker_does() -> None:
     # late: a lone greedy UAV on map10 is stranded more in the second half than in the first.
     assert bool((walker.stranded + walker.rereads <= config.max_steps / 2).all())
     assert float(greedy.stranded[:, 1].sum()) > float(greedy.stranded[:, 0].sum())
+    # Stranded, greedy still takes the largest own m(U) it may (alone, nothing else pulls it): it gives up
+    # none; the random walker gives up some, at most 1 (a whole m(U)) per stranded step.
+    assert float(greedy.given_up.abs().sum()) < 1e-6
+    assert float(walker.given_up.sum()) > 0
+    assert bool((walker.given_up >= 0).all() and (walker.given_up <= walker.stranded).all())
 
 
 class ZoneSeeker(Policy):

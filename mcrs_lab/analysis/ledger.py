@@ -13,7 +13,8 @@ For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluat
 - the moves onto a cell the UAV holds read (its own m(U) < 1) made while an allowed move onto a cell it
   holds unread was at hand, in the first and the second half of the episode: the steps a one-step greedy
   reader would not waste; and the steps with no allowed move onto a cell it holds unread (stranded in
-  read ground), by half.
+  read ground), by half, with the own m(U) given up on them: the largest own m(U) among the allowed moves
+  less that of the move taken, summed.
 
 ``--shield`` plays with ``env.no_fly_shield=true`` (the moves r3 would charge masked): what a policy
 scores when it cannot enter a zone; ``--uav-shield`` with ``env.uav_shield=true`` (each UAV gives way to
@@ -60,6 +61,7 @@ class Ledger:
     charged_avoidable: torch.Tensor  # charges made while an uncharged move to an own-unread cell was allowed
     rereads: torch.Tensor  # [K, 2] moves onto an own-read cell while an own-unread one was allowed, by half
     stranded: torch.Tensor  # [K, 2] (UAV, step)s with no allowed move onto an own-unread cell, by half
+    given_up: torch.Tensor  # [K, 2] on those steps, sum of (largest allowed own m(U) - the chosen one's)
 
     @property
     def reward(self) -> torch.Tensor:
@@ -76,6 +78,8 @@ class Ledger:
         out["rereads, second half"] = self.rereads[:, 1].mean().item()
         out["stranded, first half"] = self.stranded[:, 0].mean().item()
         out["stranded, second half"] = self.stranded[:, 1].mean().item()
+        out["m(U) given up stranded, first half"] = self.given_up[:, 0].mean().item()
+        out["m(U) given up stranded, second half"] = self.given_up[:, 1].mean().item()
         return out
 
 
@@ -104,6 +108,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
     avoidable = torch.zeros(E, dtype=torch.float64)
     rereads = torch.zeros(E, 2, dtype=torch.float64)
     stranded = torch.zeros(E, 2, dtype=torch.float64)
+    given_up = torch.zeros(E, 2, dtype=torch.float64)
     env.set_seed(seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
@@ -117,12 +122,16 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             dest = position + moves[td.get(ACTION)]
             flat = (dest[..., 0] * config.height + dest[..., 1]).clamp(0, config.n_cells - 1)
             unread = td.get("state_counts").sum(-1).gather(1, flat) == 0  # [E, N]: no UAV had read it
-            own_unread = obs_layout.unknown_by_action(td.get(OBSERVATION)) >= UNREAD
+            own_unknown = obs_layout.unknown_by_action(td.get(OBSERVATION))  # [E, N, 8]: own m(U) there
+            own_unread = own_unknown >= UNREAD
             safe_unread = (td.get(ACTION_MASK) & (charged_every == 0) & own_unread).any(-1)
             chosen_read = ~own_unread.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
             unread_allowed = (td.get(ACTION_MASK) & own_unread).any(-1)
             rereads[:, int(t >= T // 2)] += (chosen_read & unread_allowed).sum(1).to(torch.float64)
             stranded[:, int(t >= T // 2)] += (~unread_allowed).sum(1).to(torch.float64)
+            best = own_unknown.masked_fill(~td.get(ACTION_MASK), -1.0).amax(-1)
+            chosen = own_unknown.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)
+            given_up[:, int(t >= T // 2)] += ((best - chosen) * ~unread_allowed).sum(1).to(torch.float64)
             charged = charged.to(torch.float64)
             first += (charged * unread).sum(1)
             read += (charged * ~unread).sum(1)
@@ -131,7 +140,7 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             terms += td.get("reward_terms").to(torch.float64)
             if t + 1 in marks:
                 r1_by[:, marks[t + 1]] = terms[:, 0]
-    return Ledger(terms, r1_by, first, read, avoidable, rereads, stranded)
+    return Ledger(terms, r1_by, first, read, avoidable, rereads, stranded, given_up)
 
 
 def table(ledgers: dict[str, Ledger]) -> str:
