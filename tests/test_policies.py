@@ -46,22 +46,11 @@ def test_every_heuristic_obeys_both_shields(policy: str) -> None:
 
 def test_lawnmower_under_a_mask_takes_the_allowed_move_nearest_its_waypoint() -> None:
     cfg = scenario("map10", num_envs=1)
-    policy = LawnmowerPolicy(cfg, 0)
-    layout = ObservationLayout.from_config(cfg)
-    obs = torch.zeros(1, cfg.n_uavs, cfg.obs_dim)
-    position = torch.tensor([[9, 9], [2, 0], [5, 5], [7, 9]])
-    obs[0, :, layout.position] = position / 9.0
     mask = torch.ones(1, cfg.n_uavs, 8, dtype=torch.bool)
-    down_left = MOVES.index((-1, -1))
-    mask[0, 0, down_left] = False  # UAV 0 heads for (0, 0) along the diagonal: that move is masked
-    td = TensorDict(
-        {
-            "agents": TensorDict({"observation": obs, "action_mask": mask}, batch_size=[1, cfg.n_uavs]),
-            "step_count": torch.zeros(1, 1, dtype=torch.int64),
-        },
-        batch_size=[1],
+    mask[0, 0, MOVES.index((-1, -1))] = (
+        False  # UAV 0 heads for (0, 0) along the diagonal: that move is masked
     )
-    action = policy(td).get(ACTION)[0]
+    action, _ = _lawnmower_first_actions(cfg, mask)
     # (8, 9) and (9, 8) are equally near (0, 0) (squared 145); the lower action of the two is taken.
     assert action[0] == min(MOVES.index((-1, 0)), MOVES.index((0, -1)))
     assert MOVES[action[1]] == (0, 1)  # unmasked UAVs keep the sign move
@@ -147,16 +136,16 @@ def test_lawnmower_restarts_its_path_at_a_new_episode() -> None:
     assert torch.equal(again, fresh)
 
 
-def test_lawnmower_moves_toward_waypoint_by_sign() -> None:
-    cfg = scenario("map10", num_envs=1)
+#: Lawnmower test positions on map10: UAV 0 (strip x in [0, 2), snake ends (0, 0) and (1, 0)) at (9, 9):
+#: both ends are 9 moves away, the tie goes to the snake start (0, 0), reached along the diagonal.
+LAWNMOWER_POSITIONS = torch.tensor([[9, 9], [2, 0], [5, 5], [7, 9]])
+
+
+def _lawnmower_first_actions(cfg, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A fresh lawnmower's first actions ``[N]`` at LAWNMOWER_POSITIONS under ``mask``, and its waypoints."""
     policy = LawnmowerPolicy(cfg, 0)
-    layout = ObservationLayout.from_config(cfg)
     obs = torch.zeros(1, cfg.n_uavs, cfg.obs_dim)
-    # UAV 0 (strip x in [0, 2), snake ends (0, 0) and (1, 0)) at (9, 9): both ends are 9 moves away, the
-    # tie goes to the snake start (0, 0), reached along the diagonal: lower-left.
-    position = torch.tensor([[9, 9], [2, 0], [5, 5], [7, 9]])
-    obs[0, :, layout.position] = position / 9.0
-    mask = torch.ones(1, cfg.n_uavs, 8, dtype=torch.bool)
+    obs[0, :, ObservationLayout.from_config(cfg).position] = LAWNMOWER_POSITIONS / 9.0
     td = TensorDict(
         {
             "agents": TensorDict({"observation": obs, "action_mask": mask}, batch_size=[1, cfg.n_uavs]),
@@ -164,10 +153,14 @@ def test_lawnmower_moves_toward_waypoint_by_sign() -> None:
         },
         batch_size=[1],
     )
-    action = policy(td).get(ACTION)[0]
-    target = policy.waypoint(policy.pointer)[0]
+    return policy(td).get(ACTION)[0], policy.waypoint(policy.pointer)[0]
+
+
+def test_lawnmower_moves_toward_waypoint_by_sign() -> None:
+    cfg = scenario("map10", num_envs=1)
+    action, target = _lawnmower_first_actions(cfg, torch.ones(1, cfg.n_uavs, 8, dtype=torch.bool))
     for i in range(cfg.n_uavs):
-        assert MOVES[action[i]] == tuple((target[i] - position[i]).sign().tolist())
+        assert MOVES[action[i]] == tuple((target[i] - LAWNMOWER_POSITIONS[i]).sign().tolist())
     assert MOVES[action[0]] == (-1, -1)
     assert MOVES[action[1]] == (0, 1)  # (2, 0) is the start of UAV 1's strip: next waypoint (2, 1)
 

@@ -101,14 +101,15 @@ def test_uav_with_no_safe_move_keeps_its_unshielded_mask():
     assert allowed(result, 0) == set(range(8))
 
 
-def test_shield_is_off_by_default_and_changes_nothing_but_the_mask():
-    assert scenario("map10").no_fly_shield is False
-    shielded = MCRSCore(scenario("map10", num_envs=8, no_fly_shield=True))
+@pytest.mark.parametrize(("option", "seed"), [("no_fly_shield", 1), ("uav_shield", 2)])
+def test_each_shield_is_off_by_default_and_changes_nothing_but_the_mask(option: str, seed: int):
+    assert getattr(scenario("map10"), option) is False
+    shielded = MCRSCore(scenario("map10", num_envs=8, **{option: True}))
     plain = MCRSCore(scenario("map10", num_envs=8))
-    shielded.seed(1)
-    plain.seed(1)
+    shielded.seed(seed)
+    plain.seed(seed)
     a, b = shielded.reset(), plain.reset()
-    generator = torch.Generator().manual_seed(1)
+    generator = torch.Generator().manual_seed(seed)
     for _ in range(50):
         assert (a.action_mask <= b.action_mask).all()  # the shield only removes moves
         for field in ("observation", "state", "reward_terms", "position"):
@@ -268,22 +269,6 @@ def test_random_allowed_episodes_collide_only_where_the_right_of_way_fell_back()
     for _ in range(cfg.max_steps):
         result = unshielded.step(random_allowed(result.action_mask, generator))
     assert unshielded.collisions.sum() > 100  # the same play without it collides
-
-
-def test_right_of_way_is_off_by_default_and_changes_nothing_but_the_mask():
-    assert scenario("map10").uav_shield is False
-    shielded = MCRSCore(scenario("map10", num_envs=8, uav_shield=True))
-    plain = MCRSCore(scenario("map10", num_envs=8))
-    shielded.seed(2)
-    plain.seed(2)
-    a, b = shielded.reset(), plain.reset()
-    generator = torch.Generator().manual_seed(2)
-    for _ in range(50):
-        assert (a.action_mask <= b.action_mask).all()  # the shield only removes moves
-        for field in ("observation", "state", "reward_terms", "position"):
-            assert torch.equal(getattr(a, field), getattr(b, field)), field
-        action = random_allowed(a.action_mask, generator)
-        a, b = shielded.step(action), plain.step(action)
 
 
 def test_bad_right_of_way_value_is_refused_naming_the_field():
