@@ -434,6 +434,15 @@ def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations
     assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
     commands = [line for line in capsys.readouterr().out.splitlines() if line.startswith("evaluate ")]
     assert commands and all("env.safety_rule=near" in line for line in commands)
+    assert any(f"policy={tmp_path / 'run'} " in line for line in commands)  # the record's path
+    # The same run under --outputs (moved, or run from another directory): found there first.
+    moved = finished.run_dir(tmp_path / "o")
+    ckpt.checkpoint_path(moved).parent.mkdir(parents=True)
+    ckpt.checkpoint_path(moved).write_bytes(b"")
+    assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
+    commands = [line for line in capsys.readouterr().out.splitlines() if line.startswith("evaluate ")]
+    assert any(f"policy={moved} " in line for line in commands)
+    assert not any(f"policy={tmp_path / 'run'} " in line for line in commands)
 
 
 def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Path, capsys) -> None:

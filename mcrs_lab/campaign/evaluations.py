@@ -166,11 +166,13 @@ def _heuristic(name: Any, where: str) -> str:
 
 
 def plan(
-    evaluations: list[Evaluation], points: list[Point], records: Path
+    evaluations: list[Evaluation], points: list[Point], records: Path, outputs: Path | None = None
 ) -> tuple[list[EvaluationJob], list[str]]:
     """The jobs for the selected points and each map's heuristics, and a line for each point left out,
     saying why. A point counts once it has a record of a finished run; its run directory is needed only
-    for a variant not recorded yet (a fresh clone has the records, not the runs)."""
+    for a variant not recorded yet (a fresh clone has the records, not the runs): the point's own under
+    ``outputs`` where it has a checkpoint there, else the one its record names (a path relative to where
+    the campaign ran)."""
     jobs: list[EvaluationJob] = []
     left_out: list[str] = []
     for evaluation in evaluations:
@@ -189,7 +191,9 @@ def plan(
                 continue
             settings = tuple(f"{k}={v}" for k, v in point.settings if k.startswith("env."))
             settings += tuple(o for o in point.overrides if o.startswith("env."))
-            policies.append((point.env, record["run_dir"], point.id, settings))
+            here = None if outputs is None else str(point.run_dir(outputs))
+            run_dir = here if here is not None and _runnable(here) else record["run_dir"]
+            policies.append((point.env, run_dir, point.id, settings))
         gone: dict[str, str] = {}  # point id -> its missing run directory, for a variant still to run
         for variant, overrides in evaluation.variants:
             for policy in policies:
@@ -273,7 +277,7 @@ def evaluate(
 ) -> int:
     """``mcrs-campaign evaluate``: every job of the selected points not yet recorded; 0, or 1 if one
     failed."""
-    jobs, left_out = plan(evaluations, points, records)
+    jobs, left_out = plan(evaluations, points, records, outputs)
     for line in left_out:
         print(line, flush=True)
     for job in jobs:

@@ -350,7 +350,9 @@ class Campaign:
                     f"pruned {ckpt.checkpoint_path(run_dir)}: {before / 1e6:.0f} MB -> {after / 1e6:.0f} MB"
                 )
         if self.evaluations and self.stop_signal is None:
-            run_pending(plan(self.evaluations, [point], self.records)[0], self.outputs, self.records)
+            run_pending(
+                plan(self.evaluations, [point], self.records, self.outputs)[0], self.outputs, self.records
+            )
 
     def _stop(self, running: list[Job]) -> None:
         for job in running:
