@@ -72,7 +72,8 @@ class RightOfWay:
         )  # [O, 1, 1, 2]
         gap = offset + moves.view(1, 8, 1, 2) - moves.view(1, 1, 8, 2)  # [O, a, b, 2]
         close = config.violates(gap.pow(2).sum(-1).to(torch.float32), d2).to(torch.float32)  # [O, 8, 8]
-        self.bit = 2 ** torch.arange(8, device=dev)
+        self.action = torch.arange(8, device=dev)
+        self.bit = 2**self.action
         allowed = (torch.arange(256, device=dev).unsqueeze(-1) & self.bit).ne(0).to(torch.float32)  # [256, b]
         meets = (close @ allowed.T).gt(0)  # [O, a, 256]
         self.table = torch.cat([meets, meets.new_zeros(1, 8, 256)]).view(-1)  # the last row: too far apart
@@ -100,7 +101,7 @@ class RightOfWay:
         row = (offset[..., 0] + self.radius) * self.side + offset[..., 1] + self.radius
         row = torch.where(gives_way, row, self.far)  # [E, i, j]
         byte = (on_grid.to(torch.int64) * self.bit).sum(-1)  # [E, j]
-        cell = (row * 8).unsqueeze(-1) + torch.arange(8, device=mask.device)  # [E, i, j, a]
+        cell = (row * 8).unsqueeze(-1) + self.action  # [E, i, j, a]
         conflict = self.table[cell * 256 + byte.unsqueeze(1).unsqueeze(-1)].any(2)  # [E, i, a]
         safe = mask & ~conflict
         return torch.where(safe.any(-1, keepdim=True), safe, mask)
