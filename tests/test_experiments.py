@@ -39,9 +39,12 @@ PRESETS = {
     ),
     "shield": (2, ["qmix", "cnn_semu"]),
     "shields": (2, ["qmix", "cnn_semu"]),
+    "shields_scaled": (2, ["qmix", "cnn_semu"]),
 }
 #: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
-SHIELDS = {"shield": (True, False), "shields": (True, True)}
+SHIELDS = {"shield": (True, False), "shields": (True, True), "shields_scaled": (True, True)}
+#: Preset -> its algo.reward_scale (1 elsewhere).
+REWARD_SCALE = {"shields_scaled": 0.05}
 
 
 def run_preset(name: str, sweep_dir: Path) -> subprocess.CompletedProcess:
@@ -85,6 +88,7 @@ def test_preset_smoke_run_and_report(name: str, tmp_path: Path, baselines: Path)
         config = OmegaConf.load(run / "config.yaml")
         assert (config.experiment, config.budget, config.train.total_env_steps) == (name, "smoke", 200)
         assert (config.env.no_fly_shield, config.env.uav_shield) == SHIELDS.get(name, (False, False))
+        assert config.algo.reward_scale == REWARD_SCALE.get(name, 1.0)
         assert (run / "checkpoints" / "last.pt").is_file()
     maps = sorted({OmegaConf.load(r / "config.yaml").env.name for r in runs})
     out = tmp_path / "report"

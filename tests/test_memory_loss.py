@@ -118,6 +118,46 @@ def test_bad_memory_arguments_are_refused() -> None:
         ValueFactorisationLoss(agent, VDNMixer(2, "cpu"), incentive="always")
 
 
+def memory_loss_in_units(scale: float) -> ValueFactorisationLoss:
+    """EMU's loss with the memory term, its networks' outputs ``scale`` times test_loss's constants."""
+    loss = loss_with(memory_weight=0.1, incentive="fixed")
+    loss.reward_scale = scale
+    with torch.no_grad():
+        loss.agent_network.fc2.bias.mul_(scale)
+        loss.target_agent_network_params["fc2", "bias"].mul_(scale)
+    return loss
+
+
+@pytest.mark.parametrize("scale", [0.01, 3.0])
+def test_reward_scale_is_a_change_of_units_for_the_reward_the_memory_and_the_incentive(scale: float) -> None:
+    actions = torch.tensor([[[0, 3], [1, 1], [2, 0]]])
+    batch = with_memory(
+        episodes(3, actions, torch.tensor([[2.0, 1.0, -1.0]])),
+        [40.0, -3.0, 8.0], [True, True, False], [0.5, 1.0, 1.0],
+    )  # fmt: skip
+    unit, scaled = memory_loss_in_units(1.0)(batch), memory_loss_in_units(scale)(batch)
+    # Networks that learned scale x the values see every target scale x: the losses scale by scale^2 ...
+    for key in ("loss", "loss_td", "loss_memory"):
+        assert scaled[key].item() == pytest.approx(scale**2 * unit[key].item(), rel=1e-5)
+    # ... and the logged values are in the env's units, the same as at scale 1.
+    for key in ("q_taken_mean", "target_mean", "td_error_abs", "memory_target_mean", "incentive_mean"):
+        assert scaled[key].item() == pytest.approx(unit[key].item(), rel=1e-5)
+    assert unit["incentive_mean"].item() > 0  # the incentive is in play (H above Q_target on a hit)
+
+
+def test_reward_scale_leaves_the_intrinsic_reward_unscaled_and_refuses_bad_values() -> None:
+    batch = episodes(2, torch.tensor([[[0, 3], [1, 1]]]), torch.tensor([[2.0, 1.0]]))
+    batch.set("intrinsic_reward", torch.tensor([[[0.25], [0.5], [9.0]]]))
+    loss = recording_loss("none")
+    loss.reward_scale = 0.1
+    loss(batch)
+    assert loss.seen_reward[0, :, 0].tolist() == pytest.approx([0.2 + 0.25, 0.1 + 0.5])
+    agent = RecurrentAgent(3, 4, 2, 4)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="reward_scale must be a finite number > 0"):
+            ValueFactorisationLoss(agent, VDNMixer(2, "cpu"), reward_scale=bad)
+
+
 def curiosity(scale: float = 0.001) -> EMCCuriosity:
     torch.manual_seed(0)
     return EMCCuriosity(RecurrentAgent(3, 4, 2, 8), gamma=GAMMA, scale=scale, decay_rate=0.9, decay_cycle=100)

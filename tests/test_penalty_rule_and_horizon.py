@@ -113,6 +113,11 @@ def test_horizon_gap_is_zero_at_the_last_step_only_under_terminal(time_limit):
     else:
         assert last == pytest.approx(cfg.algo.gamma * next_value, rel=1e-5) and last != 0.0
     assert torch.allclose(gaps["target_gap"][:-1], cfg.algo.gamma * gaps["value_gap"][:-1])
+    # Under algo.reward_scale the learner's values are in its units: the gaps are read in the env's.
+    returns = cut_returns(episodes.get("reward")[:, :-1, 0], cfg.algo.gamma)[:, 1:].mean(0)
+    learner.loss.reward_scale = 4.0
+    scaled = horizon_gaps(learner, episodes, cfg.algo.gamma, terminal=time_limit == "terminal")
+    assert torch.allclose(scaled["value_gap"] + returns, (gaps["value_gap"] + returns) / 4.0, atol=1e-4)
 
 
 def test_reading_gains_follow_the_belief_rule():

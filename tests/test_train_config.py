@@ -226,3 +226,17 @@ def test_the_experiment_logs_the_rounding_of_a_python_built_budget(tmp_path, cap
         "train.total_env_steps=50 is not a whole number of collector batches of 40 env steps: the run "
         "trains 80 env steps" in caplog.text
     )
+
+
+@pytest.mark.parametrize("algo", ["qmix", "emu"])
+def test_reward_scale_reaches_the_learners_loss(algo: str) -> None:
+    import torch
+
+    from mcrs.experiment.config import as_typed
+    from mcrs.experiment.learner import Learner
+
+    cfg = as_typed(compose_config(f"algo={algo}", "algo.reward_scale=0.05"))
+    learner = Learner(cfg.algo, cfg.model, cfg.train, validate(cfg), torch.device("cpu"))
+    assert learner.loss.reward_scale == 0.05
+    if algo == "emu":  # the threshold is compared with the env's returns: not scaled
+        assert learner.loss.incentive.threshold == 365.0

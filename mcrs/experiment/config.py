@@ -207,7 +207,7 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
         errors.append(f"algo.hypernet_layers={a.hypernet_layers}: allowed values are 1, 2")
     if a.qplex_adv_layers not in (1, 2, 3):
         errors.append(f"algo.qplex_adv_layers={a.qplex_adv_layers}: allowed values are 1, 2, 3")
-    for name in ("mixing_embed_dim", "hypernet_embed", "qplex_kernels"):
+    for name in ("mixing_embed_dim", "hypernet_embed", "qplex_kernels", "reward_scale"):
         _positive(errors, f"algo.{name}", getattr(a, name))
     for name in ("gamma", "td_lambda"):
         if not 0.0 <= getattr(a, name) <= 1.0:

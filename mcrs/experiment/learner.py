@@ -102,6 +102,7 @@ class Learner:
             double_q=algo.double_q,
             memory_weight=algo.memory_weight,
             incentive=incentive,
+            reward_scale=algo.reward_scale,
         )
         self.loss.set_keys(**task.loss_keys())
         self.params = [*self.agent.parameters(), *self.mixer.parameters()]

@@ -125,6 +125,8 @@ class AlgoConfig:
     qplex_kernels: int = 4  # QPLEX attention heads of the advantage weights
     qplex_adv_layers: int = 1  # depth of QPLEX's advantage-weight extractors: 1 (SMAC setting) to 3
     gamma: float = 0.99
+    # the TD targets' unit: the env's reward (and the memory's returns) times this; thresholds stay the env's
+    reward_scale: float = 1.0
     td_lambda: float = 0.0  # 0: one-step targets (pymarl); 0.6 in pymarl2
     double_q: bool = True
     # the horizon T in the TD target: terminal (no bootstrap at T, as the memory's returns) | bootstrap

@@ -60,6 +60,7 @@ tasks.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import partial
 
@@ -120,6 +121,12 @@ class ValueFactorisationLoss(LossModule):
             ``"change"`` (no ratio).
         reward_reduction: how per-agent rewards ``[..., N, 1]`` become the team reward: ``"mean"`` or
             ``"sum"``; a team reward ``[..., 1]`` is used as it is.
+        reward_scale: the unit of the values the networks learn: the team reward and the memory's
+            returns (both the env's) are multiplied by it in every target, so ``Q_tot`` learns
+            ``reward_scale`` times the env's return (returns in the hundreds meet the gradient clip at
+            a smaller scale). EMC's intrinsic reward is the learner's own and is not scaled. The logged
+            values (``q_taken_mean``, ``target_mean``, ``td_error_abs``, ``memory_target_mean``,
+            ``incentive_mean``) are divided back into the env's units; the losses are in the learner's.
     """
 
     INCENTIVES = INCENTIVES
@@ -167,6 +174,7 @@ class ValueFactorisationLoss(LossModule):
         memory_weight: float = 0.0,
         incentive: Incentive | str = "none",
         reward_reduction: str = "mean",
+        reward_scale: float = 1.0,
     ) -> None:
         super().__init__()
         if not isinstance(agent_network, RecurrentAgent | TensorDictModuleBase):
@@ -184,6 +192,9 @@ class ValueFactorisationLoss(LossModule):
                 f"reward_reduction must be one of {', '.join(REWARD_REDUCTIONS)}, got {reward_reduction!r}"
             )
         self.reward_reduction = reward_reduction
+        if not (reward_scale > 0 and math.isfinite(reward_scale)):
+            raise ValueError(f"reward_scale must be a finite number > 0, got {reward_scale}")
+        self.reward_scale = float(reward_scale)
         self.recurrent = isinstance(agent_network, RecurrentAgent)
         if memory_weight < 0:
             raise ValueError(f"memory_weight must be >= 0, got {memory_weight}")
@@ -353,6 +364,8 @@ class ValueFactorisationLoss(LossModule):
         reward = self.require(tensordict, "reward")[:, :-1]
         if reward.dim() == 4:  # per-agent rewards [B, T, N, 1] -> the team reward [B, T, 1]
             reward = reward.mean(-2) if self.reward_reduction == "mean" else reward.sum(-2)
+        scale = self.reward_scale
+        reward = reward * scale  # the learner's units (1: the env's)
         terminated = self.require(tensordict, "terminated")[:, :-1].bool()
         done = self.require(tensordict, "done")[:, :-1].bool()
         filled = tensordict.get(keys.filled, None)
@@ -378,7 +391,7 @@ class ValueFactorisationLoss(LossModule):
             target_reward = target_reward + intrinsic[:, :-1]
         memory_return = hit = None
         if self.uses_memory:
-            memory_return = self.require(tensordict, "memory_return")[:, :-1]
+            memory_return = self.require(tensordict, "memory_return")[:, :-1] * scale
             hit = self.require(tensordict, "memory_hit")[:, :-1].unsqueeze(-1).to(q_tot.dtype) * weight
             stats["memory_hit_rate"] = hit.sum() / n_valid
 
@@ -393,7 +406,7 @@ class ValueFactorisationLoss(LossModule):
             )
             if incentive is not None:
                 target_reward = target_reward + incentive
-                stats["incentive_mean"] = incentive.sum() / n_valid
+                stats["incentive_mean"] = incentive.sum() / n_valid / scale
             y = self.targets(target_reward, next_q_tot[:, 1:], done, terminated)
 
         td_error = (q_tot - y) * weight
@@ -404,16 +417,16 @@ class ValueFactorisationLoss(LossModule):
             loss_memory = ((q_tot - memory_target) * hit).pow(2).sum() / n_valid
             loss = loss + self.memory_weight * loss_memory
             stats["loss_memory"] = loss_memory
-            stats["memory_target_mean"] = (memory_target * hit).sum() / hit.sum().clamp(min=1.0)
+            stats["memory_target_mean"] = (memory_target * hit).sum() / hit.sum().clamp(min=1.0) / scale
         if intrinsic is not None:
             stats["intrinsic_mean"] = (intrinsic[:, :-1] * weight).sum() / n_valid
         return TensorDict(
             {
                 "loss": loss,
                 "loss_td": loss_td.detach(),
-                "q_taken_mean": (q_tot.detach() * weight).sum() / n_valid,
-                "target_mean": (y * weight).sum() / n_valid,
-                "td_error_abs": td_error.detach().abs().sum() / n_valid,
+                "q_taken_mean": (q_tot.detach() * weight).sum() / n_valid / scale,
+                "target_mean": (y * weight).sum() / n_valid / scale,
+                "td_error_abs": td_error.detach().abs().sum() / n_valid / scale,
                 **{k: v.detach() for k, v in stats.items()},
             },
             batch_size=[],

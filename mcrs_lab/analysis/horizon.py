@@ -51,7 +51,8 @@ def horizon_gaps(
     """Per time step ``t`` (``[T]``): ``value_gap`` = mean of ``Q_tot^-(s_{t+1}) - H_{t+1}``, and
     ``target_gap`` = TD target minus memory target under the convention (``terminal``: no bootstrap at T)."""
     reward = episodes.get("reward")[:, :-1, 0]  # [B, T]: whole episodes, every row filled
-    next_value = learner.loss.bootstrap_values(episodes)[:, 1:, 0]  # [B, T]: Q_tot^-(s_{t+1})
+    # [B, T]: Q_tot^-(s_{t+1}), in the env's units (the learner's are algo.reward_scale times those)
+    next_value = learner.loss.bootstrap_values(episodes)[:, 1:, 0] / learner.loss.reward_scale
     returns = cut_returns(reward, gamma)[:, 1:]  # [B, T]: H_{t+1}, 0 at t = T - 1
     value_gap = next_value - returns
     bootstrapped = next_value.clone()
