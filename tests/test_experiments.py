@@ -40,9 +40,15 @@ PRESETS = {
     "shield": (2, ["qmix", "cnn_semu"]),
     "shields": (2, ["qmix", "cnn_semu"]),
     "shields_scaled": (2, ["qmix", "cnn_semu"]),
+    "shields_pymarl2": (2, ["qmix", "cnn_semu"]),
 }
 #: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
-SHIELDS = {"shield": (True, False), "shields": (True, True), "shields_scaled": (True, True)}
+SHIELDS = {
+    "shield": (True, False),
+    "shields": (True, True),
+    "shields_scaled": (True, True),
+    "shields_pymarl2": (True, True),
+}
 #: Preset -> its algo.reward_scale (1 elsewhere).
 REWARD_SCALE = {"shields_scaled": 0.05}
 
@@ -89,6 +95,7 @@ def test_preset_smoke_run_and_report(name: str, tmp_path: Path, baselines: Path)
         assert (config.experiment, config.budget, config.train.total_env_steps) == (name, "smoke", 200)
         assert (config.env.no_fly_shield, config.env.uav_shield) == SHIELDS.get(name, (False, False))
         assert config.algo.reward_scale == REWARD_SCALE.get(name, 1.0)
+        assert config.preset == ("pymarl2" if name == "shields_pymarl2" else "pymarl")
         assert (run / "checkpoints" / "last.pt").is_file()
     maps = sorted({OmegaConf.load(r / "config.yaml").env.name for r in runs})
     out = tmp_path / "report"
