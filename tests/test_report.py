@@ -391,3 +391,27 @@ def test_a_seed_stopped_short_is_left_out_of_its_method_until_resumed(tmp_path: 
     assert row["seeds"] == "2" and row["env_steps"] == "30000"
     assert float(row["episode_reward_mean"]) == pytest.approx(30.5)
     assert "stopped at 10,000 env steps, short of its method's 30,000" in (out / "report.md").read_text()
+
+
+def test_milestones_at_chosen_steps_take_the_nearest_evaluated_step(tmp_path: Path) -> None:
+    """``--milestones 12k,28k``: the columns are the longest run's evaluated steps nearest to 12k and
+    28k (10k and 30k); a method whose run ended earlier shows n/a past its end."""
+    steps = [0, 10_000, 20_000, 30_000]
+    make_run(tmp_path, "qmix", reward=[1.0, 2.0, 3.0, 4.0], steps=steps)
+    make_run(tmp_path, "vdn", algo="vdn", reward=[5.0, 6.0], steps=steps[:2])
+    out = tmp_path / "report"
+    assert report_main([str(tmp_path), "--out", str(out), "--milestones", "12k,28k"]) == 0
+    rows = {r["method"]: r for r in read_csv(out / "milestones.csv")}
+    assert float(rows["qmix"]["reward_10000_mean"]) == 2.0 and float(rows["qmix"]["reward_30000_mean"]) == 4.0
+    assert "reward_20000_mean" not in rows["qmix"] and "reward_0_mean" not in rows["qmix"]
+    assert float(rows["vdn"]["reward_10000_mean"]) == 6.0 and rows["vdn"]["reward_30000_mean"] == "nan"
+    assert "the chosen env steps (--milestones)" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize("bad", ["0", "-5k", "1.5", "abc", "10k,,20k", "0.0000005M"])
+def test_bad_milestones_are_a_usage_error_naming_the_option(bad: str, tmp_path: Path, capsys) -> None:
+    make_run(tmp_path, "qmix")
+    with pytest.raises(SystemExit) as stopped:
+        report_main([str(tmp_path), "--out", str(tmp_path / "report"), "--milestones", bad])
+    assert stopped.value.code == 2
+    assert "--milestones" in capsys.readouterr().err and not (tmp_path / "report").exists()

@@ -55,11 +55,14 @@ def final_rows(curves_by_metric: dict[str, dict[str, Curve]], order: list[str]) 
     return rows
 
 
-def milestone_steps(curve: Curve, fractions: tuple[float, ...] = (1 / 3, 2 / 3, 1.0)) -> list[int]:
-    """The logged steps nearest to fractions of the curve's last step (the paper's 0.67M/1.33M/2M); a
-    short curve whose nearest step is the same for two fractions gives it once (no repeated column)."""
-    last = curve.steps[-1]
-    nearest = [int(curve.steps[np.abs(curve.steps - f * last).argmin()]) for f in fractions]
+def milestone_steps(
+    curve: Curve, fractions: tuple[float, ...] = (1 / 3, 2 / 3, 1.0), at: list[int] | None = None
+) -> list[int]:
+    """The logged steps nearest to fractions of the curve's last step (the paper's 0.67M/1.33M/2M), or
+    to the env steps ``at``; a short curve whose nearest step is the same for two of them gives it once
+    (no repeated column)."""
+    wanted = [f * curve.steps[-1] for f in fractions] if at is None else at
+    nearest = [int(curve.steps[np.abs(curve.steps - w).argmin()]) for w in wanted]
     return list(dict.fromkeys(nearest))
 
 

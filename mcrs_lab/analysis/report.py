@@ -80,12 +80,44 @@ def step_labels(steps: list[int]) -> list[str]:
     return [f"{s:,}" for s in steps]
 
 
+#: Suffixes of --milestones' env steps.
+STEP_SUFFIXES = {"": 1, "k": 1_000, "M": 1_000_000}
+
+
+def milestone_list(text: str) -> list[int]:
+    """``"100k,300k,1M"`` -> ``[100000, 300000, 1000000]``; argparse turns the ValueError into a usage
+    error naming --milestones."""
+    steps = []
+    for item in text.split(","):
+        item = item.strip()
+        number, suffix = (item[:-1], item[-1]) if item[-1:] in ("k", "M") else (item, "")
+        try:
+            value = float(number) * STEP_SUFFIXES[suffix]
+        except ValueError:
+            value = float("nan")
+        if not (value > 0 and value == int(value)):
+            raise argparse.ArgumentTypeError(
+                f"{item!r} is not an env step count: positive whole steps, comma-separated, such as "
+                "100k,300k,1M or 150000"
+            )
+        steps.append(int(value))
+    return sorted(set(steps))
+
+
 class Report:
     """Collects the sections of ``report.md`` while the figures and tables are written."""
 
-    def __init__(self, out: Path, env_name: str, runs: Runs, claims: list[Claim] | None = None) -> None:
+    def __init__(
+        self,
+        out: Path,
+        env_name: str,
+        runs: Runs,
+        claims: list[Claim] | None = None,
+        milestones: list[int] | None = None,
+    ) -> None:
         self.out, self.env_name, self.runs = out, env_name, runs
         self.claims = claims or []
+        self.milestones = milestones  # env steps of milestones.md (None: thirds of the budget)
         self.sections: list[str] = []
         out.mkdir(parents=True, exist_ok=True)
 
@@ -236,7 +268,7 @@ def _report_milestones(
     report: Report, groups: dict[str, list[TrainingRun]], rewards: dict[str, Curve], order: list[str]
 ) -> None:
     longest = max((rewards[label] for label in order), key=lambda c: c.steps[-1])
-    steps = milestone_steps(longest)
+    steps = milestone_steps(longest, at=report.milestones)
     rows, table = [], []
     for label in order:
         values = milestone_values(rewards[label], steps)
@@ -257,7 +289,8 @@ def _report_milestones(
     write_csv(report.out / "milestones.csv", rows)
     md = markdown(["method", "seeds", *step_labels(steps)], table)
     (report.out / "milestones.md").write_text(md + "\n")
-    report.add("Episode reward at thirds of the budget", md)
+    when = "thirds of the budget" if report.milestones is None else "the chosen env steps (--milestones)"
+    report.add(f"Episode reward at {when}", md)
 
     by_delta = [
         (groups[label][0].setting("algo.memory.delta"), groups[label][0].algo_name, label) for label in order
@@ -407,6 +440,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the claims to check, per map (default: the paper's, mcrs_lab/analysis/paper_claims.yaml)",
     )
     parser.add_argument(
+        "--milestones",
+        type=milestone_list,
+        default=None,
+        metavar="STEPS",
+        help="env steps of milestones.md, comma-separated (100k,300k,1M; default: thirds of the budget); "
+        "each becomes the nearest step the longest run evaluated at",
+    )
+    parser.add_argument(
         "--marl-eval",
         type=Path,
         default=None,
@@ -439,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"mcrs-report: error: --claims: {error}") from None
     if args.claims is None and not _section6(runs):  # a plain sweep is not the paper's figure: no table of
         claims = []  # "not run" rows; --claims asks for one anyway
-    report = Report(args.out, env_name, runs, claims)
+    report = Report(args.out, env_name, runs, claims, args.milestones)
     legacy = Counter(value for run in runs.training for value in run.legacy)
     for value, count in sorted(legacy.items()):  # nothing recorded is reinterpreted: say how it is read
         print(
