@@ -41,6 +41,7 @@ PRESETS = {
     "shields": (2, ["qmix", "cnn_semu"]),
     "shields_scaled": (2, ["qmix", "cnn_semu"]),
     "shields_pymarl2": (2, ["qmix", "cnn_semu"]),
+    "shields_gamma": (2, ["qmix gamma=0.9", "qmix gamma=0.95"]),
 }
 #: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
 SHIELDS = {
@@ -48,6 +49,7 @@ SHIELDS = {
     "shields": (True, True),
     "shields_scaled": (True, True),
     "shields_pymarl2": (True, True),
+    "shields_gamma": (True, True),
 }
 #: Preset -> its algo.reward_scale (1 elsewhere).
 REWARD_SCALE = {"shields_scaled": 0.05}

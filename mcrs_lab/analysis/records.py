@@ -51,6 +51,7 @@ NAME_FIELDS = {
     "algo.memory.delta": "delta",
     "algo.memory_weight": "lambda",
     "algo.incentive_threshold": "thr",
+    "algo.gamma": "gamma",
 }
 
 
