@@ -168,6 +168,23 @@ def test_lambda_sweep_labels(tmp_path: Path) -> None:
     assert sorted(labels.values()) == ["cnn_semu lambda=0.01", "cnn_semu lambda=0.5"]
 
 
+def test_a_learner_preset_labels_its_runs_by_its_name_and_what_differs_within_it(tmp_path: Path) -> None:
+    """preset=pymarl2 sets seven fields: its runs are "qmix preset=pymarl2", not a list of those fields;
+    a field swept within one preset (the learning rate here) still tells its runs apart."""
+    pymarl2 = {"preset": "pymarl2", "train__optimizer": "adam", "algo__td_lambda": 0.6}
+    make_run(tmp_path, "p1")
+    make_run(tmp_path, "p2", **pymarl2, train__lr=1e-3)
+    labels = run_labels(find_runs([tmp_path]).training)
+    assert sorted(labels.values()) == ["qmix preset=pymarl", "qmix preset=pymarl2"]
+    make_run(tmp_path, "p3", **pymarl2, train__lr=1e-4)
+    labels = {path.name: label for path, label in run_labels(find_runs([tmp_path]).training).items()}
+    assert labels == {
+        "p1": "qmix preset=pymarl lr=0.0005",
+        "p2": "qmix preset=pymarl2 lr=0.001",
+        "p3": "qmix preset=pymarl2 lr=0.0001",
+    }
+
+
 def test_runs_of_older_code_are_seeds_of_the_same_method(tmp_path: Path) -> None:
     """A run recorded before a field existed (``env.comm_delay``, off by default) or after one was
     dropped (``env.device``) is a seed of the method it ran, not a method of its own; a run that sets
@@ -405,6 +422,13 @@ def test_milestones_at_chosen_steps_take_the_nearest_evaluated_step(tmp_path: Pa
     assert float(rows["qmix"]["reward_10000_mean"]) == 2.0 and float(rows["qmix"]["reward_30000_mean"]) == 4.0
     assert "reward_20000_mean" not in rows["qmix"] and "reward_0_mean" not in rows["qmix"]
     assert float(rows["vdn"]["reward_10000_mean"]) == 6.0 and rows["vdn"]["reward_30000_mean"] == "nan"
+    # A run that evaluates at slightly other steps (another num_envs) is read at its nearest evaluation.
+    make_run(tmp_path, "qplex", algo="qplex", reward=[7.0, 8.0, 9.0], steps=[0, 9_000, 28_000])
+    assert report_main([str(tmp_path), "--out", str(out), "--milestones", "12k,28k"]) == 0
+    rows = {r["method"]: r for r in read_csv(out / "milestones.csv")}
+    assert (
+        float(rows["qplex"]["reward_30000_mean"]) == 9.0 and float(rows["qplex"]["reward_10000_mean"]) == 8.0
+    )
     assert "the chosen env steps (--milestones)" in (out / "report.md").read_text()
 
 

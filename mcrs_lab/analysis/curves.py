@@ -68,10 +68,12 @@ def milestone_steps(
 
 def milestone_values(curve: Curve, steps: list[int]) -> list[tuple[float, float]]:
     """(mean, std over seeds) of the curve at each of ``steps``; NaN past the curve's last step (a
-    method with a shorter run)."""
+    method with a shorter run) by more than half its last evaluation interval (runs of another
+    ``num_envs`` evaluate at slightly different steps)."""
+    slack = (curve.steps[-1] - curve.steps[-2]) / 2 if len(curve.steps) > 1 else 0
     out = []
     for s in steps:
-        if s > curve.steps[-1]:
+        if s > curve.steps[-1] + slack:
             out.append((float("nan"), float("nan")))
             continue
         k = int(np.abs(curve.steps - s).argmin())

@@ -332,14 +332,32 @@ def _is_setting(name: str) -> bool:
 
 
 @functools.cache
-def budget_fields() -> frozenset[str]:
-    """The fields that the budget presets set (conf/budget/*.yaml): run length, batch sizes, buffer sizes."""
+def group_fields(group: str) -> frozenset[str]:
+    """The fields that a config group's options set (``conf/<group>/*.yaml``): for ``budget`` run length,
+    batch and buffer sizes; for ``preset`` the learner's optimiser, targets and batches."""
     out: set[str] = set()
-    for path in sorted(Path(CONFIG_DIR, "budget").glob("*.yaml")):
+    for path in sorted(Path(CONFIG_DIR, group).glob("*.yaml")):
         out |= {
             k for k in flatten(OmegaConf.to_container(OmegaConf.load(path))) if not k.startswith("hydra.")
         }
     return frozenset(out)
+
+
+def budget_fields() -> frozenset[str]:
+    """The fields that the budget presets set (conf/budget/*.yaml): run length, batch sizes, buffer sizes."""
+    return group_fields("budget")
+
+
+def _explained_by_preset(configs: list[dict[str, Any]], name: str) -> bool:
+    """Whether field ``name`` differs between ``configs`` only as their ``preset`` does: a field the
+    presets set, one value within each preset (so ``preset=pymarl2`` labels those runs, not its seven
+    fields; a field swept within one preset still shows)."""
+    if name == "preset" or name not in group_fields("preset"):
+        return name == "preset"
+    by_preset: dict[str, set[str]] = {}
+    for config in configs:
+        by_preset.setdefault(repr(config.get("preset")), set()).add(repr(config.get(name)))
+    return all(len(values) == 1 for values in by_preset.values())
 
 
 @functools.cache
@@ -370,7 +388,8 @@ def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
     """Per algorithm name, the settings that differ between its runs (the swept ones, e.g. delta).
 
     Runs of different budgets differ in many fields at once (steps, batch and buffer sizes): they are told
-    apart by ``budget`` alone. The memory's fields do not count for an algorithm without a memory.
+    apart by ``budget`` alone; runs of different learner presets by ``preset`` and the fields that differ
+    within a preset. The memory's fields do not count for an algorithm without a memory.
     """
     by_algo: dict[str, list[dict[str, Any]]] = {}
     for run in runs:
@@ -388,6 +407,8 @@ def label_fields(runs: list[TrainingRun]) -> dict[str, list[str]]:
             and (memory or not n.startswith("algo.memory."))
             and len({repr(c.get(n)) for c in configs}) > 1
         ]
+        if len({c.get("preset") for c in configs}) > 1:
+            varying = ["preset", *(n for n in varying if not _explained_by_preset(configs, n))]
         if len({c.get("budget") for c in configs}) > 1:
             varying.insert(0, "budget")
         out[algo] = varying
