@@ -61,47 +61,18 @@ from mcrs_lab.analysis.runs import (
     run_labels,
     select_map,
 )
+from mcrs_lab.analysis.step_notation import format_steps, parse_step_list, step_labels
 
 #: Row order of tables and legends: the paper's baselines first, its method last.
 ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
 
 
-def _steps(s: int, extra: int = 0) -> str:
-    return f"{s / 1e6:.{2 + extra}f}M" if s >= 1_000_000 else f"{s / 1e3:.{1 + extra}f}k"
-
-
-def step_labels(steps: list[int]) -> list[str]:
-    """Column headings for env steps (``11.2k``, ``1.33M``), with as many decimals as it takes for
-    distinct steps to get distinct headings (11,150 and 11,200 are both ``11.2k`` at one decimal)."""
-    for extra in range(4):
-        labels = [_steps(s, extra) for s in steps]
-        if len(set(labels)) == len(set(steps)):
-            return labels
-    return [f"{s:,}" for s in steps]
-
-
-#: Suffixes of --milestones' env steps.
-STEP_SUFFIXES = {"": 1, "k": 1_000, "M": 1_000_000}
-
-
 def milestone_list(text: str) -> list[int]:
-    """``"100k,300k,1M"`` -> ``[100000, 300000, 1000000]``; argparse turns the ValueError into a usage
-    error naming --milestones."""
-    steps = []
-    for item in text.split(","):
-        item = item.strip()
-        number, suffix = (item[:-1], item[-1]) if item[-1:] in ("k", "M") else (item, "")
-        try:
-            value = float(number) * STEP_SUFFIXES[suffix]
-        except ValueError:
-            value = float("nan")
-        if not (value > 0 and value == int(value)):
-            raise argparse.ArgumentTypeError(
-                f"{item!r} is not an env step count: positive whole steps, comma-separated, such as "
-                "100k,300k,1M or 150000"
-            )
-        steps.append(int(value))
-    return sorted(set(steps))
+    """--milestones' type: :func:`parse_step_list`, its error a usage error naming the option."""
+    try:
+        return parse_step_list(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 class Report:
@@ -168,7 +139,7 @@ def _final_table(rows: list[dict[str, object]]) -> str:
     table = []
     for r in rows:
         steps = int(r.get("env_steps", 0))
-        cells = [str(r["method"]), str(r.get("seeds", "")), _steps(steps) if steps else "-"]
+        cells = [str(r["method"]), str(r.get("seeds", "")), format_steps(steps) if steps else "-"]
         names = [m.split("/")[-1] for m in FINAL_METRICS]
         seeds = int(r["seeds"]) if r.get("seeds") not in (None, "") else None
         table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"], n=seeds) for n in names])
