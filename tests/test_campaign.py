@@ -80,8 +80,8 @@ def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:
     seeds = {fig: sorted({p.seed for p in select(points, [fig])}) for fig in ("shield", "shields")}
     assert seeds == {"shield": [0], "shields": [0, 1, 2]}  # the file's seeds, and the figure's own
     gamma = select(points, ["shields_gamma"])  # a swept discount: in the point's name, the run's config
-    assert [p.id for p in gamma] == ["shields_gamma/map20_qmix_gamma0.9_seed0"]
-    assert dict(gamma[0].settings) == {"algo.gamma": 0.9}
+    assert [p.id for p in gamma] == [f"shields_gamma/map20_qmix_gamma{g}_seed0" for g in ("0.9", "0.5")]
+    assert [dict(p.settings) for p in gamma] == [{"algo.gamma": 0.9}, {"algo.gamma": 0.5}]
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS.replace("    sweep:", "    seeds: [3, 5]\n    sweep:"))
     assert sorted(p.seed for p in load_matrix(matrix)[0]) == [3, 3, 5, 5]
