@@ -116,22 +116,23 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
         for t in range(T):
             td = policy(td)
             position = td.get(("agents", "position"))  # [E, N, 2]
+            action, mask, half = td.get(ACTION), td.get(ACTION_MASK), int(t >= T // 2)
             every = position.unsqueeze(2) + moves  # [E, N, 8, 2]: each move's cell (off-grid ones masked)
             charged_every = _charges(config, every, zones)  # [E, N, 8]
-            charged = charged_every.gather(2, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
-            dest = position + moves[td.get(ACTION)]
+            charged = charged_every.gather(2, action.unsqueeze(-1)).squeeze(-1)  # [E, N]
+            dest = position + moves[action]
             flat = (dest[..., 0] * config.height + dest[..., 1]).clamp(0, config.n_cells - 1)
             unread = td.get("state_counts").sum(-1).gather(1, flat) == 0  # [E, N]: no UAV had read it
             own_unknown = obs_layout.unknown_by_action(td.get(OBSERVATION))  # [E, N, 8]: own m(U) there
             own_unread = own_unknown >= UNREAD
-            safe_unread = (td.get(ACTION_MASK) & (charged_every == 0) & own_unread).any(-1)
-            chosen_read = ~own_unread.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)  # [E, N]
-            unread_allowed = (td.get(ACTION_MASK) & own_unread).any(-1)
-            rereads[:, int(t >= T // 2)] += (chosen_read & unread_allowed).sum(1).to(torch.float64)
-            stranded[:, int(t >= T // 2)] += (~unread_allowed).sum(1).to(torch.float64)
-            best = own_unknown.masked_fill(~td.get(ACTION_MASK), -1.0).amax(-1)
-            chosen = own_unknown.gather(-1, td.get(ACTION).unsqueeze(-1)).squeeze(-1)
-            given_up[:, int(t >= T // 2)] += ((best - chosen) * ~unread_allowed).sum(1).to(torch.float64)
+            safe_unread = (mask & (charged_every == 0) & own_unread).any(-1)
+            chosen = own_unknown.gather(-1, action.unsqueeze(-1)).squeeze(-1)  # [E, N]: own m(U) of the move
+            chosen_read = chosen < UNREAD
+            unread_allowed = (mask & own_unread).any(-1)
+            rereads[:, half] += (chosen_read & unread_allowed).sum(1).to(torch.float64)
+            stranded[:, half] += (~unread_allowed).sum(1).to(torch.float64)
+            best = own_unknown.masked_fill(~mask, -1.0).amax(-1)
+            given_up[:, half] += ((best - chosen) * ~unread_allowed).sum(1).to(torch.float64)
             charged = charged.to(torch.float64)
             first += (charged * unread).sum(1)
             read += (charged * ~unread).sum(1)
