@@ -5,10 +5,12 @@ from __future__ import annotations
 import itertools
 
 import pytest
+import torch
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from mcrs.experiment.config import ConfigError, validate, validation_errors
+from mcrs.experiment.config import ConfigError, as_typed, validate, validation_errors
+from mcrs.experiment.learner import Learner
 from tests.train_helpers import compose_config
 
 ENVS, ALGOS, LOGGERS, PRESETS = (
@@ -230,11 +232,6 @@ def test_the_experiment_logs_the_rounding_of_a_python_built_budget(tmp_path, cap
 
 @pytest.mark.parametrize("algo", ["qmix", "emu"])
 def test_reward_scale_reaches_the_learners_loss(algo: str) -> None:
-    import torch
-
-    from mcrs.experiment.config import as_typed
-    from mcrs.experiment.learner import Learner
-
     cfg = as_typed(compose_config(f"algo={algo}", "algo.reward_scale=0.05"))
     learner = Learner(cfg.algo, cfg.model, cfg.train, validate(cfg), torch.device("cpu"))
     assert learner.loss.reward_scale == 0.05
