@@ -352,8 +352,10 @@ def _explained_by_preset(configs: list[dict[str, Any]], name: str) -> bool:
     """Whether field ``name`` differs between ``configs`` only as their ``preset`` does: a field the
     presets set, one value within each preset (so ``preset=pymarl2`` labels those runs, not its seven
     fields; a field swept within one preset still shows)."""
-    if name == "preset" or name not in group_fields("preset"):
-        return name == "preset"
+    if name == "preset":
+        return True
+    if name not in group_fields("preset"):
+        return False
     by_preset: dict[str, set[str]] = {}
     for config in configs:
         by_preset.setdefault(repr(config.get("preset")), set()).add(repr(config.get(name)))
