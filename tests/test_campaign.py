@@ -79,9 +79,14 @@ def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:
     points, _ = load_matrix(beyond)
     seeds = {fig: sorted({p.seed for p in select(points, [fig])}) for fig in ("shield", "shields")}
     assert seeds == {"shield": [0], "shields": [0, 1, 2]}  # the file's seeds, and the figure's own
-    gamma = select(points, ["shields_gamma"])  # a swept discount: in the point's name, the run's config
+    # a swept discount: in the point's name, the run's config
+    gamma = select(points, ["shields_gamma", "seed0"])
     assert [p.id for p in gamma] == [f"shields_gamma/map20_qmix_gamma{g}_seed0" for g in ("0.9", "0.5")]
     assert [dict(p.settings) for p in gamma] == [{"algo.gamma": 0.9}, {"algo.gamma": 0.5}]
+    # a figure at three seeds of one swept value: its seed 0 is the probe's run, one point in two figures
+    three = select(points, ["shields_gamma05"])
+    assert [p.id for p in three] == [f"shields_gamma/map20_qmix_gamma0.5_seed{s}" for s in (0, 1, 2)]
+    assert three[0] is gamma[1] and three[0].figures == ("shields_gamma", "shields_gamma05")
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS.replace("    sweep:", "    seeds: [3, 5]\n    sweep:"))
     assert sorted(p.seed for p in load_matrix(matrix)[0]) == [3, 3, 5, 5]
