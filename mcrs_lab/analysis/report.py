@@ -62,6 +62,7 @@ from mcrs_lab.analysis.runs import (
     select_map,
 )
 from mcrs_lab.analysis.step_notation import format_steps, parse_step_list, step_labels
+from mcrs_lab.analysis.table4 import Table4Row, table4
 
 #: Row order of tables and legends: the paper's baselines first, its method last.
 ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
@@ -263,35 +264,25 @@ def _report_milestones(
     when = "thirds of the budget" if report.milestones is None else "the chosen env steps (--milestones)"
     report.add(f"Episode reward at {when}", md)
 
-    by_delta = [
-        (groups[label][0].setting("algo.memory.delta"), groups[label][0].algo_name, label) for label in order
-    ]
     swept = any(
         "algo.memory.delta" in f for f in label_fields([r for g in groups.values() for r in g]).values()
     )
     if not swept:
         return
-    rows4, table4 = [], []
-    for delta, algo, label in sorted(
-        by_delta,
-        key=lambda x: (x[0] is None, x[0] or 0.0, ALGO_ORDER.index(x[1]) if x[1] in ALGO_ORDER else 99),
-    ):
-        if delta is None or not groups[label][0].setting("algo.memory.enabled"):
+    ours = []
+    for label in order:
+        first = groups[label][0]
+        delta = first.setting("algo.memory.delta")
+        if delta is None or not first.setting("algo.memory.enabled"):
             continue  # delta means nothing without a memory (QMIX's config still carries the default)
         values = milestone_values(rewards[label], steps)
-        rows4.append(
-            {
-                "delta": delta,
-                "algorithm": algo,
-                **{f"reward_{s}": m for s, (m, _) in zip(steps, values, strict=True)},
-            }
-        )
-        seeds = rewards[label].seeds
-        table4.append([f"{delta:g}", algo, *(mean_std(m, sd, n=seeds) for m, sd in values)])
+        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values))
+    rows4, md4 = table4(ours, steps, report.env_name)
     write_csv(report.out / "table4.csv", rows4)
-    md4 = markdown(["delta", "algorithm", *step_labels(steps)], table4)
     (report.out / "table4.md").write_text(md4 + "\n")
-    report.add("Table 4: episode reward by delta (mean over seeds)", md4)
+    report.add(
+        "Table 4: episode reward by delta (mean ± std over seeds; the paper's beside ours on map20)", md4
+    )
 
 
 # ------------------------------------------------------------------------------------ communication
