@@ -1,5 +1,5 @@
 """Learning curves over seeds against env steps, and the tables read off them (final metrics, rewards at
-thirds of the budget, the paper's table 4 layout).
+thirds of the budget, which table 4 is laid out on).
 
 The curves and their figure are the library's (:mod:`mcrs.viz.learning_curves`: IQM over seeds, 95 % stratified
 bootstrap band); the tables keep mean ± std over seeds."""

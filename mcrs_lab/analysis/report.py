@@ -16,7 +16,7 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``final.md|csv``: every evaluation metric at the last step, with the heuristics evaluated by
   ``mcrs-eval`` at the same R_c as extra rows;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
-  in the paper's layout when delta was swept;
+  when delta was swept, on map20 with the paper's table 4 beside ours (mcrs_lab.analysis.table4);
 - ``claims.md``: the paper's claims about this map (``--claims``, default
   ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
   noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
