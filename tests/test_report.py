@@ -121,6 +121,15 @@ def test_seeds_are_averaged_per_method_and_heuristics_are_rows(tmp_path: Path) -
     text = (out / "report.md").read_text()
     assert "6 training runs and 2 evaluation results read; 0 skipped" in text
     assert not (out / "table4.md").exists()  # delta was not swept
+    versus = {(r["metric"], r["method"]): r for r in read_csv(out / "versus.csv")}  # each against greedy
+    assert versus["episode_reward", "qmix"]["outcome"] == "level"  # 30-34 against 30 and 40
+    assert (versus["targets_found", "qmix"]["outcome"], versus["targets_found", "qmix"]["since"]) == (
+        "better",
+        "0",
+    )
+    uncertainty = versus["uncertainty", "cnn_semu"]  # 11 against 17 and 16: two greedy seeds, p = 0.06
+    assert (float(uncertainty["method_mean"]), float(uncertainty["heuristic_mean"])) == (11.0, 16.5)
+    assert "| episode reward    | qmix     | level (p = " in (out / "versus.md").read_text()
 
 
 def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> None:
@@ -367,7 +376,7 @@ def test_one_seed_shows_no_spread_and_close_steps_get_distinct_headings(tmp_path
         return [c.strip() for c in line.strip().strip("|").split("|")]
 
     assert cells(final.splitlines()[2])[:4] == ["qmix", "1", "11.2k", "3.00"]
-    assert cells(milestones.splitlines()[0]) == ["method", "seeds", "0.00k", "11.20k", "11.24k"]
+    assert cells(milestones.splitlines()[0]) == ["method", "seeds", "0", "11.20k", "11.24k"]
     assert cells(milestones.splitlines()[2]) == ["qmix", "1", "1.00", "2.00", "3.00"]
     # Two seeds: the spread is shown again.
     make_run(tmp_path, "qmix_1", seed=1, reward=[1.0, 4.0, 5.0], steps=[0, 11_200, 11_240])

@@ -20,3 +20,13 @@ METRIC_LABELS = {
     "no_fly_violations": "no-fly violations",
     "coverage": "coverage",
 }
+#: Which way each metric is better: what "a learner beats a heuristic" means on it.
+METRIC_BETTER = {
+    "episode_reward": "higher",
+    "uncertainty": "lower",
+    "targets_found": "higher",
+    "false_discoveries": "lower",
+    "collisions": "lower",
+    "no_fly_violations": "lower",
+    "coverage": "higher",
+}

@@ -17,6 +17,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   ``mcrs-eval`` at the same R_c as extra rows;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
   when delta was swept, on map20 with the paper's table 4 beside ours (mcrs_lab.analysis.table4);
+- ``versus.md|csv``: every learner against every heuristic on every metric: better, worse or level at
+  the end (Welch over seeds) and from which env step it is better (mcrs_lab.analysis.versus);
 - ``claims.md``: the paper's claims about this map (``--claims``, default
   ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
   noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
@@ -63,6 +65,7 @@ from mcrs_lab.analysis.runs import (
 )
 from mcrs_lab.analysis.step_notation import format_steps, parse_step_list, step_labels
 from mcrs_lab.analysis.table4 import Table4Row, table4
+from mcrs_lab.analysis.versus import versus, versus_table
 
 #: Row order of tables and legends: the paper's baselines first, its method last.
 ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
@@ -203,9 +206,15 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         f"\n\n{final_md}",
     )
     _report_milestones(report, groups, panels["episode reward"], order)
+    budget = max(int(c.steps[-1]) for c in panels["episode reward"].values())
+    results = versus(finals, order, runs.evaluations, comm_range, budget)
+    if results:
+        versus_rows, versus_md = versus_table(results)
+        write_csv(report.out / "versus.csv", versus_rows)
+        (report.out / "versus.md").write_text(versus_md + "\n")
+        report.add("Learners against the heuristics (last tenth of the budget, Welch p < 0.05)", versus_md)
     if report.claims:
         by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
-        budget = max(int(c.steps[-1]) for c in panels["episode reward"].values())
         md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget)
         (report.out / "claims.md").write_text(md + "\n")
         report.add("The paper's claims, checked", md)

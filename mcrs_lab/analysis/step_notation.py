@@ -8,7 +8,10 @@ STEP_SUFFIXES = {"": 1, "k": 1_000, "M": 1_000_000}
 
 
 def format_steps(steps: int, extra: int = 0) -> str:
-    """``11.2k``, ``1.00M``: one decimal in thousands, two in millions, plus ``extra``."""
+    """``11.2k``, ``1.00M``: one decimal in thousands, two in millions, plus ``extra``; under a thousand,
+    the number (``0``)."""
+    if steps < 1_000:
+        return str(steps)
     if steps >= 1_000_000:
         return f"{steps / 1e6:.{2 + extra}f}M"
     return f"{steps / 1e3:.{1 + extra}f}k"

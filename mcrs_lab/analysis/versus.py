@@ -1,0 +1,127 @@
+"""Learners against the heuristics (``versus.md|csv`` of ``mcrs-report``): for every learner, heuristic and
+evaluation metric, whether the learner ends better, worse or level, and from which env step it is better.
+
+"Ends": the claims' test (:func:`mcrs_lab.analysis.claims.compare`), each seed's mean over the last tenth
+of the budget against the heuristic's evaluation seeds, Welch's two-sided t-test at ``ALPHA``. "From which
+step": the first evaluation from which the learner's mean over seeds, averaged over the tenth of the budget
+before each evaluation (the test's window, sliding; step 0's evaluation, the untrained policy, stands
+for itself alone), stays better than the heuristic's mean to the end; a
+learner that crossed back and forth is dated by its last crossing. Which way is better is the metric's
+(:data:`mcrs.env.metrics.METRIC_BETTER`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mcrs.env.metrics import METRIC_BETTER, METRIC_LABELS, METRICS
+from mcrs.experiment.tables import markdown
+from mcrs.viz.learning_curves import Curve
+from mcrs_lab.analysis.claims import END_FRACTION, Samples, compare, window_samples
+from mcrs_lab.analysis.evaluations import heuristic_samples
+from mcrs_lab.analysis.runs import EvaluationRow
+from mcrs_lab.analysis.step_notation import format_steps
+
+#: compare()'s outcomes as the table words them (the learner is the first of the pair).
+OUTCOME_WORDS = {"holds": "better", "reversed": "worse", "noise": "level", "few": "one seed"}
+
+
+@dataclass(frozen=True)
+class Versus:
+    """One learner against one heuristic on one metric."""
+
+    method: str
+    heuristic: str
+    metric: str
+    outcome: str  # better | worse | level | one seed | unfinished
+    p: float  # Welch's p-value (NaN when not tested)
+    method_mean: float
+    heuristic_mean: float
+    since: int | None = None  # env step from which the learner stays better (only when it ends better)
+
+    def text(self) -> str:
+        if self.outcome == "unfinished":
+            return "not run to the end"
+        if self.outcome == "one seed":
+            return "one seed"
+        word = f"**{self.outcome}**" if self.outcome == "better" else self.outcome
+        since = "" if self.since is None else f" from {format_steps(self.since)}"
+        return f"{word} (p = {self.p:.3f}){since}"
+
+
+def better_since(curve: Curve, target: float, better: str, window: float) -> int | None:
+    """The first env step from which ``curve``'s mean over seeds, averaged over the ``window`` env steps
+    up to each evaluation, stays better than ``target``; None when it does not end better."""
+    first = np.searchsorted(curve.steps, curve.steps - window, side="right")
+    if curve.steps[0] == 0:  # the untrained policy's evaluation dates nothing after it
+        first[1:] = np.maximum(first[1:], 1)
+    total = np.concatenate([[0.0], np.cumsum(curve.mean)])
+    last = np.arange(1, len(curve.steps) + 1)
+    smoothed = (total[last] - total[first]) / (last - first)
+    ahead = smoothed > target if better == "higher" else smoothed < target
+    if not ahead[-1]:
+        return None
+    behind = np.flatnonzero(~ahead)
+    return int(curve.steps[behind[-1] + 1 if len(behind) else 0])
+
+
+def versus(
+    curves: dict[str, dict[str, Curve]],
+    order: list[str],
+    evaluations: list[EvaluationRow],
+    comm_range: float | None,
+    budget: int,
+) -> list[Versus]:
+    """Every learner of ``order`` against every heuristic evaluated at ``comm_range``, on every metric both
+    have (``curves``: ``eval/<metric>`` -> label -> curve), metric by metric in METRICS' order."""
+    out = []
+    for metric in METRICS:
+        by_label = curves.get(f"eval/{metric}", {})
+        heuristics = heuristic_samples(evaluations, comm_range, metric)
+        better = METRIC_BETTER[metric]
+        for label in (label for label in order if label in by_label):
+            curve = by_label[label]
+            ours = window_samples(curve, "end", budget)
+            for name, values in heuristics.items():
+                if not len(values):
+                    continue
+                target = float(values.mean())
+                if not ours.complete or not len(ours.values):
+                    out.append(Versus(label, name, metric, "unfinished", math.nan, math.nan, target))
+                    continue
+                outcome, p = compare(ours, Samples(name, values), better)
+                since = (
+                    better_since(curve, target, better, END_FRACTION * budget) if outcome == "holds" else None
+                )
+                word = OUTCOME_WORDS[outcome]
+                out.append(Versus(label, name, metric, word, p, ours.mean, target, since))
+    return out
+
+
+def versus_table(results: list[Versus]) -> tuple[list[dict[str, object]], str]:
+    """versus.csv's rows and versus.md: a row per (metric, learner), a column per heuristic."""
+    heuristics = list(dict.fromkeys(r.heuristic for r in results))
+    cells: dict[tuple[str, str], dict[str, str]] = {}
+    for r in results:
+        cells.setdefault((r.metric, r.method), {})[r.heuristic] = r.text()
+    rows = [
+        [METRIC_LABELS[metric], method, *(found.get(h, "-") for h in heuristics)]
+        for (metric, method), found in cells.items()
+    ]
+    csv_rows = [
+        {
+            "metric": r.metric,
+            "method": r.method,
+            "heuristic": r.heuristic,
+            "outcome": r.outcome,
+            "p": r.p,
+            "method_mean": r.method_mean,
+            "heuristic_mean": r.heuristic_mean,
+            "since": r.since if r.since is not None else "",
+        }
+        for r in results
+    ]
+    header = ["metric", "method", *(h.removesuffix(" (heuristic)") for h in heuristics)]
+    return csv_rows, markdown(header, rows, left=len(header))

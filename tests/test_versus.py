@@ -1,0 +1,82 @@
+"""Learners against the heuristics (mcrs_lab.analysis.versus): the verdict at the end, the step from
+which a learner is better, on metrics that are better higher or lower."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcrs.viz.learning_curves import curve_of
+from mcrs_lab.analysis.runs import EvaluationRow
+from mcrs_lab.analysis.versus import better_since, versus, versus_table
+
+STEPS = np.arange(0, 110, 10)  # evaluations at 0, 10, ..., 100 of a budget of 100
+
+
+def _curve(*seeds: list[float], steps: np.ndarray = STEPS):
+    return curve_of("m", [(steps, np.asarray(s, dtype=float)) for s in seeds])
+
+
+def test_better_since_is_the_last_crossing_of_the_smoothed_mean() -> None:
+    crossing = _curve([0, 1, 2, 3, 6, 6, 6, 6, 6, 6, 6])
+    assert better_since(crossing, 5.0, "higher", window=1) == 40  # no smoothing: the first step above
+    assert better_since(crossing, 5.0, "higher", window=20) == 50  # (3 + 6) / 2 = 4.5 at 40: not yet
+    back_and_forth = _curve([0, 6, 6, 1, 6, 6, 1, 6, 6, 6, 6])
+    assert better_since(back_and_forth, 5.0, "higher", window=1) == 70
+    assert better_since(_curve([0, 6, 6, 6, 6, 6, 6, 6, 6, 6, 4]), 5.0, "higher", window=1) is None
+    # lower is better (collisions): the curve falls below the heuristic's mean
+    assert better_since(_curve([9, 9, 9, 2, 2, 2, 2, 2, 2, 2, 2]), 3.0, "lower", window=1) == 30
+
+
+def test_the_untrained_evaluation_at_step_0_does_not_hold_back_the_date() -> None:
+    learner = _curve([-100, 6, 6, 6, 6, 6, 6, 6, 6, 6, 6])
+    assert better_since(learner, 5.0, "higher", window=50) == 10  # step 0 is outside every later window
+    assert better_since(_curve([6] * 11), 5.0, "higher", window=50) == 0  # better from the start
+
+
+def _rows(policy: str, metric: str, values: list[float]) -> list[EvaluationRow]:
+    return [
+        EvaluationRow(Path(f"/eval/{policy}{k}"), policy, "map20", 5.0, k, 32, {metric: v})
+        for k, v in enumerate(values)
+    ]
+
+
+def test_versus_judges_every_learner_against_every_heuristic() -> None:
+    good = _curve(*([0, 1, 2, 3, 6, 6, 6, 6, 6, 6, 6 + d] for d in (0.1, 0.2, 0.3)))
+    bad = _curve(*([0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1 + d] for d in (0.1, 0.2, 0.3)))
+    short = _curve([0, 6, 6, 6], [0, 6, 6, 7], steps=STEPS[:4])
+    curves = {
+        "eval/episode_reward": {"good": good, "bad": bad, "short": short},
+        "eval/collisions": {"good": _curve(*([30, 9, 9, 9, 9, 9, 9, 9, 9, 9, 9 + d] for d in (0.1, 0.3)))},
+    }
+    evaluations = [
+        *_rows("greedy", "episode_reward", [4.9, 5.0, 5.1]),
+        *_rows("coverage", "episode_reward", [5.9, 6.1, 6.2]),
+        *_rows("greedy", "collisions", [20.0, 21.0, 22.0]),
+    ]
+    results = {
+        (r.metric, r.method, r.heuristic): r
+        for r in versus(curves, ["good", "bad", "short"], evaluations, 5.0, 100)
+    }
+    win = results["episode_reward", "good", "greedy (heuristic)"]
+    assert (win.outcome, win.since) == ("better", 40)  # a tenth of the budget holds one evaluation here
+    assert win.p < 0.05 and win.heuristic_mean == pytest.approx(5.0)
+    assert results["episode_reward", "bad", "greedy (heuristic)"].outcome == "worse"
+    assert results["episode_reward", "good", "coverage (heuristic)"].outcome == "level"
+    assert results["episode_reward", "short", "greedy (heuristic)"].outcome == "unfinished"
+    fewer = results["collisions", "good", "greedy (heuristic)"]  # collisions: lower is better
+    assert (fewer.outcome, fewer.since) == ("better", 10)
+    assert ("collisions", "good", "coverage (heuristic)") not in results  # coverage has no collisions here
+
+    rows, md = versus_table(list(results.values()))
+    lines = [[c.strip() for c in line.strip("|").split("|")] for line in md.splitlines()]
+    assert lines[0] == ["metric", "method", "greedy", "coverage"]
+    by_method = {tuple(line[:2]): line[2:] for line in lines[2:]}
+    assert by_method["episode reward", "good"][0] == f"**better** (p = {win.p:.3f}) from 40"
+    assert by_method["episode reward", "short"] == ["not run to the end", "not run to the end"]
+    assert by_method["collisions", "good"][1] == "-"
+    assert {(r["metric"], r["method"], r["heuristic"], r["outcome"]) for r in rows} >= {
+        ("episode_reward", "bad", "greedy (heuristic)", "worse")
+    }
