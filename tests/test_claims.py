@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,19 @@ def test_compare_is_welchs_test_in_the_claims_direction() -> None:
     assert compare(a, b, "lower")[0] == "reversed"  # fewer collisions is better: a has more
     assert compare(samples("a", 1, 5, 9), samples("b", 2, 4, 6), "higher")[0] == "noise"
     assert compare(samples("a", 100.0), b, "higher") == ("few", pytest.approx(np.nan, nan_ok=True))
+
+
+def test_compare_against_a_constant_is_welchs_limit_without_a_warning() -> None:
+    """A heuristic that scores the same on every evaluation seed (coverage 0.975): Welch's test with one
+    variance zero, t = (mean - c) / (sd / sqrt(n)) on n - 1 degrees of freedom, and no scipy warning of
+    catastrophic cancellation (which its two-sample moments of a constant sample raise)."""
+    learner = np.array([0.99181107, 0.9968395, 0.99570311])
+    t = (learner.mean() - 0.975) / (learner.std(ddof=1) / np.sqrt(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        outcome, p = compare(samples("a", *learner), samples("b", 0.975, 0.975, 0.975), "higher")
+        assert compare(samples("b", 0.975, 0.975, 0.975), samples("a", *learner), "higher")[0] == "reversed"
+    assert outcome == "holds" and p == pytest.approx(2 * stats.t.sf(t, df=2))
 
 
 def test_verdicts_of_all_and_any() -> None:
