@@ -79,8 +79,9 @@ def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:
     points, _ = load_matrix(beyond)
     seeds = {fig: sorted({p.seed for p in select(points, [fig])}) for fig in ("shield", "shields")}
     assert seeds == {"shield": [0], "shields": [0, 1, 2]}  # the file's seeds, and the figure's own
-    # a swept discount: in the point's name, the run's config
-    gamma = select(points, ["shields_gamma", "seed0"])
+    # a swept discount: in the point's name, the run's config; the figure's name means the figure, not
+    # the experiment of the same name (whose points include shields_gamma05's seeds 1 and 2)
+    gamma = select(points, ["shields_gamma"])
     assert [p.id for p in gamma] == [f"shields_gamma/map20_qmix_gamma{g}_seed0" for g in ("0.9", "0.5")]
     assert [dict(p.settings) for p in gamma] == [{"algo.gamma": 0.9}, {"algo.gamma": 0.5}]
     # a figure at three seeds of one swept value: its seed 0 is the probe's run, one point in two figures

@@ -42,8 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
             "--only",
             action="append",
             default=[],
-            help="points to keep: a figure, experiment, map, algorithm, seed<k> or point id; comma = or, "
-            "repeated = and",
+            help="points to keep: a figure, experiment, map, algorithm, seed<k> or point id (a figure's "
+            "name means the figure where an experiment has the same name); comma = or, repeated = and",
         )
         p.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs go")
         p.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")

@@ -222,8 +222,11 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
 
 def select(points: list[Point], only: list[str]) -> list[Point]:
     """The points matching every ``--only`` value; within one value, comma-separated names are
-    alternatives (``--only fig7 --only qmix,vdn``: figure 7's QMIX and VDN runs)."""
+    alternatives (``--only fig7 --only qmix,vdn``: figure 7's QMIX and VDN runs). A figure's name means
+    the figure, where an experiment has the same name (figure ``shields_gamma`` is two of experiment
+    ``shields_gamma``'s points)."""
     known = set().union(*(p.tags() for p in points)) if points else set()
+    figures = {f for p in points for f in p.figures}
     for value in only:
         names = [n for n in value.split(",") if n]
         unknown = [n for n in names if n not in known]
@@ -233,5 +236,9 @@ def select(points: list[Point], only: list[str]) -> list[Point]:
                 f"--only={value}: unknown {', '.join(unknown) or 'empty value'}; allowed: {', '.join(kinds)} "
                 "or a point id (mcrs-campaign status lists them)"
             )
-        points = [p for p in points if p.tags() & set(names)]
+        points = [p for p in points if any(_matches(p, n, figures) for n in names)]
     return points
+
+
+def _matches(point: Point, name: str, figures: set[str]) -> bool:
+    return name in point.figures if name in figures else name in point.tags()
