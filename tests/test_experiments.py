@@ -42,6 +42,7 @@ PRESETS = {
     "shields_scaled": (2, ["qmix", "cnn_semu"]),
     "shields_pymarl2": (2, ["qmix", "cnn_semu"]),
     "shields_gamma": (3, ["qmix gamma=0.5", "qmix gamma=0.9", "qmix gamma=0.95"]),
+    "gamma": (2, ["qmix gamma=0.5", "qmix gamma=0.9"]),
 }
 #: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
 SHIELDS = {
