@@ -22,8 +22,8 @@ from mcrs_lab.analysis.claims import (
     verdict,
     window_samples,
 )
-from mcrs_lab.analysis.report import ALGO_ORDER
 from mcrs_lab.analysis.report import main as report_main
+from mcrs_lab.analysis.report_training import ALGO_ORDER
 from tests.test_report import make_evaluation, make_run
 
 STEPS = list(range(0, 110_000, 10_000))  # 0 .. 100k: "end" is 90k and 100k, "start" is 10k .. 30k

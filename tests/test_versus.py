@@ -10,7 +10,7 @@ import pytest
 
 from mcrs.viz.learning_curves import curve_of
 from mcrs_lab.analysis.runs import EvaluationRow
-from mcrs_lab.analysis.versus import better_since, versus, versus_table
+from mcrs_lab.analysis.versus import better_since, versus, versus_evaluated, versus_table
 
 STEPS = np.arange(0, 110, 10)  # evaluations at 0, 10, ..., 100 of a budget of 100
 
@@ -80,3 +80,32 @@ def test_versus_judges_every_learner_against_every_heuristic() -> None:
     assert {(r["metric"], r["method"], r["heuristic"], r["outcome"]) for r in rows} >= {
         ("episode_reward", "bad", "greedy (heuristic)", "worse")
     }
+
+
+def test_trained_policies_on_fixed_episodes_count_one_sample_per_training_run() -> None:
+    """mcrs-eval of finished runs (3 training seeds x 2 evaluation seeds) against a heuristic: each run is
+    its mean over the evaluation seeds, Welch over the runs; no date (no learning curve)."""
+    rows = _rows("greedy", "episode_reward", [379.5, 379.8, 380.1])
+    for run, scores in enumerate(([381.0, 382.0], [383.0, 382.0], [382.5, 381.5])):
+        for seed, score in enumerate(scores):
+            rows.append(
+                EvaluationRow(
+                    Path(f"/eval/run{run}/{seed}"),
+                    f"outputs/shields_gamma/map20_qmix_seed{run}",
+                    "map20",
+                    5.0,
+                    seed,
+                    32,
+                    {"episode_reward": score},
+                )
+            )
+    (result,) = versus_evaluated(rows)
+    assert (result.method, result.heuristic, result.outcome, result.since) == (
+        "trained map20_qmix",
+        "greedy (heuristic)",
+        "better",
+        None,
+    )
+    assert result.method_mean == pytest.approx(382.0) and result.p < 0.05
+    one_run = [r for r in rows if "seed0" in r.policy or r.is_heuristic]
+    assert [r.outcome for r in versus_evaluated(one_run)] == ["one seed"]

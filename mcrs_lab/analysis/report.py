@@ -18,7 +18,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
   when delta was swept, on map20 with the paper's table 4 beside ours (mcrs_lab.analysis.table4);
 - ``versus.md|csv``: every learner against every heuristic on every metric: better, worse or level at
-  the end (Welch over seeds) and from which env step it is better (mcrs_lab.analysis.versus);
+  the end (Welch over seeds) and from which env step it is better (mcrs_lab.analysis.versus); for
+  evaluations only, every trained policy against the heuristics evaluated with it;
 - ``claims.md``: the paper's claims about this map (``--claims``, default
   ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
   noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
@@ -45,30 +46,24 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.experiment.checkpoint import CheckpointError
-from mcrs.experiment.tables import markdown, mean_std, write_csv
-from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
+from mcrs.experiment.tables import markdown, write_csv
 from mcrs_lab.analysis import comm_range as cr
 from mcrs_lab.analysis import tsne
-from mcrs_lab.analysis.claims import Claim, ClaimsError, claims_table, default_claims_path, load_claims
-from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_steps, milestone_values
-from mcrs_lab.analysis.evaluations import heuristic_references, heuristic_rows, trained_rows
+from mcrs_lab.analysis.claims import ClaimsError, claims_table, default_claims_path, load_claims
+from mcrs_lab.analysis.evaluations import heuristic_rows, trained_rows
 from mcrs_lab.analysis.marl_eval import write_marl_eval
 from mcrs_lab.analysis.record_schema import RecordError
+from mcrs_lab.analysis.report_document import Report
+from mcrs_lab.analysis.report_training import final_table, report_training, report_versus
 from mcrs_lab.analysis.runs import (
     Runs,
     Skipped,
     TrainingRun,
     find_runs,
-    label_fields,
-    run_labels,
     select_map,
 )
-from mcrs_lab.analysis.step_notation import format_steps, parse_step_list, step_labels
-from mcrs_lab.analysis.table4 import Table4Row, table4
-from mcrs_lab.analysis.versus import versus, versus_table
-
-#: Row order of tables and legends: the paper's baselines first, its method last.
-ALGO_ORDER = ("qmix", "vdn", "qplex", "emc", "emu", "emu_370", "emu_change", "semu", "cnn_semu")
+from mcrs_lab.analysis.step_notation import parse_step_list
+from mcrs_lab.analysis.versus import versus_evaluated
 
 
 def milestone_list(text: str) -> list[int]:
@@ -77,221 +72,6 @@ def milestone_list(text: str) -> list[int]:
         return parse_step_list(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
-
-
-class Report:
-    """Collects the sections of ``report.md`` while the figures and tables are written."""
-
-    def __init__(
-        self,
-        out: Path,
-        env_name: str,
-        runs: Runs,
-        claims: list[Claim] | None = None,
-        milestones: list[int] | None = None,
-    ) -> None:
-        self.out, self.env_name, self.runs = out, env_name, runs
-        self.claims = claims or []
-        self.milestones = milestones  # env steps of milestones.md (None: thirds of the budget)
-        self.sections: list[str] = []
-        out.mkdir(parents=True, exist_ok=True)
-
-    def add(self, title: str, body: str) -> None:
-        self.sections.append(f"## {title}\n\n{body}\n")
-        print(f"\n{title}\n\n{body}", flush=True)
-
-    def write(self) -> Path:
-        unique = sorted({(str(s.path), s.reason) for s in self.runs.skipped})
-        skipped = "\n".join(f"- `{p}`: {r}" for p, r in unique) or "none"
-        n_train, n_eval = len(self.runs.training), len({e.path for e in self.runs.evaluations})
-        head = (
-            f"# Report: {self.env_name}\n\n{n_train} training runs and {n_eval} evaluation results read; "
-            f"{len(unique)} skipped.\n"
-        )
-        text = "\n".join([head, *self.sections, f"## Skipped\n\n{skipped}\n"])
-        path = self.out / "report.md"
-        path.write_text(text)
-        if unique:
-            print(f"\nskipped {len(unique)}:\n{skipped}", flush=True)
-        return path
-
-
-# ------------------------------------------------------------------------------------------ training
-def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], list[str]]:
-    """Runs by method label, and the labels in the paper's algorithm order, then by swept value."""
-    labels = run_labels(training)
-    fields = label_fields(training)
-    groups: dict[str, list[TrainingRun]] = {}
-    for run in sorted(training, key=lambda r: str(r.path)):
-        groups.setdefault(labels[run.path], []).append(run)
-
-    def order(label: str) -> tuple:
-        first = groups[label][0]
-        rank = ALGO_ORDER.index(first.algo_name) if first.algo_name in ALGO_ORDER else len(ALGO_ORDER)
-        values = tuple(  # numbers before anything else, so that mixed types still sort
-            (0, float(v), "") if isinstance(v := first.setting(n), (int, float)) else (1, 0.0, str(v))
-            for n in fields[first.algo_name]
-        )
-        return (rank, first.algo_name, values)
-
-    return groups, sorted(groups, key=order)
-
-
-def _final_table(rows: list[dict[str, object]]) -> str:
-    """Markdown of ``final_rows``/``_heuristic_rows``: method, seeds, env steps, ``mean ± std`` per metric."""
-    header = ["method", "seeds", "env steps", *FINAL_METRICS.values()]
-    table = []
-    for r in rows:
-        steps = int(r.get("env_steps", 0))
-        cells = [str(r["method"]), str(r.get("seeds", "")), format_steps(steps) if steps else "-"]
-        names = [m.split("/")[-1] for m in FINAL_METRICS]
-        seeds = int(r["seeds"]) if r.get("seeds") not in (None, "") else None
-        table.append(cells + [mean_std(r[f"{n}_mean"], r[f"{n}_std"], n=seeds) for n in names])
-    return markdown(header, table)
-
-
-def _drop_short_seeds(groups: dict[str, list[TrainingRun]], skipped: list[Skipped]) -> None:
-    """Leave out of a method the seeds that stopped short of its longest one (a campaign's run stopped
-    at a session's end): averaged on the steps every seed logged, one seed stopped at 10k steps would
-    hide the finished ones. They are listed as skipped until they are resumed."""
-    for label, members in groups.items():
-        last = {}
-        for run in members:
-            found = run.scalar("eval/episode_reward")
-            last[run.path] = int(found[0][-1]) if found is not None and len(found[0]) else 0
-        longest = max(last.values())
-        kept = [run for run in members if last[run.path] >= longest]
-        for run in members:
-            if last[run.path] < longest:
-                skipped.append(
-                    Skipped(
-                        run.path,
-                        f"{label}: stopped at {last[run.path]:,} env steps, short of its "
-                        f"method's {longest:,}: left out until it is resumed",
-                    )
-                )
-        groups[label] = kept
-
-
-def report_training(report: Report) -> dict[str, dict[str, Curve]]:
-    runs = report.runs
-    groups, order = _groups(runs.training)
-    _drop_short_seeds(groups, runs.skipped)
-    finals = {m: aggregate(groups, m, runs.skipped if m in CURVE_METRICS else []) for m in FINAL_METRICS}
-    panels = {name: finals[metric] for metric, name in CURVE_METRICS.items()}
-    order = [label for label in order if label in panels["episode reward"]]
-    if not order:
-        report.add("Learning curves", "no training run logged eval/episode_reward")
-        return {}
-    comm_ranges = {r.setting("env.comm_range") for r in runs.training}
-    comm_range = comm_ranges.pop() if len(comm_ranges) == 1 else None
-    references = heuristic_references(runs.evaluations, comm_range)
-    png = plot_curves(
-        panels,
-        report.out / "learning_curves.png",
-        f"{report.env_name}: greedy evaluation",
-        order,
-        references,
-    )
-
-    rows = final_rows(finals, order)
-    rows += heuristic_rows(runs.evaluations, comm_range)
-    write_csv(report.out / "final.csv", rows)
-    final_md = _final_table(rows)
-    (report.out / "final.md").write_text(final_md + "\n")
-    report.add(
-        "Learning curves and final evaluation",
-        f"![learning curves]({png.name})\n\n{_references_caption(references)}At the last common "
-        f"evaluation step of each method (mean ± std over seeds; heuristics: over evaluation seeds):"
-        f"\n\n{final_md}",
-    )
-    _report_milestones(report, groups, panels["episode reward"], order)
-    budget = max(int(c.steps[-1]) for c in panels["episode reward"].values())
-    results = versus(finals, order, runs.evaluations, comm_range, budget)
-    if results:
-        versus_rows, versus_md = versus_table(results)
-        write_csv(report.out / "versus.csv", versus_rows)
-        (report.out / "versus.md").write_text(versus_md + "\n")
-        report.add("Learners against the heuristics (last tenth of the budget, Welch p < 0.05)", versus_md)
-    if report.claims:
-        by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
-        md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget)
-        (report.out / "claims.md").write_text(md + "\n")
-        report.add("The paper's claims, checked", md)
-    q_tot = aggregate(groups, Q_TOT, [])
-    if q_tot:
-        png = plot_curves(
-            {"mean Q_tot of replayed transitions": q_tot, "episode reward": panels["episode reward"]},
-            report.out / "q_tot.png",
-            f"{report.env_name}: Q_tot (figure 8b)",
-            [label for label in order if label in q_tot],
-            references,
-        )
-        report.add("Mean Q_tot (figure 8b)", f"![Q_tot]({png.name})")
-    return panels
-
-
-def _references_caption(references: dict[str, list[Reference]]) -> str:
-    """Which heuristics the figure draws as horizontal lines, or why none (no evaluation of this map)."""
-    drawn = {f"{r.label.split(' (')[0]} ({r.count} {r.over})": None for rs in references.values() for r in rs}
-    if not drawn:
-        return (
-            "No heuristic lines: no heuristic evaluation of this map and R_c was given "
-            "(`mcrs-eval study=heuristics env=<map>`).\n\n"
-        )
-    return (
-        f"Lines: each method's interquartile mean over seeds with its 95 % stratified bootstrap confidence "
-        f"interval. Horizontal lines: the heuristics {', '.join(drawn)}, mean and 95 % band.\n\n"
-    )
-
-
-def _report_milestones(
-    report: Report, groups: dict[str, list[TrainingRun]], rewards: dict[str, Curve], order: list[str]
-) -> None:
-    longest = max((rewards[label] for label in order), key=lambda c: c.steps[-1])
-    steps = milestone_steps(longest, at=report.milestones)
-    rows, table = [], []
-    for label in order:
-        values = milestone_values(rewards[label], steps)
-        row: dict[str, object] = {"method": label, "seeds": rewards[label].seeds}
-        for s, (m, sd) in zip(steps, values, strict=True):
-            row[f"reward_{s}_mean"], row[f"reward_{s}_std"] = m, sd
-        rows.append(row)
-        table.append(
-            [
-                label,
-                str(rewards[label].seeds),
-                *(
-                    mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"], n=rewards[label].seeds)
-                    for s in steps
-                ),
-            ]
-        )
-    write_csv(report.out / "milestones.csv", rows)
-    md = markdown(["method", "seeds", *step_labels(steps)], table)
-    (report.out / "milestones.md").write_text(md + "\n")
-    when = "thirds of the budget" if report.milestones is None else "the chosen env steps (--milestones)"
-    report.add(f"Episode reward at {when}", md)
-
-    swept = any(
-        "algo.memory.delta" in f for f in label_fields([r for g in groups.values() for r in g]).values()
-    )
-    if not swept:
-        return
-    ours = []
-    for label in order:
-        first = groups[label][0]
-        delta = first.setting("algo.memory.delta")
-        if delta is None or not first.setting("algo.memory.enabled"):
-            continue  # delta means nothing without a memory (QMIX's config still carries the default)
-        values = milestone_values(rewards[label], steps)
-        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values))
-    rows4, md4 = table4(ours, steps, report.env_name)
-    write_csv(report.out / "table4.csv", rows4)
-    (report.out / "table4.md").write_text(md4 + "\n")
-    report.add(
-        "Table 4: episode reward by delta (mean ± std over seeds; the paper's beside ours on map20)", md4
-    )
 
 
 # ------------------------------------------------------------------------------------ communication
@@ -467,12 +247,17 @@ def main(argv: list[str] | None = None) -> int:
             report.add("t-SNE of memory states (figure 9)", f"not made: {error}")
     if not runs.training and not has_ranges:  # evaluations only: their table
         rows = heuristic_rows(runs.evaluations, None) + trained_rows(runs.evaluations)
-        (report.out / "evaluations.md").write_text(_final_table(rows) + "\n")
+        (report.out / "evaluations.md").write_text(final_table(rows) + "\n")
         report.add(
             "Evaluations",
             "Heuristics: mean ± std over evaluation seeds. Trained policies: each trained run counts by its "
             "mean over its evaluation seeds; mean ± std over the trained runs (seeds = runs).\n\n"
-            + _final_table(rows),
+            + final_table(rows),
+        )
+        report_versus(
+            report,
+            versus_evaluated(runs.evaluations),
+            "Trained policies against the heuristics (Welch over trained runs, p < 0.05)",
         )
         if report.claims and args.claims is not None:  # the paper's claims are about training curves
             md = claims_table(report.claims, {}, runs.evaluations, None, 0, "on the same fixed episodes")

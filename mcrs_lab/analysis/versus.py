@@ -20,7 +20,7 @@ from mcrs.env.metrics import METRIC_BETTER, METRIC_LABELS, METRICS
 from mcrs.experiment.tables import markdown
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import END_FRACTION, Samples, compare, window_samples
-from mcrs_lab.analysis.evaluations import heuristic_samples
+from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
 from mcrs_lab.analysis.runs import EvaluationRow
 from mcrs_lab.analysis.step_notation import format_steps
 
@@ -80,23 +80,46 @@ def versus(
     for metric in METRICS:
         by_label = curves.get(f"eval/{metric}", {})
         heuristics = heuristic_samples(evaluations, comm_range, metric)
-        better = METRIC_BETTER[metric]
         for label in (label for label in order if label in by_label):
             curve = by_label[label]
             ours = window_samples(curve, "end", budget)
-            for name, values in heuristics.items():
-                if not len(values):
-                    continue
-                target = float(values.mean())
-                if not ours.complete or not len(ours.values):
-                    out.append(Versus(label, name, metric, "unfinished", math.nan, math.nan, target))
-                    continue
-                outcome, p = compare(ours, Samples(name, values), better)
-                since = (
-                    better_since(curve, target, better, END_FRACTION * budget) if outcome == "holds" else None
-                )
-                word = OUTCOME_WORDS[outcome]
-                out.append(Versus(label, name, metric, word, p, ours.mean, target, since))
+            out += _against(label, ours, metric, heuristics, curve, END_FRACTION * budget)
+    return out
+
+
+def versus_evaluated(evaluations: list[EvaluationRow]) -> list[Versus]:
+    """Every trained policy evaluated on fixed episodes (each training run one sample: its mean over the
+    evaluation seeds) against every heuristic evaluated with it, on every metric; no date (no curve)."""
+    out = []
+    for metric in METRICS:
+        heuristics = heuristic_samples(evaluations, None, metric)
+        for label, values in trained_samples(evaluations, metric).items():
+            out += _against(label, Samples(label, values), metric, heuristics)
+    return out
+
+
+def _against(
+    label: str,
+    ours: Samples,
+    metric: str,
+    heuristics: dict[str, np.ndarray],
+    curve: Curve | None = None,
+    window: float = 0.0,
+) -> list[Versus]:
+    """Learner ``label``'s samples on ``metric`` against each heuristic's; dated on ``curve`` where it ends
+    better."""
+    better = METRIC_BETTER[metric]
+    out = []
+    for name, values in heuristics.items():
+        if not len(values):
+            continue
+        target = float(values.mean())
+        if not ours.complete or not len(ours.values):
+            out.append(Versus(label, name, metric, "unfinished", math.nan, math.nan, target))
+            continue
+        outcome, p = compare(ours, Samples(name, values), better)
+        since = better_since(curve, target, better, window) if outcome == "holds" and curve else None
+        out.append(Versus(label, name, metric, OUTCOME_WORDS[outcome], p, ours.mean, target, since))
     return out
 
 
