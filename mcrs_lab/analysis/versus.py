@@ -5,9 +5,10 @@ evaluation metric, whether the learner ends better, worse or level, and from whi
 of the budget against the heuristic's evaluation seeds, Welch's two-sided t-test at ``ALPHA``. "From which
 step": the first evaluation from which the learner's mean over seeds, averaged over the tenth of the budget
 before each evaluation (the test's window, sliding; step 0's evaluation, the untrained policy, stands
-for itself alone), stays better than the heuristic's mean to the end; a
-learner that crossed back and forth is dated by its last crossing. Which way is better is the metric's
-(:data:`mcrs.env.metrics.METRIC_BETTER`)."""
+for itself alone), stays better than the heuristic's mean to the end; a learner that crossed back and
+forth is dated by its last crossing. Which way is better is the metric's
+(:data:`mcrs.env.metrics.METRIC_BETTER`). Trained policies evaluated on fixed episodes (``mcrs-eval``)
+are judged the same way, each training run one sample, without a date."""
 
 from __future__ import annotations
 
