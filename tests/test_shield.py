@@ -8,6 +8,7 @@ import torch
 
 from mcrs.env import MCRSCore, scenario
 from mcrs.env.core import MOVES
+from tests.device_helpers import available_devices
 
 EXACT_SENSOR = {"p_detect": 1.0, "p_false_alarm": 0.0}
 
@@ -282,3 +283,39 @@ def test_masked_move_towards_a_uav_is_refused_naming_the_right_of_way():
     towards = next(a for a, (dx, dy) in enumerate(MOVES) if (dx, dy) == (0, -1))
     with pytest.raises(ValueError, match=r"is masked: .*uav_shield"):
         core.step(torch.tensor([[0, towards]]))
+
+
+@pytest.mark.parametrize("device", available_devices())
+def test_both_shields_mask_and_charge_the_same_on_every_device(device: str):
+    """Both shields on the device (CUDA where a GPU is lent): the same masks and rewards as on the CPU for
+    the same scene and moves, and no no-fly charge (a UAV here always has a safe move)."""
+    uavs, zones = [[4, 4], [5, 4], [4, 5], [6, 6]], [[5, 5], [3, 3]]
+
+    def play(where: str) -> tuple[torch.Tensor, torch.Tensor]:
+        cfg = scenario(
+            "map10",
+            num_envs=16,
+            n_uavs=4,
+            n_no_fly=2,
+            n_targets=1,
+            no_fly_shield=True,
+            uav_shield=True,
+            device=where,
+            **EXACT_SENSOR,
+        )
+        core = MCRSCore(cfg)
+        result = core.reset_to(torch.tensor(uavs), torch.tensor(zones), torch.tensor([[9, 0]]))
+        generator = torch.Generator().manual_seed(3)
+        masks, terms = [], []
+        for _ in range(cfg.max_steps):
+            masks.append(result.action_mask.cpu())
+            result = core.step(random_allowed(result.action_mask.cpu(), generator).to(where))
+            terms.append(result.reward_terms.cpu())
+        assert result.action_mask.device.type == torch.device(where).type
+        return torch.stack(masks), torch.stack(terms)
+
+    masks, terms = play(device)
+    cpu_masks, cpu_terms = play("cpu")
+    assert torch.equal(masks, cpu_masks) and torch.allclose(terms, cpu_terms)
+    assert (terms[..., 2] == 0).all()  # r3: no zone entry
+    assert (~masks).any()  # the shields did mask moves
