@@ -125,8 +125,9 @@ class ValueFactorisationLoss(LossModule):
             returns (both the env's) are multiplied by it in every target, so ``Q_tot`` learns
             ``reward_scale`` times the env's return (for returns far from the range the optimiser's
             settings were chosen on; docs/TRAINING.md). EMC's intrinsic reward is the learner's own and
-            is not scaled. The logged values (``q_taken_mean``, ``target_mean``, ``td_error_abs``, ``memory_target_mean``,
-            ``incentive_mean``) are divided back into the env's units; the losses are in the learner's.
+            is not scaled. The logged values (``q_taken_mean``, ``target_mean``, ``td_error_abs``,
+            ``memory_target_mean``, ``incentive_mean``) are divided back into the env's units; the losses
+            are in the learner's.
     """
 
     INCENTIVES = INCENTIVES
