@@ -197,7 +197,12 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
         "experiment=comm_range budget=smoke env=map10 algo=qmix env.comm_range=3 seed=0 threads=1" in plan[2]
     )
     assert f"hydra.run.dir={missing.run_dir(outputs)}" in plan[2]
-    assert plan[3] == "2 runs, 2 at a time, no new start after 1 h"
+    # No record here says how long a run took: the time left is unknown.
+    assert (
+        plan[3]
+        == "left: about 0.0 h of runs at the recorded runs' pace (0.0 h at 2 at a time); 2 runs have no estimate (no timed run on their map)"
+    )
+    assert plan[4] == "2 runs, 2 at a time, no new start after 1 h"
 
 
 def test_run_resumes_a_partial_point_first_and_records_every_run(tmp_path: Path, capsys) -> None:

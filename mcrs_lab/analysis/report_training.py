@@ -40,7 +40,7 @@ def _groups(training: list[TrainingRun]) -> tuple[dict[str, list[TrainingRun]], 
 
 
 def final_table(rows: list[dict[str, object]]) -> str:
-    """Markdown of ``final_rows``/``_heuristic_rows``: method, seeds, env steps, ``mean ± std`` per metric."""
+    """Markdown of ``final_rows``/``heuristic_rows``: method, seeds, env steps, ``mean ± std`` per metric."""
     header = ["method", "seeds", "env steps", *FINAL_METRICS.values()]
     table = []
     for r in rows:

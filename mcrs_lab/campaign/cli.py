@@ -24,6 +24,7 @@ from mcrs.experiment.tables import markdown
 from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
+from mcrs_lab.campaign.pace import left_line
 from mcrs_lab.campaign.progress import STATES
 from mcrs_lab.campaign.runner import FILL_FLOOR_S, Campaign, CampaignBusy
 
@@ -50,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     status = sub.add_parser("status", help="done, unrecorded, partial or missing, per point")
     matrix_options(status)
+    status.add_argument("--jobs", type=int, default=2, help="runs at a time, for the time left")
     run = sub.add_parser("run", help="run the next points within a time budget")
     matrix_options(run)
     run.add_argument(
@@ -100,23 +102,30 @@ def _points(args: argparse.Namespace) -> tuple[list[Point], int]:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
+    _check_jobs(args.jobs)
     points, total = _points(args)
-    states = Campaign(points, args.outputs, args.records, total).status()
+    campaign = Campaign(points, args.outputs, args.records, total, args.jobs)
+    states = campaign.status()
     rows = [[s.point.id, ",".join(s.point.figures), s.state, f"{s.env_steps:,}", s.note] for s in states]
     print(markdown(["point", "figures", "state", "env steps", "where"], rows))
     counts = Counter(s.state for s in states)
     print(
         f"\n{len(states)} points ({total:,} env steps each): " + ", ".join(f"{counts[k]} {k}" for k in STATES)
     )
+    print(left_line(campaign.left_s(), args.jobs))
     for line in summary(_evaluations(args), points, args.records):
         print(line)
     return 0
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def _check_jobs(jobs: int) -> None:
     cores = os.cpu_count() or 1
-    if not 1 <= args.jobs <= cores:  # each run has one torch thread: more runs than cores only queue
-        raise SystemExit(f"mcrs-campaign: error: --jobs={args.jobs}: must be >= 1 and <= {cores} (CPU cores)")
+    if not 1 <= jobs <= cores:  # each run has one torch thread: more runs than cores only queue
+        raise SystemExit(f"mcrs-campaign: error: --jobs={jobs}: must be >= 1 and <= {cores} (CPU cores)")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    _check_jobs(args.jobs)
     if not (math.isfinite(args.hours) and 0 < args.hours <= MAX_HOURS):
         raise SystemExit(
             f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"

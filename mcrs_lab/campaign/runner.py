@@ -38,9 +38,9 @@ from mcrs_lab.analysis.records import (
     make_record,
     write_record,
 )
-from mcrs_lab.analysis.runs import read_record
 from mcrs_lab.campaign.evaluations import Evaluation, plan, run_pending
 from mcrs_lab.campaign.matrix import Point
+from mcrs_lab.campaign.pace import Pace, left_line
 from mcrs_lab.campaign.progress import Progress, progress
 
 #: Seconds a stopped child may take to exit after SIGINT before it is killed.
@@ -109,49 +109,34 @@ class Campaign:
         return to_record, launches
 
     # -------------------------------------------------------------------------------- estimates
-    def _speeds(self) -> dict[tuple[str, str], float]:
-        """Env steps per second of earlier runs, per (map, algorithm), from the records."""
-        per: dict[tuple[str, str], list[float]] = {}
-        for path in sorted(self.records.glob("*/*/*.json")):
-            record = read_record(path)
-            if not record or record.get("kind") != "training":
-                continue
-            seconds = sum(s.get("wall_s", 0.0) for s in record.get("sessions", [])) or record.get(
-                "loop_time_s"
-            )
-            steps = record.get("checkpoint_env_steps") or 0
-            if seconds and steps:
-                key = (record["config"]["env"]["name"], record["config"]["algo"]["name"])
-                per.setdefault(key, []).append(steps / seconds)
-        return {k: sum(v) / len(v) for k, v in per.items()}
-
-    def estimate_s(self, state: Progress, speeds: dict[tuple[str, str], float]) -> float | None:
-        """Seconds left for a point: its own speed so far (a partial run), else that of recorded runs of
-        the same map and algorithm, else the slowest recorded algorithm on that map (an algorithm's first
-        run would otherwise start whatever time is left); None when the map has no record."""
-        speed = speeds.get((state.point.env, state.point.algo))
-        same_map = [v for (env, _), v in speeds.items() if env == state.point.env]
-        if speed is None and same_map:
-            speed = min(same_map)
+    def estimate_s(self, state: Progress, pace: Pace) -> float | None:
+        """Seconds left for a point: its own speed so far (a partial run), else the recorded runs' pace
+        (mcrs_lab.campaign.pace); None when no run on its map is recorded."""
+        speed = pace.speed(state.point.env, state.point.algo)
         if state.state == "partial":
             seconds = loop_time_s(state.point.run_dir(self.outputs))
             if seconds and state.env_steps:
                 speed = state.env_steps / seconds
         return (self.total - state.env_steps) / speed if speed else None
 
+    def left_s(self) -> list[float | None]:
+        """The estimate of every point not done (partial, unrecorded or missing), in seconds."""
+        pace = Pace.read(self.records)
+        return [self.estimate_s(s, pace) for s in self.status() if s.state in ("partial", "missing")]
+
     # ---------------------------------------------------------------------------------- running
     def dry_run(self, hours: float, fill: bool = False) -> list[str]:
         """The commands ``run`` would start, in order, with their estimated length; nothing is run."""
         to_record, launches = self.plan()
-        speeds = self._speeds()
+        pace = Pace.read(self.records)
         lines = [f"record {s.point.run_dir(self.outputs)}" for s in to_record]
         # The same rule as `run`, simulated: a run starts when a job slot frees, and only if its estimate
         # ends before the deadline (a run without an estimate always starts); with `fill`, if the slot
         # frees FILL_FLOOR_S or more before the deadline, and what is not done by then is stopped.
         deadline = hours * 3600
         slots = [0.0] * self.jobs
-        for state, command in launches:
-            estimate = self.estimate_s(state, speeds)
+        estimates = [self.estimate_s(state, pace) for state, _ in launches]
+        for (state, command), estimate in zip(launches, estimates, strict=True):
             slot = min(range(self.jobs), key=slots.__getitem__)
             refusal = self._start_refusal(state, estimate, deadline - slots[slot], fill)
             if refusal is not None:
@@ -166,6 +151,7 @@ class Campaign:
                 slots[slot] += estimate or 0.0
             lines.append(f"{line}): {shlex.join(command)}")
         rule = "runs going then are stopped and resume next time" if fill else "no new start"
+        lines.append(left_line(estimates, self.jobs))
         lines.append(f"{len(launches)} runs, {self.jobs} at a time, {rule} after {hours:g} h")
         return lines
 
@@ -208,7 +194,7 @@ class Campaign:
         to_record, launches = self.plan()
         for state in to_record:
             self._record(state.point)
-        speeds = self._speeds()
+        pace = Pace.read(self.records)
         queue = list(launches)
         running: list[Job] = []
         not_started = refused = stopped_at_deadline = 0
@@ -224,7 +210,7 @@ class Campaign:
                     break
                 while queue and len(running) < self.jobs and self.stop_signal is None:
                     state, command = queue.pop(0)
-                    estimate = self.estimate_s(state, speeds)
+                    estimate = self.estimate_s(state, pace)
                     refusal = self._start_refusal(state, estimate, deadline - time.time(), fill)
                     if refusal is not None:
                         _print(refusal)
@@ -239,7 +225,7 @@ class Campaign:
                 for job in [j for j in running if j.process.poll() is not None]:
                     running.remove(job)
                     self._finish(job)
-                    speeds = self._speeds()
+                    pace = Pace.read(self.records)
             if self.stop_signal is not None:
                 self._stop(running)
                 return 128 + self.stop_signal

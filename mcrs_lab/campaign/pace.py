@@ -1,0 +1,69 @@
+"""How long a campaign point will take, read off the pace of the training runs already recorded.
+
+The campaign's own records (``<records>/<experiment>/<budget>/*.json``) come first; where they hold no run
+of a point's algorithm on its map, the records of older campaigns kept deeper in the same folder (the
+"near" campaign's ``near/<experiment>/<budget>/``) answer, since the simulator's and the learner's cost do
+not depend on the reward's reading. A pace is env steps per second of wall time over a run's sessions,
+evaluations and checkpoints included, as ``mcrs-campaign run`` will spend it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcrs_lab.analysis.runs import read_record
+
+#: (map, algorithm) -> env steps per second, averaged over the recorded runs.
+Speeds = dict[tuple[str, str], float]
+
+
+def _speeds_of(paths: Iterable[Path]) -> Speeds:
+    per: dict[tuple[str, str], list[float]] = {}
+    for path in paths:
+        record = read_record(path)
+        if not record or record.get("kind") != "training":
+            continue
+        seconds = sum(s.get("wall_s", 0.0) for s in record.get("sessions", [])) or record.get("loop_time_s")
+        steps = record.get("checkpoint_env_steps") or 0
+        if seconds and steps:
+            key = (record["config"]["env"]["name"], record["config"]["algo"]["name"])
+            per.setdefault(key, []).append(steps / seconds)
+    return {key: sum(values) / len(values) for key, values in per.items()}
+
+
+@dataclass(frozen=True)
+class Pace:
+    """The recorded speeds: ``own`` of the campaign's folders, ``older`` of every training record below."""
+
+    own: Speeds
+    older: Speeds
+
+    @classmethod
+    def read(cls, records: Path) -> Pace:
+        own = sorted(records.glob("*/*/*.json"))
+        return cls(_speeds_of(own), _speeds_of(sorted(set(records.rglob("*.json")) - set(own))))
+
+    def speed(self, env: str, algo: str) -> float | None:
+        """Env steps per second of a run of ``algo`` on ``env``: that algorithm's own runs (this campaign's,
+        then older ones), else the slowest recorded algorithm on that map (an algorithm's first run would
+        otherwise look free); None when no run on that map is recorded."""
+        for speeds in (self.own, self.older):
+            if (env, algo) in speeds:
+                return speeds[env, algo]
+        for speeds in (self.own, self.older):
+            same_map = [value for (name, _), value in speeds.items() if name == env]
+            if same_map:
+                return min(same_map)
+        return None
+
+
+def left_line(estimates: list[float | None], jobs: int) -> str:
+    """One line on the time the runs of ``estimates`` (seconds each; None: unknown) still need."""
+    known = [seconds for seconds in estimates if seconds is not None]
+    hours = sum(known) / 3600
+    line = f"left: about {hours:.1f} h of runs at the recorded runs' pace ({hours / jobs:.1f} h at {jobs} at a time)"
+    if len(known) < len(estimates):
+        line += f"; {len(estimates) - len(known)} runs have no estimate (no timed run on their map)"
+    return line

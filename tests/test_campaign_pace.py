@@ -1,0 +1,102 @@
+"""How long the campaign's points will take (mcrs_lab.campaign.pace): which recorded runs set a point's pace,
+and the time left that ``mcrs-campaign status`` and ``run --dry-run`` print."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mcrs_lab.analysis.records import write_record
+from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION
+from mcrs_lab.campaign.cli import main as campaign_main
+from mcrs_lab.campaign.pace import Pace, left_line
+
+TWO_POINTS = """
+budget: smoke
+seeds: [0]
+figures:
+  figa:
+    experiment: comm_range
+    env: [map10]
+    algo: [qmix]
+    sweep: {env.comm_range: [0, 2]}
+  figb:
+    experiment: comm_range
+    env: [map15]
+    algo: [qmix]
+"""
+
+
+def _training(env: str, algo: str, steps: int, hours: float, status: str = "finished") -> dict:
+    """A training record of ``steps`` env steps over ``hours`` of sessions."""
+    return {
+        "format": RECORD_FORMAT,
+        "version": RECORD_VERSION,
+        "kind": "training",
+        "run_dir": f"outputs/{env}_{algo}",
+        "status": status,
+        "total_env_steps": 200,
+        "checkpoint_env_steps": steps,
+        "sessions": [{"wall_s": hours * 1800.0}, {"wall_s": hours * 1800.0}],
+        "final_eval": {},
+        "config": {"env": {"name": env}, "algo": {"name": algo}, "seed": 0},
+        "scalars": {},
+    }
+
+
+def test_a_points_pace_is_its_algorithms_own_runs_then_older_ones_then_the_slowest_on_its_map(
+    tmp_path: Path,
+) -> None:
+    records = tmp_path / "records"
+    write_record(records / "baselines" / "campaign" / "q.json", _training("map20", "qmix", 100, 1.0))
+    write_record(records / "baselines" / "campaign" / "v.json", _training("map20", "vdn", 300, 1.0))
+    write_record(
+        records / "baselines" / "campaign" / "v1.json", _training("map20", "vdn", 100, 2.0, "stopped")
+    )
+    # An older campaign's runs, a level deeper: they answer only where the campaign's own have nothing.
+    write_record(records / "near" / "baselines" / "campaign" / "q.json", _training("map20", "qmix", 900, 1.0))
+    write_record(records / "near" / "baselines" / "campaign" / "e.json", _training("map20", "emc", 50, 1.0))
+    write_record(
+        records / "near" / "lambda" / "campaign" / "c.json", _training("map10", "cnn_semu", 360, 0.5)
+    )
+    pace = Pace.read(records)
+    assert pace.speed("map20", "qmix") == pytest.approx(100 / 3600)  # its own run, not the older 900
+    assert pace.speed("map20", "vdn") == pytest.approx((300 / 3600 + 100 / 7200) / 2)  # stopped runs count
+    assert pace.speed("map20", "emc") == pytest.approx(50 / 3600)  # an older run of that algorithm
+    assert pace.speed("map20", "emu") == pytest.approx(100 / 3600)  # the slowest of the campaign's own
+    assert pace.speed("map10", "qmix") == pytest.approx(720 / 3600)  # the slowest older run on map10
+    assert pace.speed("map15", "qmix") is None
+
+
+def test_left_line_sums_the_known_estimates_and_counts_the_unknown() -> None:
+    assert left_line([3600.0, 7200.0, None], 2) == (
+        "left: about 3.0 h of runs at the recorded runs' pace (1.5 h at 2 at a time); "
+        "1 runs have no estimate (no timed run on their map)"
+    )
+    assert left_line([], 1) == "left: about 0.0 h of runs at the recorded runs' pace (0.0 h at 1 at a time)"
+
+
+def test_status_and_the_dry_run_print_the_time_left(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS)
+    records = tmp_path / "records"
+    write_record(records / "comm_range" / "smoke" / "earlier.json", _training("map10", "qmix", 100, 1.0))
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "outputs"), "--records", str(records)]
+    assert campaign_main(["status", *args]) == 0
+    # two map10 points of 200 env steps at 100 an hour; the map15 point has no run on its map to go by
+    left = (
+        "left: about 4.0 h of runs at the recorded runs' pace (2.0 h at 2 at a time); "
+        "1 runs have no estimate (no timed run on their map)"
+    )
+    assert capsys.readouterr().out.rstrip().endswith(left)
+    assert campaign_main(["status", *args, "--only", "map10", "--jobs", "1"]) == 0
+    assert (
+        capsys.readouterr()
+        .out.rstrip()
+        .endswith("left: about 4.0 h of runs at the recorded runs' pace (4.0 h at 1 at a time)")
+    )
+    assert campaign_main(["run", *args, "--hours", "10", "--dry-run"]) == 0
+    assert left in capsys.readouterr().out.splitlines()
+    with pytest.raises(SystemExit, match="--jobs=0: must be >= 1"):
+        campaign_main(["status", *args, "--jobs", "0"])
