@@ -11,21 +11,17 @@ from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION
 from mcrs_lab.campaign.cli import main as campaign_main
 from mcrs_lab.campaign.pace import Pace, left_line
+from tests.test_campaign import TWO_POINTS
 
-TWO_POINTS = """
-budget: smoke
-seeds: [0]
-figures:
-  figa:
-    experiment: comm_range
-    env: [map10]
-    algo: [qmix]
-    sweep: {env.comm_range: [0, 2]}
-  figb:
+#: test_campaign's two map10 points, and one on map15.
+THREE_POINTS = (
+    TWO_POINTS
+    + """  figb:
     experiment: comm_range
     env: [map15]
     algo: [qmix]
 """
+)
 
 
 def _training(env: str, algo: str, steps: int, hours: float, status: str = "finished") -> dict:
@@ -79,7 +75,7 @@ def test_left_line_sums_the_known_estimates_and_counts_the_unknown() -> None:
 
 def test_status_and_the_dry_run_print_the_time_left(tmp_path: Path, capsys) -> None:
     matrix = tmp_path / "m.yaml"
-    matrix.write_text(TWO_POINTS)
+    matrix.write_text(THREE_POINTS)
     records = tmp_path / "records"
     write_record(records / "comm_range" / "smoke" / "earlier.json", _training("map10", "qmix", 100, 1.0))
     args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "outputs"), "--records", str(records)]
