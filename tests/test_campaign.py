@@ -88,6 +88,9 @@ def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:
     three = select(points, ["shields_gamma05"])
     assert [p.id for p in three] == [f"shields_gamma/map20_qmix_gamma0.5_seed{s}" for s in (0, 1, 2)]
     assert three[0] is gamma[1] and three[0].figures == ("shields_gamma", "shields_gamma05")
+    assert [p.id for p in select(points, ["shields_gamma025"])] == [
+        "shields_gamma/map20_qmix_gamma0.25_seed0"
+    ]
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS.replace("    sweep:", "    seeds: [3, 5]\n    sweep:"))
     assert sorted(p.seed for p in load_matrix(matrix)[0]) == [3, 3, 5, 5]
