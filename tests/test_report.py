@@ -172,6 +172,23 @@ def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> 
     assert "| 0.13    | emc       |     2 | 13.00 ± 0.00 |" in (out / "table4.md").read_text()
 
 
+def test_table4_on_the_papers_map_needs_a_memory_run_not_a_sweep(tmp_path: Path) -> None:
+    make_run(tmp_path, "qmix", algo="qmix", env="map20")
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out)])
+    assert not (out / "table4.md").exists()  # no memory method: nothing to set beside the paper's
+    for seed in range(2):  # figure 7's runs: the default delta only
+        make_run(tmp_path, f"semu_{seed}", algo="semu", seed=seed, env="map20", algo__memory__enabled=True)
+    report_main([str(tmp_path), "--out", str(out)])
+    table = read_csv(out / "table4.csv")
+    assert [(r["delta"], r["algorithm"], r["seeds"]) for r in table if r["seeds"] != "0"] == [
+        ("0.0013", "semu", "2")
+    ]
+    assert len(table) == 12  # the paper's other eleven rows, ours blank
+    (semu,) = [r for r in table if r["seeds"] != "0"]
+    assert float(semu["paper_666667"]) == pytest.approx(358.62)  # the paper's SEMU at delta 1.3e-3, 0.67M
+
+
 def test_lambda_sweep_labels(tmp_path: Path) -> None:
     for weight in (0.01, 0.5):
         make_run(

@@ -16,7 +16,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``final.md|csv``: every evaluation metric at the last step, with the heuristics evaluated by
   ``mcrs-eval`` at the same R_c as extra rows;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
-  when delta was swept, on map20 with the paper's table 4 beside ours (mcrs_lab.analysis.table4);
+  when delta was swept, and on map20 (with the paper's table 4 beside ours) wherever a memory method
+  ran (mcrs_lab.analysis.table4);
 - ``versus.md|csv``: every learner against every heuristic on every metric: better, worse or level at
   the end (Welch over seeds) and from which env step it is better (mcrs_lab.analysis.versus); for
   evaluations only, every trained policy against the heuristics evaluated with it;
