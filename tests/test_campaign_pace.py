@@ -56,7 +56,9 @@ def test_a_points_pace_is_its_algorithms_own_runs_then_older_ones_then_the_slowe
     write_record(
         records / "near" / "lambda" / "campaign" / "c.json", _training("map10", "cnn_semu", 360, 0.5)
     )
-    pace = Pace.read(records)
+    (records / "near" / "shield").mkdir(parents=True)
+    (records / "near" / "shield" / "broken.json").write_text(f'{{"format": "{RECORD_FORMAT}", "version": 1')
+    pace = Pace.read(records)  # a broken file below gives no pace and stops nothing
     assert pace.speed("map20", "qmix") == pytest.approx(100 / 3600)  # its own run, not the older 900
     assert pace.speed("map20", "vdn") == pytest.approx((300 / 3600 + 100 / 7200) / 2)  # stopped runs count
     assert pace.speed("map20", "emc") == pytest.approx(50 / 3600)  # an older run of that algorithm

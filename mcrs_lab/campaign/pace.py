@@ -13,6 +13,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from mcrs_lab.analysis.records import RecordError
 from mcrs_lab.analysis.runs import read_record
 
 #: (map, algorithm) -> env steps per second, averaged over the recorded runs.
@@ -20,9 +21,14 @@ Speeds = dict[tuple[str, str], float]
 
 
 def _speeds_of(paths: Iterable[Path]) -> Speeds:
+    """The mean speed per (map, algorithm) of the training records in ``paths``; a file that is not a valid
+    record gives no speed (the tools that read it as evidence refuse it by name)."""
     per: dict[tuple[str, str], list[float]] = {}
     for path in paths:
-        record = read_record(path)
+        try:
+            record = read_record(path)
+        except RecordError:
+            continue
         if not record or record.get("kind") != "training":
             continue
         seconds = sum(s.get("wall_s", 0.0) for s in record.get("sessions", [])) or record.get("loop_time_s")
