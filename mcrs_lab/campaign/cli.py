@@ -112,7 +112,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     print(
         f"\n{len(states)} points ({total:,} env steps each): " + ", ".join(f"{counts[k]} {k}" for k in STATES)
     )
-    print(left_line(campaign.left_s(), args.jobs))
+    print(left_line(campaign.left_s(states), args.jobs))
     for line in summary(_evaluations(args), points, args.records):
         print(line)
     return 0

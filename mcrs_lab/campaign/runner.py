@@ -119,10 +119,11 @@ class Campaign:
                 speed = state.env_steps / seconds
         return (self.total - state.env_steps) / speed if speed else None
 
-    def left_s(self) -> list[float | None]:
-        """The estimate of every point not done (partial, unrecorded or missing), in seconds."""
+    def left_s(self, states: list[Progress]) -> list[float | None]:
+        """The estimate, in seconds, of every point of ``states`` (``status()``'s) still to train: partial or
+        missing (an unrecorded run has finished and needs only its record)."""
         pace = Pace.read(self.records)
-        return [self.estimate_s(s, pace) for s in self.status() if s.state in ("partial", "missing")]
+        return [self.estimate_s(s, pace) for s in states if s.state in ("partial", "missing")]
 
     # ---------------------------------------------------------------------------------- running
     def dry_run(self, hours: float, fill: bool = False) -> list[str]:
