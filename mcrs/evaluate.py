@@ -32,7 +32,7 @@ from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR
-from mcrs.policies import POLICIES, make_policy
+from mcrs.policies import POLICIES, make_policy, policy_env
 
 ALL = "all"
 log = logging.getLogger(__name__)
@@ -95,7 +95,7 @@ def episode_metrics(
     if episodes < 1:
         raise ValueError(f"episodes={episodes}: must be >= 1")
     batch = min(episodes, max_batch)
-    cfg = env_config.replace(num_envs=batch, expose_beliefs=False)
+    cfg = policy_env(policy_name, env_config.replace(num_envs=batch, expose_beliefs=False))
     env = MCRSEnv(cfg)
     policy = make_policy(policy_name, cfg, seed)
     # the environments are seeded once: each further batch goes on from where the generator stands

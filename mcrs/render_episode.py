@@ -47,7 +47,7 @@ def register_configs() -> None:
 
 def checked(cfg: DictConfig) -> tuple[EnvConfig, str]:
     """The env config and the policy of ``cfg``, every value checked before any drawing starts."""
-    from mcrs.policies import POLICIES, make_policy
+    from mcrs.policies import POLICIES, make_policy, policy_env
 
     try:
         env_config = from_mapping(cfg.env)
@@ -55,7 +55,7 @@ def checked(cfg: DictConfig) -> tuple[EnvConfig, str]:
         raise ValueError(str(error)) from None
     policy = str(cfg.policy)
     if policy not in POLICIES:
-        make_policy(policy, env_config)  # a checkpoint: fails early, naming the problem
+        make_policy(policy, policy_env(policy, env_config))  # a checkpoint: fails early, naming the problem
     if not 0 <= cfg.uav < env_config.n_uavs:
         raise ValueError(
             f"uav={cfg.uav}: must be in 0..{env_config.n_uavs - 1} ({env_config.name} has {env_config.n_uavs} UAVs)"

@@ -40,6 +40,7 @@ OVERRIDES = {
     "expose_beliefs": ("true", True),
     "no_fly_shield": ("true", True),
     "uav_shield": ("true", True),
+    "far_view": ("2", 2),
     "comm_delay": ("2", 2),
     "comm_budget": ("6", 6),
     "target_motion": ("random_walk", "random_walk"),

@@ -43,6 +43,7 @@ PRESETS = {
     "shields_pymarl2": (2, ["qmix", "cnn_semu"]),
     "shields_gamma": (3, ["qmix gamma=0.5", "qmix gamma=0.9", "qmix gamma=0.95"]),
     "gamma": (2, ["qmix gamma=0.5", "qmix gamma=0.9"]),
+    "shields_view": (1, ["qmix"]),
 }
 #: Preset -> the scenario's shields (no_fly_shield, uav_shield) in its runs.
 SHIELDS = {
@@ -51,7 +52,10 @@ SHIELDS = {
     "shields_scaled": (True, True),
     "shields_pymarl2": (True, True),
     "shields_gamma": (True, True),
+    "shields_view": (True, True),
 }
+#: Preset -> its env.far_view (0, the paper's observation, elsewhere).
+FAR_VIEW = {"shields_view": 3}
 #: Preset -> its algo.reward_scale (1 elsewhere).
 REWARD_SCALE = {"shields_scaled": 0.05}
 
@@ -98,6 +102,7 @@ def test_preset_smoke_run_and_report(name: str, tmp_path: Path, baselines: Path)
         assert (config.experiment, config.budget, config.train.total_env_steps) == (name, "smoke", 200)
         assert (config.env.no_fly_shield, config.env.uav_shield) == SHIELDS.get(name, (False, False))
         assert config.algo.reward_scale == REWARD_SCALE.get(name, 1.0)
+        assert config.env.far_view == FAR_VIEW.get(name, 0)
         assert config.preset == ("pymarl2" if name == "shields_pymarl2" else "pymarl")
         assert (run / "checkpoints" / "last.pt").is_file()
     maps = sorted({OmegaConf.load(r / "config.yaml").env.name for r in runs})

@@ -57,3 +57,32 @@ def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:
         make_policy(str(run_dir), scenario("map20"))
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("greedyy", scenario("map10"))
+
+
+@pytest.fixture(scope="module")
+def far_view_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("far_view_run")
+    Experiment(compose_config("train.total_env_steps=80", "env.far_view=2"), path).run()
+    return path
+
+
+def test_a_far_view_checkpoint_is_played_with_the_view_it_was_trained_with(
+    far_view_run: Path, tmp_path: Path
+):
+    """``env.far_view`` is what the agent reads, not the task: evaluations, pictures and the ledger play a
+    checkpoint with its own value, beside heuristics on the task as given; built directly it is named."""
+    from mcrs.policies import policy_env
+    from mcrs_lab.analysis.ledger import play
+
+    paper = scenario("map10", max_steps=10)
+    assert policy_env(str(far_view_run), paper) == paper.replace(far_view=2)
+    assert policy_env("greedy", paper) is paper
+    with pytest.raises(
+        ValueError, match=r"trained with env.far_view=2; this environment has env.far_view=0: pass "
+    ):
+        make_policy(str(far_view_run), paper)
+    assert evaluate_policy(paper, str(far_view_run), episodes=3, seed=0)["episode_reward"][1] >= 0
+    assert all(
+        p.is_file() for p in write_episode_pictures(tmp_path, paper, str(far_view_run), seed=0, gif=False)
+    )
+    assert play(paper, str(far_view_run), episodes=2, seed=0).terms.shape[0] == 2

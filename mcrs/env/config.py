@@ -27,6 +27,8 @@ TARGET_MOTIONS = ("static", "random_walk")
 #: reading of constraints (16)-(17) this project used before the field existed) charges distances <= d,
 #: i.e. a zone's four neighbours and side-by-side UAVs too on the unit grid.
 SAFETY_RULES = ("enter", "near")
+#: Values the observation gains with ``far_view`` > 0: one window mean of own m(U) per move.
+N_FAR_VIEW = 8
 #: Fields added to the scenario after records and checkpoints were made, with the value that such a saved
 #: config meant: a config saved before ``safety_rule`` existed was trained and judged under ``near``.
 LEGACY_SCENARIO_VALUES = {"safety_rule": "near"}
@@ -64,6 +66,9 @@ class EnvConfig:
     expose_beliefs: bool = False
     no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
     uav_shield: bool = False  # mask moves that could meet a lower-indexed UAV in sight within d2 (shield.py)
+    far_view: int = (
+        0  # beyond the paper: k > 0 adds 8 window means of own m(U) to the observation (outputs.py)
+    )
     # Beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets"); defaults = the paper.
     comm_delay: int = 0  # steps between sending and receiving a message
     comm_budget: Optional[int] = None  # noqa: UP045 (OmegaConf needs Optional) detections per link and step; None: unlimited
@@ -85,7 +90,8 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        return 18 + 3 * (self.n_uavs - 1) + 3 * self.n_no_fly
+        far = N_FAR_VIEW if self.far_view > 0 else 0
+        return 18 + 3 * (self.n_uavs - 1) + 3 * self.n_no_fly + far
 
     @property
     def state_dim(self) -> int:
@@ -230,6 +236,14 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
     for name in ("expose_beliefs", "no_fly_shield", "uav_shield"):
         if not isinstance(getattr(cfg, name), bool):
             errors.append(f"{name}={getattr(cfg, name)!r}: must be true or false")
+    far = cfg.far_view
+    if not _is_int(far) or far < 0:
+        errors.append(f"far_view={far!r}: must be an integer >= 0 (0: the paper's 8-cell view)")
+    elif _is_int(cfg.width) and _is_int(cfg.height) and far > max(cfg.width, cfg.height):
+        errors.append(
+            f"far_view={far}: must be <= max(width, height) = {max(cfg.width, cfg.height)} "
+            "(a larger window holds no more of the map)"
+        )
     errors += _variant_errors(cfg)
     problem = device_problem(cfg.device)
     if problem:

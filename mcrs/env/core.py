@@ -10,7 +10,8 @@ holds positive readings ("F", target), channel 1 negative readings ("E", empty).
 
 Beyond the paper (each off by default, and then the code paths below are the paper's, bit for bit):
 ``comm_delay`` and ``comm_budget`` (:mod:`mcrs.env.messages`), ``target_motion=random_walk``
-(:mod:`mcrs.env.targets`) and ``evidence_decay`` (:mod:`mcrs.env.evidence`). With moving targets or fading
+(:mod:`mcrs.env.targets`), ``evidence_decay`` (:mod:`mcrs.env.evidence`) and ``far_view``
+(:mod:`mcrs.env.far_view`). With moving targets or fading
 evidence ("dynamic"), discoveries are judged at the targets' current cells.
 """
 
@@ -22,6 +23,7 @@ from mcrs.env.belief import belief_masses
 from mcrs.env.checks import check_action, scene_cells
 from mcrs.env.config import EnvConfig
 from mcrs.env.evidence import EvidenceDecay
+from mcrs.env.far_view import FarView
 from mcrs.env.fusion import apply_new_detections, fuse_known, neighbours_within, reachable_within
 from mcrs.env.geometry import Geometry
 from mcrs.env.messages import MessageChannel
@@ -122,6 +124,8 @@ class MCRSCore(CoreOutputs):
         )
         # uav_shield: the table of which moves may meet (mcrs/env/shield.py).
         self._right_of_way = RightOfWay(self._moves, c) if c.uav_shield else None
+        # far_view: the 8 window means of own m(U) appended to the observation (mcrs/env/far_view.py).
+        self.far_view = FarView(c, self._moves) if c.far_view > 0 else None
         self._mask = self._action_mask()  # the action mask of the current positions
 
     # ------------------------------------------------------------------ public API

@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import torch
 
-from mcrs.env.config import EnvConfig
+from mcrs.env.config import N_FAR_VIEW, EnvConfig
 from mcrs.env.core import MOVES, SURROUNDING
 
 # ACTION_TO_SURROUNDING[a] is the index in the observation's 8-cell block (order ``SURROUNDING``) of the
@@ -24,13 +24,16 @@ ACTION_TO_SURROUNDING: tuple[int, ...] = tuple(SURROUNDING.index(move) for move 
 
 @dataclass(frozen=True)
 class ObservationLayout:
-    """Where each feature group of one UAV's observation lies (length ``18 + 3(N-1) + 3 N_Z``)."""
+    """Where each feature group of one UAV's observation lies (length ``18 + 3(N-1) + 3 N_Z``, + 8 far view)."""
 
     position: slice  # x / (L1 - 1), y / (L2 - 1)
     unknown_around: slice  # own fused m(U) at the 8 SURROUNDING cells (0 off the grid)
     full_around: slice  # own fused m(F) at the same cells
     uavs: slice  # (d, dx, dy) / R_sight for every other UAV in index order, zeros beyond sight
     no_fly: slice  # (d, dx, dy) / R_sight for every no-fly zone, zeros beyond sight
+    far_view: (
+        slice  # beyond the paper (env.far_view > 0): 8 window means of own m(U), action order; else empty
+    )
     obs_dim: int
     n_others: int  # N - 1
     n_no_fly: int
@@ -40,9 +43,9 @@ class ObservationLayout:
     @classmethod
     def from_config(cls, cfg: EnvConfig) -> ObservationLayout:
         n_others, n_no_fly = cfg.n_uavs - 1, cfg.n_no_fly
-        bounds = [2, 8, 8, 3 * n_others, 3 * n_no_fly]
+        bounds = [2, 8, 8, 3 * n_others, 3 * n_no_fly, N_FAR_VIEW if cfg.far_view > 0 else 0]
         starts = [sum(bounds[:k]) for k in range(len(bounds) + 1)]
-        position, unknown, full, uavs, no_fly = (slice(a, b) for a, b in pairwise(starts))
+        position, unknown, full, uavs, no_fly, far_view = (slice(a, b) for a, b in pairwise(starts))
         if starts[-1] != cfg.obs_dim:  # a guard: the config's formula and this layout must agree
             raise AssertionError(f"observation layout length {starts[-1]} != config obs_dim {cfg.obs_dim}")
         return cls(
@@ -51,6 +54,7 @@ class ObservationLayout:
             full_around=full,
             uavs=uavs,
             no_fly=no_fly,
+            far_view=far_view,
             obs_dim=cfg.obs_dim,
             n_others=n_others,
             n_no_fly=n_no_fly,
@@ -79,6 +83,14 @@ class ObservationLayout:
     def no_fly_features(self, obs: torch.Tensor) -> torch.Tensor:
         """``[..., N_Z, 3]``: normalised (d, dx, dy) to each no-fly zone."""
         return obs[..., self.no_fly].unflatten(-1, (self.n_no_fly, 3))
+
+    def far_unknown_by_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """``[..., 8]``: mean own m(U) of the far window in each move's direction (``far_view`` > 0 only)."""
+        if self.far_view.stop == self.far_view.start:
+            raise ValueError(
+                "this observation has no far view: the env was made with far_view=0 (the paper's)"
+            )
+        return obs[..., self.far_view]
 
     def relative_cells(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Integer offsets ``[..., K, 2]`` from ``uav_features``/``no_fly_features``, and visibility ``[..., K]``.

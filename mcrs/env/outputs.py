@@ -69,15 +69,15 @@ class CoreOutputs:
             ],
             dim=-1,
         )  # (d, dx, dy) / R_sight
-        return torch.cat(
-            [
-                self.uav_pos.to(torch.float32) / self._pos_scale,
-                unknown * on_grid,
-                full * on_grid,
-                relative.view(E, N, -1),
-            ],
-            dim=-1,
-        )
+        parts = [
+            self.uav_pos.to(torch.float32) / self._pos_scale,
+            unknown * on_grid,
+            full * on_grid,
+            relative.view(E, N, -1),
+        ]
+        if self.far_view is not None:  # beyond the paper: 8 window means of own m(U) (mcrs/env/far_view.py)
+            parts.append(self.far_view.means(self.belief_maps()[:, :, 0], self.uav_pos))
+        return torch.cat(parts, dim=-1)
 
     def _result(
         self, terms: torch.Tensor, geometry: Geometry | None = None, neighbours: torch.Tensor | None = None

@@ -34,6 +34,18 @@ def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
     return POLICIES[name](env_config, seed)
 
 
+def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
+    """``env_config`` as the named policy must play it: a checkpoint's agent keeps the observation fields it
+    was trained with (``far_view``: what the agent reads, not the task: dynamics and rewards are the same),
+    so one evaluation can hold policies that see differently; a heuristic plays ``env_config`` itself."""
+    from mcrs.policies.trained import looks_like_checkpoint, observation_settings
+
+    if name in POLICIES or not looks_like_checkpoint(name):
+        return env_config
+    changed = {k: v for k, v in observation_settings(name).items() if getattr(env_config, k) != v}
+    return env_config.replace(**changed) if changed else env_config
+
+
 __all__ = [
     "POLICIES",
     "CoveragePolicy",
@@ -42,4 +54,5 @@ __all__ = [
     "Policy",
     "RandomPolicy",
     "make_policy",
+    "policy_env",
 ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -19,6 +20,10 @@ from mcrs.models.agent import RecurrentAgent
 from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
 
 log = logging.getLogger(__name__)
+
+#: Env fields that shape what a trained agent observes but not the task it plays (beyond the paper):
+#: evaluations play a checkpoint with its own values of these (mcrs.policies.policy_env).
+OBSERVATION_FIELDS = ("far_view",)
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -32,6 +37,17 @@ def resolve_checkpoint(path: str | Path) -> Path:
     except OSError as error:  # an unreadable directory
         raise ckpt.CheckpointError(f"checkpoint {path} cannot be read: {error.strerror or error}") from None
     return weights[-1] if weights else ckpt.checkpoint_path(path)
+
+
+def observation_settings(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's values of :data:`OBSERVATION_FIELDS` (a config saved before one existed: its default,
+    the paper's). A checkpoint without a usable config gives none: loading its policy then names the problem."""
+    state = ckpt.load(resolve_checkpoint(path))
+    try:
+        trained = from_mapping(with_legacy_values(state["config"]["env"])[0])
+    except (KeyError, TypeError, ValueError):
+        return {}
+    return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
 
 
 def looks_like_checkpoint(name: str) -> bool:
@@ -77,6 +93,14 @@ class TrainedPolicy(Policy):
                 "(pass env.safety_rule=%s to evaluate it under its own rule)",
                 path, trained.safety_rule, made, env_config.safety_rule, trained.safety_rule,
             )  # fmt: skip
+        for field in OBSERVATION_FIELDS:
+            if getattr(trained, field) != getattr(env_config, field):
+                value = getattr(trained, field)
+                raise ValueError(
+                    f"checkpoint {path} was trained with env.{field}={value}; this environment has "
+                    f"env.{field}={getattr(env_config, field)}: pass env.{field}={value} (it shapes what the "
+                    "agent observes)"
+                )
         for field in ("width", "height", "n_uavs", "obs_dim"):
             if getattr(trained, field) != getattr(env_config, field):
                 raise ValueError(

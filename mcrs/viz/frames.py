@@ -13,14 +13,14 @@ from tensordict import TensorDictBase
 from mcrs.env.config import EnvConfig
 from mcrs.env.render import EpisodeFrames, episode_frames
 from mcrs.env.torchrl_env import MCRSEnv
-from mcrs.policies import make_policy
+from mcrs.policies import make_policy, policy_env
 
 __all__ = ["EpisodeFrames", "episode_frames", "rollout_comm_pair", "rollout_episode"]
 
 
 def rollout_episode(env_config: EnvConfig, policy_name: str, seed: int) -> TensorDictBase:
     """One full episode (``max_steps`` steps, one env, beliefs exposed): a ``[1, T]`` tensordict."""
-    cfg = env_config.replace(num_envs=1, expose_beliefs=True)
+    cfg = policy_env(policy_name, env_config.replace(num_envs=1, expose_beliefs=True))
     env = MCRSEnv(cfg)
     env.set_seed(seed)
     policy = make_policy(policy_name, cfg, seed)

@@ -40,7 +40,7 @@ from mcrs.env.layout import ObservationLayout, StateLayout
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.tables import markdown
-from mcrs.policies import POLICIES, make_policy
+from mcrs.policies import POLICIES, make_policy, policy_env
 from mcrs.policies.base import ACTION, ACTION_MASK, OBSERVATION
 
 TERMS = ("r1 uncertainty", "r2 discovery", "r3 no-fly", "r4 collision")
@@ -94,7 +94,7 @@ def _charges(config: EnvConfig, cells: torch.Tensor, zones: torch.Tensor) -> tor
 @torch.no_grad()
 def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledger:
     """One batch of ``episodes`` evaluation episodes of ``policy_name`` on ``config``, seeded with ``seed``."""
-    config = config.replace(num_envs=episodes, expose_beliefs=False)
+    config = policy_env(policy_name, config.replace(num_envs=episodes, expose_beliefs=False))
     env = MCRSEnv(config)
     policy = make_policy(policy_name, config, seed)
     obs_layout, state_layout = ObservationLayout.from_config(config), StateLayout.from_config(config)

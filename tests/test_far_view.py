@@ -1,0 +1,106 @@
+"""``env.far_view`` (beyond the paper): 8 window means of own m(U) appended to the observation.
+
+Checked against a plain-Python reading of the definition (mcrs/env/far_view.py) on each UAV's own fused map,
+and for what it must leave alone: with it off the observation is the paper's, and with it on the dynamics,
+rewards and the rest of the observation are unchanged.
+"""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import torch
+
+from mcrs.env import MOVES, MCRSCore, scenario
+from mcrs.env.layout import ObservationLayout
+from mcrs.env.pettingzoo_env import MCRSParallelEnv
+from mcrs.env.torchrl_env import MCRSEnv
+
+
+def _walk(cfg, steps: int, seed: int):
+    """The core after ``steps`` random allowed moves, and every step's result."""
+    core = MCRSCore(cfg)
+    core.seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    results = [core.reset()]
+    for _ in range(steps):
+        mask = results[-1].action_mask.view(-1, 8).float()
+        results.append(core.step(torch.multinomial(mask, 1, generator=g).view(cfg.num_envs, cfg.n_uavs)))
+    return core, results
+
+
+def _reference(unknown: torch.Tensor, position: torch.Tensor, k: int) -> torch.Tensor:
+    """The definition, cell by cell: mean own m(U) over the (2k+1)^2 window centred k+1 cells along each move."""
+    E, N, W, H = unknown.shape
+    out = torch.zeros(E, N, 8)
+    for e in range(E):
+        for i in range(N):
+            x, y = position[e, i].tolist()
+            for a, (dx, dy) in enumerate(MOVES):
+                cx, cy = x + (k + 1) * dx, y + (k + 1) * dy
+                total = 0.0
+                for u in range(cx - k, cx + k + 1):
+                    for v in range(cy - k, cy + k + 1):
+                        if 0 <= u < W and 0 <= v < H:
+                            total += unknown[e, i, u, v].item()
+                out[e, i, a] = total / (2 * k + 1) ** 2
+    return out
+
+
+@pytest.mark.parametrize(("name", "k", "steps"), [("map10", 1, 9), ("map10", 3, 20), ("map15", 2, 14)])
+def test_far_view_is_the_window_means_of_own_uncertainty(name, k, steps):
+    cfg = scenario(name, num_envs=2, far_view=k, expose_beliefs=True)
+    layout = ObservationLayout.from_config(cfg)
+    for result in _walk(cfg, steps, seed=k)[1][:: max(steps // 3, 1)]:
+        own_unknown = result.belief_map[:, :, 0]  # each UAV's fused m(U), [E, N, W, H]
+        expected = _reference(own_unknown, result.position, k)
+        assert torch.allclose(layout.far_unknown_by_action(result.observation), expected, atol=1e-6)
+
+
+def test_far_view_leaves_the_dynamics_and_the_papers_observation_alone():
+    paper, wide = scenario("map20", num_envs=3), scenario("map20", num_envs=3, far_view=2)
+    assert paper.obs_dim + 8 == wide.obs_dim
+    (_, plain), (_, extended) = _walk(paper, 30, seed=4), _walk(wide, 30, seed=4)
+    layout = ObservationLayout.from_config(wide)
+    assert ObservationLayout.from_config(paper).far_view == slice(paper.obs_dim, paper.obs_dim)
+    for a, b in zip(plain, extended, strict=True):
+        assert torch.equal(a.observation, b.observation[..., : paper.obs_dim])
+        assert torch.equal(a.reward_terms, b.reward_terms) and torch.equal(a.position, b.position)
+        assert layout.far_view.stop == wide.obs_dim
+    # The windows see the map change: late in the episode UAVs have read ground around them.
+    assert (
+        extended[-1].observation[..., layout.far_view].mean()
+        < extended[0].observation[..., layout.far_view].mean()
+    )
+
+
+def test_the_papers_observation_has_no_far_view_to_read():
+    layout = ObservationLayout.from_config(scenario("map10"))
+    with pytest.raises(ValueError, match="far_view=0"):
+        layout.far_unknown_by_action(torch.zeros(1, layout.obs_dim))
+
+
+def test_the_adapters_spaces_follow_the_longer_observation():
+    cfg = scenario("map10", far_view=2)
+    env = MCRSEnv(cfg.replace(num_envs=2))
+    env.set_seed(0)
+    td = env.rollout(5)
+    assert (
+        td["agents", "observation"].shape[-1]
+        == cfg.obs_dim
+        == env.observation_spec["agents", "observation"].shape[-1]
+    )
+    assert env.observation_spec["agents", "observation"].is_in(td[:, 0]["agents", "observation"])
+    pz = MCRSParallelEnv(cfg)
+    observations, _ = pz.reset(seed=0)
+    agent = pz.agents[0]
+    assert pz.observation_space(agent)["observation"].contains(observations[agent]["observation"])
+    assert observations[agent]["observation"].shape == (cfg.obs_dim,)
+
+
+@pytest.mark.parametrize(("value", "message"), [(-1, "must be an integer >= 0"), (1.5, "must be an integer >= 0"),
+                                                 (True, "must be an integer >= 0"), (11, "must be <= max(width, height) = 10")])  # fmt: skip
+def test_bad_far_view_is_refused_by_name(value, message):
+    with pytest.raises(ValueError, match=re.escape(f"far_view={value!r}: {message}")):
+        scenario("map10", far_view=value)
