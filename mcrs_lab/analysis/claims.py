@@ -156,6 +156,7 @@ def method_samples(
     evaluations: list[EvaluationRow],
     comm_range: float | None,
     budget: int,
+    aliases: dict[str, str] | None = None,
 ) -> tuple[Claim, dict[str, Samples]]:
     """The claim with its label patterns (``trained *``) replaced by the methods they match, and the
     numbers of every method it names that the report has: training runs (per seed, over the window),
@@ -168,18 +169,18 @@ def method_samples(
         found[label] = Samples(label, values)
     for label, values in trained_samples(evaluations, claim.metric).items():
         found.setdefault(label, Samples(label, values))
-    above, below = _expand(claim.above, found), _expand(claim.below, found)
+    above, below = _expand(claim.above, found, aliases or {}), _expand(claim.below, found, aliases or {})
     resolved = replace(claim, above=above, below=below)
     return resolved, {m: found[m] for m in (*above, *below) if m in found}
 
 
-def _expand(labels: tuple[str, ...], found: dict[str, Samples]) -> tuple[str, ...]:
-    """Each label as it is, or, with ``*`` in it (any text), the methods it matches in report order (the
-    pattern itself when none does: "no runs of")."""
+def _expand(labels: tuple[str, ...], found: dict[str, Samples], aliases: dict[str, str]) -> tuple[str, ...]:
+    """Each label as it is (or its alias where the report has no method of that name), or, with ``*`` in it
+    (any text), the methods it matches in report order (the pattern itself when none does: "no runs of")."""
     out: list[str] = []
     for label in labels:
         if "*" not in label:
-            out.append(label)
+            out.append(label if label in found else aliases.get(label, label))
             continue
         pattern = re.compile("^" + ".*".join(map(re.escape, label.split("*"))) + "$")
         out += [m for m in found if pattern.match(m) and m not in out] or [label]
@@ -295,13 +296,15 @@ def claims_table(
     comm_range: float | None,
     budget: int,
     window_text: str | None = None,
+    aliases: dict[str, str] | None = None,
 ) -> str:
     """Markdown: source, claim, the paper's numbers, ours (mean ± std (seeds) per method over the
     window, or ``window_text`` where there is none: evaluations of final checkpoints), and the verdict
-    with its reason."""
+    with its reason. ``aliases`` (:func:`~mcrs_lab.analysis.runs.default_labels`): a plain algorithm name the
+    report has no method of stands for its label at the default settings."""
     rows = []
     for claim in claims:
-        claim, samples = method_samples(claim, curves, evaluations, comm_range, budget)
+        claim, samples = method_samples(claim, curves, evaluations, comm_range, budget, aliases)
         result = verdict(claim, samples)
         word = OUR_WORDS.get(result.word, result.word) if claim.ours else result.word
         ours = "; ".join(s.text() for s in result.compared) or "-"

@@ -10,7 +10,7 @@ from mcrs_lab.analysis.claims import claims_table
 from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_steps, milestone_values
 from mcrs_lab.analysis.evaluations import heuristic_references, heuristic_rows
 from mcrs_lab.analysis.report_document import Report
-from mcrs_lab.analysis.runs import Skipped, TrainingRun, label_fields, run_labels
+from mcrs_lab.analysis.runs import Skipped, TrainingRun, default_labels, label_fields, run_labels
 from mcrs_lab.analysis.step_notation import format_steps, step_labels
 from mcrs_lab.analysis.table4 import PAPER_TABLE4_ENV, Table4Row, table4
 from mcrs_lab.analysis.versus import Versus, versus, versus_table
@@ -116,7 +116,8 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     )
     if report.claims:
         by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
-        md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget)
+        aliases = default_labels(runs.training)
+        md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget, aliases=aliases)
         (report.out / "claims.md").write_text(md + "\n")
         report.add("The paper's claims, checked", md)
     q_tot = aggregate(groups, Q_TOT, [])

@@ -464,3 +464,20 @@ def select_map(runs: Runs, env_name: str | None) -> str | None:
             )
     runs.evaluations = evaluations
     return chosen
+
+
+def default_labels(runs: list[TrainingRun]) -> dict[str, str]:
+    """Per algorithm whose runs are told apart by a setting, the label of those at today's defaults
+    (``emc`` -> ``emc delta=0.0013`` beside ``emc delta=0.13``): so a claim about the paper's EMC, which
+    names the method as ``emc``, still finds it when a sweep of it sits in the same report."""
+    fields, labels = label_fields(runs), run_labels(runs)
+    out: dict[str, str] = {}
+    for run in runs:
+        names = fields[run.algo_name]
+        defaults = default_fields(run.algo_name, run.env_name) if names else None
+        if defaults is None:
+            continue
+        config = comparable_config(run)
+        if all(n in defaults and repr(config.get(n)) == repr(defaults[n]) for n in names):
+            out.setdefault(run.algo_name, labels[run.path])
+    return out
