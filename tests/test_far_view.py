@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from mcrs.env import MOVES, MCRSCore, scenario
+from mcrs.env.belief import belief_masses
 from mcrs.env.layout import ObservationLayout
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
 from mcrs.env.torchrl_env import MCRSEnv
@@ -104,3 +105,28 @@ def test_the_adapters_spaces_follow_the_longer_observation():
 def test_bad_far_view_is_refused_by_name(value, message):
     with pytest.raises(ValueError, match=re.escape(f"far_view={value!r}: {message}")):
         scenario("map10", far_view=value)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [{"evidence_decay": 0.05}, {"max_steps": 600}],  # float counts; a table too large to build
+    ids=["decayed_counts", "no_table"],
+)
+def test_far_view_without_the_lookup_table_is_the_same_definition(overrides):
+    """m(U) comes from a lookup table of integer counts where one fits; decayed counts, or a team and horizon
+    whose table would be too large, compute it from the counts: the same window means either way."""
+    cfg = scenario("map10", num_envs=2, far_view=2, expose_beliefs=True, **overrides)
+    core, results = _walk(cfg, 12, seed=1)
+    assert core.far_view.table is None
+    layout = ObservationLayout.from_config(cfg)
+    expected = _reference(results[-1].belief_map[:, :, 0], results[-1].position, 2)
+    assert torch.allclose(layout.far_unknown_by_action(results[-1].observation), expected, atol=1e-6)
+
+
+def test_the_lookup_table_is_belief_masses_of_every_count_pair():
+    core = MCRSCore(scenario("map10", far_view=1))
+    table, stride = core.far_view.table, core.far_view.stride
+    assert table is not None and table.numel() == stride**2 == (4 * 51 + 1) ** 2
+    positive, negative = torch.tensor([0, 0, 3, 7, 204]), torch.tensor([0, 5, 2, 7, 204])
+    expected = belief_masses(positive, negative, 0.8, 0.8)[2]
+    assert torch.equal(table[positive * stride + negative], expected)

@@ -7,15 +7,20 @@ UAV's own fused m(U) over the square window of side ``2k + 1`` centred ``k + 1``
 direction (cells off the grid count 0, as in the 8-cell block). The windows of neighbouring directions
 overlap; together they cover every cell within ``2k + 1`` steps (Chebyshev) of the UAV.
 
-One box filter over all UAVs' maps and one gather per step, batched over environments and UAVs.
+Batched over environments and UAVs: every UAV's m(U) map (a table lookup of its integer counts), one
+summed-area table per map, and four reads of it per window.
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
+from mcrs.env.belief import belief_masses
 from mcrs.env.config import EnvConfig
+
+#: The m(U) lookup table is built when it has at most this many entries ((N (T + 1) + 1)^2: 16 MB of
+#: float32); beyond, and for decayed (float) counts, m(U) is computed from the counts directly.
+MAX_TABLE_ENTRIES = 2**22
 
 
 class FarView:
@@ -25,20 +30,49 @@ class FarView:
         k = int(config.far_view)
         if k < 1:
             raise ValueError(f"far_view={config.far_view!r}: FarView needs k >= 1 (0 is the paper's view)")
-        self.k = k
-        # A map padded by 2k + 1 zeros on each side and box-filtered without padding has one mean for every
-        # centre from -(k + 1) to L + k along each axis, at index centre + k + 1: every centre a UAV asks for.
-        self.pad = 2 * k + 1
-        self.pooled_height = config.height + 2 * k + 2
-        self.offsets = moves * (k + 1) + (k + 1)  # [8, 2]: index of each window's centre, less the position
+        self.k, self.width, self.height = k, config.width, config.height
+        self.m_f, self.m_e = config.m_f, config.m_e
+        self.centres = moves * (k + 1)  # [8, 2]: each window's centre, less the UAV's cell
+        self.size = torch.tensor([config.width, config.height], dtype=torch.int64, device=moves.device)
+        # m(U) of every (positive, negative) count pair a cell can hold: the same numbers as belief_masses,
+        # read with one gather (exact: the table is belief_masses of those pairs).
+        most = config.n_uavs * (config.max_steps + 1) + 1
+        self.table: torch.Tensor | None = None
+        self.stride = most
+        if config.evidence_decay == 0 and most * most <= MAX_TABLE_ENTRIES:
+            counts = torch.arange(most, device=moves.device)
+            _, _, unknown = belief_masses(counts.view(-1, 1), counts.view(1, -1), config.m_f, config.m_e)
+            self.table = unknown.reshape(-1).contiguous()
+
+    def unknown_maps(self, counts: torch.Tensor) -> torch.Tensor:
+        """``[E, N, W, H]`` own m(U) from each UAV's fused counts ``[E, N, 2 C]`` (positive, negative per cell)."""
+        positive, negative = counts[..., 0::2], counts[..., 1::2]
+        if self.table is not None and not counts.is_floating_point():
+            unknown = self.table[positive.to(torch.int32) * self.stride + negative]  # < 2**22: int32 is exact
+        else:
+            unknown = belief_masses(positive, negative, self.m_f, self.m_e)[2]
+        return unknown.view(*counts.shape[:2], self.width, self.height)
 
     def means(self, unknown: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]`` window means, from own m(U) maps ``[E, N, W, H]`` and positions ``[E, N, 2]``."""
         E, N, W, H = unknown.shape
-        padded = F.pad(unknown.reshape(E * N, 1, W, H), (self.pad,) * 4)
-        pooled = F.avg_pool2d(
-            padded, kernel_size=2 * self.k + 1, stride=1
-        )  # [E N, 1, W + 2k + 2, H + 2k + 2]
-        centre = position.unsqueeze(2) + self.offsets  # [E, N, 8, 2]
-        index = (centre[..., 0] * self.pooled_height + centre[..., 1]).view(E * N, 8)
-        return pooled.view(E * N, -1).gather(1, index).view(E, N, 8)
+        # Summed-area table with a zero first row and column (float64: differences of sums stay exact to
+        # float32): the sum over cells [x0, x1) x [y0, y1) is s[x1, y1] - s[x0, y1] - s[x1, y0] + s[x0, y0].
+        summed = unknown.new_zeros(E * N, W + 1, H + 1, dtype=torch.float64)
+        summed[:, 1:, 1:] = unknown.reshape(E * N, W, H).to(torch.float64).cumsum(1).cumsum(2)
+        centre = position.unsqueeze(2) + self.centres  # [E, N, 8, 2]
+        low = (centre - self.k).clamp(min=0)  # the window's part on the grid: off-grid cells add 0
+        low = torch.minimum(low, self.size)
+        high = torch.maximum(torch.minimum(centre + self.k + 1, self.size), low)
+        flat = summed.view(E * N, -1)
+
+        def at(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+            return flat.gather(1, (x * (H + 1) + y).view(E * N, 8))
+
+        (x0, y0), (x1, y1) = low.unbind(-1), high.unbind(-1)
+        total = at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0)
+        return (total / (2 * self.k + 1) ** 2).to(torch.float32).view(E, N, 8)
+
+    def observe(self, counts: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+        """``[E, N, 8]``: the far view of every UAV, from its fused counts (as read now) and its cell."""
+        return self.means(self.unknown_maps(counts), position)

@@ -76,7 +76,7 @@ class CoreOutputs:
             relative.view(E, N, -1),
         ]
         if self.far_view is not None:  # beyond the paper: 8 window means of own m(U) (mcrs/env/far_view.py)
-            parts.append(self.far_view.means(self.belief_maps()[:, :, 0], self.uav_pos))
+            parts.append(self.far_view.observe(self.counts_now(), self.uav_pos))
         return torch.cat(parts, dim=-1)
 
     def _result(
