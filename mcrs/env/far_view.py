@@ -48,7 +48,8 @@ class FarView:
         """``[E, N, W, H]`` own m(U) from each UAV's fused counts ``[E, N, 2 C]`` (positive, negative per cell)."""
         positive, negative = counts[..., 0::2], counts[..., 1::2]
         if self.table is not None and not counts.is_floating_point():
-            unknown = self.table[positive.to(torch.int32) * self.stride + negative]  # < 2**22: int32 is exact
+            index = positive.to(torch.int32) * self.stride + negative  # < 2**22: exact in int32
+            unknown = self.table.index_select(0, index.view(-1))  # a flat lookup: faster than table[index]
         else:
             unknown = belief_masses(positive, negative, self.m_f, self.m_e)[2]
         return unknown.view(*counts.shape[:2], self.width, self.height)
@@ -56,22 +57,21 @@ class FarView:
     def means(self, unknown: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]`` window means, from own m(U) maps ``[E, N, W, H]`` and positions ``[E, N, 2]``."""
         E, N, W, H = unknown.shape
-        # Summed-area table with a zero first row and column (float64: differences of sums stay exact to
-        # float32): the sum over cells [x0, x1) x [y0, y1) is s[x1, y1] - s[x0, y1] - s[x1, y0] + s[x0, y0].
-        summed = unknown.new_zeros(E * N, W + 1, H + 1, dtype=torch.float64)
-        summed[:, 1:, 1:] = unknown.reshape(E * N, W, H).to(torch.float64).cumsum(1).cumsum(2)
+        # Summed-area table: summed[x, y] = sum over cells [0, x] x [0, y]; the sum over [x0, x1) x [y0, y1)
+        # is four reads of it, a read at x = 0 or y = 0 (an empty strip) counting 0. float32 sums of at most
+        # L1 L2 values in [0, 1]: each mean is within about 1e-6 of the exact one.
+        flat = unknown.reshape(E * N, W, H).cumsum(1).cumsum(2).view(E * N, W * H)
         centre = position.unsqueeze(2) + self.centres  # [E, N, 8, 2]
-        low = (centre - self.k).clamp(min=0)  # the window's part on the grid: off-grid cells add 0
-        low = torch.minimum(low, self.size)
+        low = torch.minimum((centre - self.k).clamp(min=0), self.size)  # the window's part on the grid
         high = torch.maximum(torch.minimum(centre + self.k + 1, self.size), low)
-        flat = summed.view(E * N, -1)
 
         def at(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-            return flat.gather(1, (x * (H + 1) + y).view(E * N, 8))
+            index = ((x - 1).clamp(min=0) * H + (y - 1).clamp(min=0)).view(E * N, 8)
+            return flat.gather(1, index) * ((x > 0) & (y > 0)).view(E * N, 8)
 
         (x0, y0), (x1, y1) = low.unbind(-1), high.unbind(-1)
         total = at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0)
-        return (total / (2 * self.k + 1) ** 2).to(torch.float32).view(E, N, 8)
+        return (total / (2 * self.k + 1) ** 2).view(E, N, 8)
 
     def observe(self, counts: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]``: the far view of every UAV, from its fused counts (as read now) and its cell."""
