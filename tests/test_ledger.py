@@ -10,7 +10,7 @@ from mcrs.env.core import MOVES
 from mcrs.evaluate import episode_metrics
 from mcrs.policies import POLICIES
 from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
-from mcrs_lab.analysis.ledger import main, play
+from mcrs_lab.analysis.ledger import main, play, policy_labels
 
 EPISODES = 8
 
@@ -102,3 +102,26 @@ def test_bad_arguments_are_one_line(argv: list[str], message: str) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(["--env", "map10", *argv])
     assert message in str(exit_info.value)
+
+
+def test_checkpoints_of_the_same_name_get_rows_of_their_own() -> None:
+    """Two runs' ``model_000800000.pt`` were one row (the second overwrote the first): each label now takes
+    as many parent folders as it needs to be told apart."""
+    names = [
+        "greedy",
+        "out/a/checkpoints/model_000800000.pt",
+        "out/b/checkpoints/model_000800000.pt",
+        "out/c/checkpoints/model_000700000.pt",
+        "runs/map20_qmix_seed0",
+    ]
+    assert policy_labels(names) == [
+        "greedy",
+        "a/checkpoints/model_000800000.pt",
+        "b/checkpoints/model_000800000.pt",
+        "model_000700000.pt",
+        "map20_qmix_seed0",
+    ]
+    assert policy_labels(["greedy", "greedy"]) == [
+        "greedy",
+        "greedy",
+    ]  # the same policy twice: nothing to tell

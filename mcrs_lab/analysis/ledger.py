@@ -152,6 +152,25 @@ def table(ledgers: dict[str, Ledger]) -> str:
     return markdown(["policy", *columns], body)
 
 
+def policy_labels(names: list[str]) -> list[str]:
+    """A row label per ``--policy``: a heuristic's name, or the last part of a checkpoint's path, with as many
+    parent folders as it takes to tell it from the others (``model_000800000.pt`` of two runs:
+    ``<run>/checkpoints/model_000800000.pt``)."""
+    parts = [(name,) if name in POLICIES else Path(name).parts for name in names]
+    depth = [1] * len(names)
+
+    def label(k: int) -> str:
+        return "/".join(parts[k][-depth[k] :])
+
+    while True:
+        labels = [label(k) for k in range(len(names))]
+        clashing = [k for k in range(len(names)) if labels.count(labels[k]) > 1 and depth[k] < len(parts[k])]
+        if not clashing:
+            return labels
+        for k in clashing:
+            depth[k] += 1
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m mcrs_lab.analysis.ledger", description=__doc__.split("\n\n")[0]
@@ -175,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"ledger: error: --seed={args.seed}: must be in [0, 2**63 - 1]")
     config = scenario(args.env, no_fly_shield=args.shield, uav_shield=args.uav_shield)
     ledgers = {}
-    for name in args.policy or list(POLICIES):
-        label = name if name in POLICIES else Path(name).name
+    names = args.policy or list(POLICIES)
+    for name, label in zip(names, policy_labels(names), strict=True):
         try:
             ledgers[label] = play(config, name, args.episodes, args.seed)
         except (CheckpointError, ValueError, OSError) as error:
