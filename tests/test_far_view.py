@@ -17,17 +17,19 @@ from mcrs.env.belief import belief_masses
 from mcrs.env.layout import ObservationLayout
 from mcrs.env.pettingzoo_env import MCRSParallelEnv
 from mcrs.env.torchrl_env import MCRSEnv
+from tests.device_helpers import available_devices
 
 
-def _walk(cfg, steps: int, seed: int):
+def _walk(cfg, steps: int, seed: int, device: str = "cpu"):
     """The core after ``steps`` random allowed moves, and every step's result."""
-    core = MCRSCore(cfg)
+    core = MCRSCore(cfg, device=device)
     core.seed(seed)
     g = torch.Generator().manual_seed(seed)
     results = [core.reset()]
     for _ in range(steps):
-        mask = results[-1].action_mask.view(-1, 8).float()
-        results.append(core.step(torch.multinomial(mask, 1, generator=g).view(cfg.num_envs, cfg.n_uavs)))
+        mask = results[-1].action_mask.view(-1, 8).float().cpu()
+        actions = torch.multinomial(mask, 1, generator=g).view(cfg.num_envs, cfg.n_uavs)
+        results.append(core.step(actions.to(device)))
     return core, results
 
 
@@ -57,6 +59,18 @@ def test_far_view_is_the_window_means_of_own_uncertainty(name, k, steps):
         own_unknown = result.belief_map[:, :, 0]  # each UAV's fused m(U), [E, N, W, H]
         expected = _reference(own_unknown, result.position, k)
         assert torch.allclose(layout.far_unknown_by_action(result.observation), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("device", available_devices())
+@pytest.mark.parametrize("evidence_decay", [0.0, 0.1])  # the lookup table's path and the formula's
+def test_far_view_on_every_available_device(device, evidence_decay):
+    cfg = scenario("map15", num_envs=3, far_view=2, evidence_decay=evidence_decay, expose_beliefs=True)
+    layout = ObservationLayout.from_config(cfg)
+    for result in _walk(cfg, 16, seed=5, device=device)[1][::5]:
+        assert result.observation.device.type == device
+        own_unknown, position = result.belief_map[:, :, 0].cpu(), result.position.cpu()
+        far = layout.far_unknown_by_action(result.observation).cpu()
+        assert torch.allclose(far, _reference(own_unknown, position, 2), atol=1e-5)
 
 
 def test_far_view_leaves_the_dynamics_and_the_papers_observation_alone():
