@@ -280,6 +280,7 @@ BAD_RECORDS: list[tuple[dict[str, Any], str]] = [
     (_set(E, "rows.0.means.episode_reward", "3"), "field rows[0].means.episode_reward: '3' is not a finite"),
     (_set(E, "rows.0.means.episode_reward", None), "field rows[0].means.episode_reward: None is not a finite"),
     (_set(E, "rows.0.label", 7), "field rows[0].label: 7 is not a string or null"),
+    (_set(E, "rows.0.run", ["a"]), "field rows[0].run: ['a'] is not a string or null"),
 ]  # fmt: skip
 
 #: (the file's text, the error's text): files carrying the record marker that are not records.

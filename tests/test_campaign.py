@@ -462,6 +462,59 @@ def test_overrides_for_all_points_reach_every_run_and_the_heuristics_evaluations
     assert not any(f"policy={tmp_path / 'run'} " in line for line in commands)
 
 
+def _evaluation_record(policy: str, seed: int, run: str | None) -> dict:
+    row = {"policy": policy, "env": "map20", "comm_range": 5.0, "seed": seed, "episodes": 2,
+           "means": {"episode_reward": 300.0}, "label": "trained qmix"}  # fmt: skip
+    if run is not None:
+        row["run"] = run
+    return {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "evaluation", "run_dir": "eval",
+            "study": "eval", "policy": policy, "config": {}, "rows": [row]}  # fmt: skip
+
+
+def test_two_experiments_runs_of_one_folder_name_are_evaluated_and_reported_apart(tmp_path: Path) -> None:
+    from mcrs_lab.analysis.evaluations import trained_rows
+    from mcrs_lab.analysis.records import evaluation_record_path
+    from mcrs_lab.analysis.runs import find_runs
+    from mcrs_lab.campaign.evaluations import Evaluation, EvaluationJob
+
+    evaluation = Evaluation("shields_eval", "", ("f",), ("greedy",), 2, (0, 1), (("both", ()),))
+    jobs = {
+        experiment: EvaluationJob(
+            evaluation,
+            "both",
+            (),
+            "map20",
+            f"/o/{experiment}/campaign/map20_qmix_seed0",
+            f"{experiment}/map20_qmix_seed0",
+        )
+        for experiment in ("shields_gamma", "shields_view")
+    }
+    records = tmp_path / "records"
+    gamma = [
+        _evaluation_record(jobs["shields_gamma"].policy, s, "shields_gamma/map20_qmix_seed0") for s in (0, 1)
+    ]
+    for record in gamma:
+        path = evaluation_record_path(records / "shields_eval" / "both", record)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(record))
+    assert path.name == "trained-qmix-shields_gamma-map20_qmix_seed0_rc5_seed1.json"
+    assert jobs["shields_gamma"].recorded(records) and not jobs["shields_view"].recorded(records)
+    # A record made before the run's experiment was kept names the folder alone: it counts for the point
+    # whose experiment its policy path runs through, and only for that one.
+    legacy = _evaluation_record("/w/outputs/campaign/shields_view/campaign/map20_qmix_seed0", 0, None)
+    legacy_path = evaluation_record_path(records / "shields_eval" / "both", legacy)
+    assert legacy_path.name == "trained-qmix-map20_qmix_seed0_rc5_seed0.json"
+    legacy_path.write_text(json.dumps(legacy))
+    assert not jobs["shields_view"].recorded(records)  # seed 1 is still missing
+    legacy_path.with_name("trained-qmix-map20_qmix_seed0_rc5_seed1.json").write_text(
+        json.dumps(_evaluation_record(legacy["policy"], 1, None))
+    )
+    assert jobs["shields_view"].recorded(records) and jobs["shields_gamma"].recorded(records)
+    # The report: two methods, not one method of four runs.
+    methods = {row["method"]: row["seeds"] for row in trained_rows(find_runs([records]).evaluations)}
+    assert methods == {"trained qmix [shields_gamma/map20_qmix]": 1, "trained qmix [map20_qmix]": 1}, methods
+
+
 def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Path, capsys) -> None:
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS + EVALUATION)
@@ -486,22 +539,24 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     assert campaign_main(["evaluate", *args]) == 0
     out = capsys.readouterr().out
     assert "evaluations: 4 run, 0 failed, 1 points not evaluated" in out
+    trained_name = f"trained-qmix-comm_range-{finished.name}"  # its algorithm, experiment and run folder
     for variant, shield in (("on", True), ("off", False)):
         folder = records / "shield" / variant / "eval" / "map10"
         names = sorted(p.name for p in folder.glob("*.json"))
         assert names == [
             "greedy_rc5_seed0.json",
             "greedy_rc5_seed1.json",
-            f"trained-qmix-{finished.name}_rc0_seed0.json",  # at the R_c it was trained with
-            f"trained-qmix-{finished.name}_rc0_seed1.json",
+            f"{trained_name}_rc0_seed0.json",  # at the R_c it was trained with
+            f"{trained_name}_rc0_seed1.json",
         ], names
         for path in folder.glob("*.json"):
             record = read_record(path)
             assert record["config"]["env"]["no_fly_shield"] is shield and record["config"]["episodes"] == 2
-        trained = read_record(folder / f"trained-qmix-{finished.name}_rc0_seed1.json")
+        trained = read_record(folder / f"{trained_name}_rc0_seed1.json")
         assert trained["policy"] == str(finished.run_dir(outputs)) and trained["rows"][0]["seed"] == 1
+        assert trained["rows"][0]["run"] == finished.id
     # The shield keeps the UAVs out of the no-fly zones: no violation with it, on the same episodes.
-    on = read_record(records / "shield/on/eval/map10" / f"trained-qmix-{finished.name}_rc0_seed0.json")
+    on = read_record(records / "shield/on/eval/map10" / f"{trained_name}_rc0_seed0.json")
     assert on["rows"][0]["means"]["no_fly_violations"] == 0
     assert campaign_main(["evaluate", *args]) == 0  # everything recorded: nothing runs again
     out = capsys.readouterr().out
@@ -520,7 +575,7 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     assert (
         "evaluation shield: 4 of 4 (policy, variant) evaluations recorded, 1 points not evaluable yet" in out
     )
-    off = records / "shield/off/eval/map10" / f"trained-qmix-{finished.name}_rc0_seed1.json"
+    off = records / "shield/off/eval/map10" / f"{trained_name}_rc0_seed1.json"
     off.unlink()  # a variant to evaluate again, and no run directory to evaluate
     assert campaign_main(["evaluate", *args, "--dry-run"]) == 0
     out = capsys.readouterr().out
@@ -537,7 +592,7 @@ def test_evaluate_records_finished_policies_and_the_heuristics_once(tmp_path: Pa
     assert "greedy" not in out  # already recorded on this map
     for variant in ("on", "off"):
         folder = records / "shield" / variant / "eval" / "map10"
-        assert len(list(folder.glob(f"trained-qmix-{unfinished.name}_rc2_seed[01].json"))) == 2
+        assert len(list(folder.glob(f"trained-qmix-comm_range-{unfinished.name}_rc2_seed[01].json"))) == 2
     with pytest.raises(SystemExit, match=r"--evaluation=nope: allowed values are shield"):
         campaign_main(["evaluate", *args, "--evaluation", "nope"])
     matrix.write_text(TWO_POINTS + EVALUATION.replace("of: [figa]", "of: [fig7]"))

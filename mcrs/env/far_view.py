@@ -30,10 +30,12 @@ class FarView:
         k = int(config.far_view)
         if k < 1:
             raise ValueError(f"far_view={config.far_view!r}: FarView needs k >= 1 (0 is the paper's view)")
-        self.k, self.width, self.height = k, config.width, config.height
+        self.k, self.grid = k, (config.width, config.height)
         self.m_f, self.m_e = config.m_f, config.m_e
         self.centres = moves * (k + 1)  # [8, 2]: each window's centre, less the UAV's cell
-        self.size = torch.tensor([config.width, config.height], dtype=torch.int64, device=moves.device)
+        self.size = torch.tensor(
+            self.grid, dtype=torch.int64, device=moves.device
+        )  # for clamping on the device
         # m(U) of every (positive, negative) count pair a cell can hold: the same numbers as belief_masses,
         # read with one gather (exact: the table is belief_masses of those pairs).
         most = config.n_uavs * (config.max_steps + 1) + 1
@@ -52,7 +54,7 @@ class FarView:
             unknown = self.table.index_select(0, index.view(-1))  # a flat lookup: faster than table[index]
         else:
             unknown = belief_masses(positive, negative, self.m_f, self.m_e)[2]
-        return unknown.view(*counts.shape[:2], self.width, self.height)
+        return unknown.view(*counts.shape[:2], *self.grid)
 
     def means(self, unknown: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]`` window means, from own m(U) maps ``[E, N, W, H]`` and positions ``[E, N, 2]``."""

@@ -41,8 +41,9 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 def observation_settings(path: str | Path) -> dict[str, Any]:
     """The checkpoint's values of :data:`OBSERVATION_FIELDS` (a config saved before one existed: its default,
-    the paper's). A checkpoint without a usable config gives none: loading its policy then names the problem."""
-    state = ckpt.load(resolve_checkpoint(path))
+    the paper's). A checkpoint without a usable config gives none: loading its policy then names the problem.
+    The tensors are mapped, not read: only the config is needed here, and the policy loads the file next."""
+    state = ckpt.load(resolve_checkpoint(path), mmap=True)
     try:
         trained = from_mapping(with_legacy_values(state["config"]["env"])[0])
     except (KeyError, TypeError, ValueError):

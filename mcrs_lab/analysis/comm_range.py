@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -34,20 +35,41 @@ class RangeCurve:
     seeds: np.ndarray
 
 
-def policy_label(policy: str) -> str:
-    """A heuristic's name, or ``trained <algo>`` for a checkpoint (read from its run's config)."""
-    if is_heuristic_policy(policy):
-        return policy
+def _run_config(policy: str) -> tuple[Path, Any] | None:
+    """The training run a checkpoint or run directory belongs to, and its ``config.yaml`` (None: not
+    found or not readable)."""
     path = Path(policy)
     for run_dir in (path, path.parent, path.parent.parent):
         config = run_dir / "config.yaml"
         if config.is_file():
             try:
-                algo = OmegaConf.load(config).algo.name
-                return f"trained {algo}"
-            except Exception:  # not a readable run config: fall back to the file name
-                break
-    return f"trained {path.stem}"
+                return run_dir, OmegaConf.load(config)
+            except Exception:  # not a readable run config
+                return None
+    return None
+
+
+def policy_label(policy: str) -> str:
+    """A heuristic's name, or ``trained <algo>`` for a checkpoint (read from its run's config)."""
+    if is_heuristic_policy(policy):
+        return policy
+    found = _run_config(policy)
+    algo = OmegaConf.select(found[1], "algo.name") if found else None
+    return f"trained {algo}" if algo else f"trained {Path(policy).stem}"
+
+
+def trained_run_id(policy: str) -> str | None:
+    """``<experiment>/<run folder>`` of a checkpoint's training run (the campaign's point id), or None for
+    a heuristic or a run whose config is not found: what tells two runs of one folder name apart when
+    their experiments differ (``shields_gamma/map20_qmix_gamma0.5_seed0``, ``shields_view/...``)."""
+    if is_heuristic_policy(policy):
+        return None
+    found = _run_config(policy)
+    if found is None:
+        return None
+    run_dir, config = found
+    experiment = OmegaConf.select(config, "experiment")
+    return f"{experiment}/{run_dir.name}" if isinstance(experiment, str) and experiment else None
 
 
 def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:

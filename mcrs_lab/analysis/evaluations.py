@@ -53,27 +53,30 @@ def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -
 
 def _trained_groups(evaluations: list[EvaluationRow]) -> dict[str, dict[str, list[EvaluationRow]]]:
     """Evaluations of trained policies: method -> trained run -> its rows (one per evaluation seed). A
-    method is the policy's label (``trained qmix``), plus the run's name without its seed (``[qmix_shield]``)
-    where runs of one label differ in more than their seed."""
+    method is the policy's label (``trained qmix``), plus the run without its seed (``[shields_view/
+    map20_qmix_gamma0.5]``; records made before the run's experiment was kept: ``[qmix_shield]``) where
+    runs of one label differ in more than their seed."""
     by_label: dict[str, dict[str, list[EvaluationRow]]] = {}
     for row in evaluations:
         if not row.is_heuristic:
-            by_label.setdefault(row.label or f"trained {_run_stem(row.policy)}", {}).setdefault(
+            by_label.setdefault(row.label or f"trained {_run_stem(row)}", {}).setdefault(
                 row.policy, []
             ).append(row)
     methods: dict[str, dict[str, list[EvaluationRow]]] = {}
     for label in sorted(by_label):
-        stems = {policy: _run_stem(policy) for policy in by_label[label]}
+        stems = {policy: _run_stem(rows[0]) for policy, rows in by_label[label].items()}
         for policy, rows in by_label[label].items():
             method = f"{label} [{stems[policy]}]" if len(set(stems.values())) > 1 else label
             methods.setdefault(method, {})[policy] = rows
     return dict(sorted(methods.items()))
 
 
-def _run_stem(policy: str) -> str:
-    """A trained run's name without its seed: ``outputs/shield/qmix_shield_seed2`` -> ``qmix_shield``."""
-    path = Path(policy)
-    name = path.parent.name if path.suffix == ".pt" else path.name
+def _run_stem(row: EvaluationRow) -> str:
+    """A trained run without its seed: ``shields_view/map20_qmix_gamma0.5_seed2`` ->
+    ``shields_view/map20_qmix_gamma0.5``; for a record without the run, its folder's name
+    (``outputs/shield/qmix_shield_seed2`` -> ``qmix_shield``)."""
+    path = Path(row.policy)
+    name = row.run or (path.parent.name if path.suffix == ".pt" else path.name)
     return re.sub(r"_?seed\d+$", "", name) or name
 
 

@@ -202,9 +202,10 @@ def check_row(row: dict[str, Any], where: str) -> None:
     means = _mapping(_get(row, "means", where), f"{where}means")
     for metric, value in means.items():
         _number(value, f"{where}means.{metric}")
-    label = row.get("label")
-    if label is not None and not isinstance(label, str):
-        raise SchemaField(f"{where}label", f"{_shown(label)} is not a string or null")
+    for key in ("label", "run"):  # run: a trained policy's <experiment>/<run folder>
+        value = row.get(key)
+        if value is not None and not isinstance(value, str):
+            raise SchemaField(f"{where}{key}", f"{_shown(value)} is not a string or null")
 
 
 # ------------------------------------------------------------------------------------- duplicates

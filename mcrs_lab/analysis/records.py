@@ -27,7 +27,7 @@ from omegaconf import OmegaConf
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
-from mcrs_lab.analysis.comm_range import policy_label
+from mcrs_lab.analysis.comm_range import policy_label, trained_run_id
 from mcrs_lab.analysis.curves import Q_TOT
 from mcrs_lab.analysis.record_schema import RecordError
 from mcrs_lab.analysis.runs import (
@@ -285,6 +285,7 @@ def evaluation_record(eval_dir: Path) -> dict[str, Any]:
                 "episodes": r.episodes,
                 "means": r.means,
                 "label": None if r.is_heuristic else policy_label(r.policy),
+                "run": trained_run_id(r.policy),
             }
             for r in rows
         ],
@@ -293,18 +294,26 @@ def evaluation_record(eval_dir: Path) -> dict[str, Any]:
 
 
 def evaluation_record_name(policy: str, comm_range: str, seed: int | str) -> str:
-    """``greedy_rc5_seed0.json``, ``trained-qmix-<run dir name>_rc5_seed0.json``: the one naming rule
-    (``comm_range`` may be a glob's ``*``)."""
+    """``greedy_rc5_seed0.json``, ``trained-qmix-<experiment>-<run folder>_rc5_seed0.json``: the one naming
+    rule (``comm_range`` may be a glob's ``*``)."""
     return f"{policy}_rc{comm_range}_seed{seed}.json"
+
+
+def trained_policy_name(label: str | None, run: str) -> str:
+    """The policy part of a trained policy's record name: its label and its run, ``/`` as ``-``
+    (``trained qmix``, ``shields_view/map20_qmix_seed0`` -> ``trained-qmix-shields_view-map20_qmix_seed0``)."""
+    return f"{(label or 'trained').replace(' ', '-')}-{run.replace('/', '-')}"
 
 
 def evaluation_record_path(root: Path, record: dict[str, Any]) -> Path:
     row = record["rows"][0]
     policy = record["policy"]
-    if not is_heuristic_policy(policy):  # a trained agent: its algorithm and its run's folder name
+    if not is_heuristic_policy(policy):  # a trained agent: its algorithm and its run (experiment and folder)
         run = Path(policy)
         run = run.parent.parent if run.suffix == ".pt" else run
-        policy = f"{(row['label'] or 'trained').replace(' ', '-')}-{run.name}"
+        # Records made before ``run`` was kept name the folder alone (two experiments' runs of one name
+        # collided: mcrs_lab.campaign.evaluations reads those by their policy path).
+        policy = trained_policy_name(row["label"], row.get("run") or run.name)
     name = evaluation_record_name(policy, f"{row['comm_range']:g}", row["seed"])
     study = _component(record["study"], "study", "the result's .hydra/hydra.yaml")
     env = _component(row["env"], "env", "the result's metrics.csv")

@@ -139,6 +139,7 @@ class EvaluationRow:
     episodes: int
     means: dict[str, float]
     label: str | None = None  # a trained policy's label, kept by its record (the checkpoint may be gone)
+    run: str | None = None  # a trained policy's <experiment>/<run folder> (records made before it: None)
 
     @property
     def is_heuristic(self) -> bool:
@@ -244,6 +245,7 @@ def _add_record(path: Path, record: dict[str, Any], runs: Runs) -> None:
                     int(row["episodes"]),
                     {k: float(v) for k, v in row["means"].items()},
                     row.get("label"),
+                    row.get("run"),
                 )
             )
     else:

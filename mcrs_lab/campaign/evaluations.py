@@ -59,21 +59,30 @@ class EvaluationJob:
     label: str  # the point id, or the heuristic's name
     settings: tuple[str, ...] = ()  # the point's swept env fields: evaluated where it was trained
 
-    @property
-    def run_name(self) -> str:
-        """The name records of this policy carry: the heuristic, or the run directory's name."""
-        return self.policy if is_heuristic_policy(self.policy) else Path(self.policy).name
-
     def records_dir(self, records: Path) -> Path:
         return records / self.evaluation.name / self.variant
 
     def recorded(self, records: Path) -> bool:
         """Whether every evaluation seed already has its record (any R_c: the map's own)."""
         folder = self.records_dir(records) / "eval" / self.env
-        prefix = self.run_name if is_heuristic_policy(self.policy) else f"*-{self.run_name}"
-        return all(
-            any(folder.glob(evaluation_record_name(prefix, "*", seed))) for seed in self.evaluation.seeds
-        )
+        return all(self._recorded_seed(folder, seed) for seed in self.evaluation.seeds)
+
+    def _recorded_seed(self, folder: Path, seed: int) -> bool:
+        if is_heuristic_policy(self.policy):
+            return any(folder.glob(evaluation_record_name(self.policy, "*", seed)))
+        # A trained policy's records name its run: <label>-<experiment>-<run folder> (self.label is the
+        # point id, <experiment>/<run folder>).
+        if any(folder.glob(evaluation_record_name(f"*-{self.label.replace('/', '-')}", "*", seed))):
+            return True
+        # Records made before the run's experiment was kept name the folder alone; one counts only where
+        # its policy path runs through the point's experiment (two experiments' runs share folder names).
+        experiment, run = self.label.split("/", 1)
+        for path in folder.glob(evaluation_record_name(f"*-{run}", "*", seed)):
+            record = read_record(path)
+            rows = record.get("rows") if record else None
+            if rows and rows[0].get("run") is None and experiment in Path(str(record.get("policy"))).parts:
+                return True
+        return False
 
     def sweep_dir(self, outputs: Path) -> Path:
         return outputs / "evaluations" / self.evaluation.name / self.variant / self.label.replace("/", "_")
