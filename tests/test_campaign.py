@@ -387,6 +387,35 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
             campaign_main(["run", *args, "--hours", "3"])
 
 
+def test_finish_first_starts_the_runs_that_can_end_before_the_deadline_first(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("algo: [qmix]", "algo: [qmix, vdn]").replace("[0, 2]", "[0]"))
+    qmix, vdn = load_matrix(matrix)[0]
+    records = tmp_path / "records"
+    for algo, env_steps in (("qmix", 100), ("vdn", 400)):  # an hour each: a 200-step point needs 2 h, 0.5 h
+        fields = {k: v for k, v in RECORD_FIELDS.items() if k not in ("checkpoint_env_steps", "sessions")}
+        write_record(records / "comm_range" / "smoke" / f"earlier_{algo}.json", {
+            "format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x",
+            "status": "finished", "checkpoint_env_steps": env_steps, "sessions": [{"wall_s": 3600.0}],
+            **fields, "config": {"env": {"name": "map10"}, "algo": {"name": algo}, "seed": 0}})  # fmt: skip
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "o"), "--records", str(records)]
+    args += ["--hours", "1", "--jobs", "1", "--fill", "--dry-run"]
+    assert campaign_main(["run", *args]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[0].startswith(f"start {qmix.id} (at 0 env steps, estimated 2.00 h, stopped at the deadline)")
+    assert plan[1] == f"not started: {vdn.id}: 0.00 h left, under the 0.17 h a start needs (--fill)"
+    assert campaign_main(["run", *args, "--finish-first"]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[0].startswith(f"start {vdn.id} (at 0 env steps, estimated 0.50 h): ")
+    assert plan[1].startswith(f"start {qmix.id} (at 0 env steps, estimated 2.00 h, stopped at the deadline)")
+    assert (
+        plan[-1]
+        == "2 runs, 1 at a time, those that can end in time first, runs going then are stopped and resume next time after 1 h"
+    )
+    with pytest.raises(SystemExit, match="--finish-first needs --fill"):
+        campaign_main(["run", *[a for a in args if a != "--fill"], "--finish-first"])
+
+
 EVALUATION = """
 evaluations:
   shield:

@@ -3,6 +3,7 @@
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
     mcrs-campaign run --hours 2.5 --fill                 the same, every slot busy, stopped (resumable) at 2.5 h
+    mcrs-campaign run --hours 2.5 --fill --finish-first  the same, the runs that can end by then started first
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
@@ -62,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep every slot busy until --hours, then stop the runs still going (each checkpoints and "
         f"is resumed first next time); no start in the last {FILL_FLOOR_S / 60:g} minutes",
+    )
+    run.add_argument(
+        "--finish-first",
+        action="store_true",
+        help="with --fill: a freed slot takes first the runs expected to end before --hours (partial runs "
+        "still resume first), then the rest (for a machine that may not keep its run folders)",
     )
     run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
     run.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
@@ -130,15 +137,19 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise SystemExit(
             f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"
         )
+    if args.finish_first and not args.fill:
+        raise SystemExit(
+            "mcrs-campaign: error: --finish-first needs --fill (without it no run starts that cannot end in time)"
+        )
     points, total = _points(args)
     evaluations = [] if args.no_evaluate else _evaluations(args)
     campaign = Campaign(
         points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations
     )
     if args.dry_run:
-        print("\n".join(campaign.dry_run(args.hours, args.fill)))
+        print("\n".join(campaign.dry_run(args.hours, args.fill, args.finish_first)))
         return 0
-    return campaign.run(args.hours, args.fill)
+    return campaign.run(args.hours, args.fill, args.finish_first)
 
 
 def _evaluations(args: argparse.Namespace) -> list[Evaluation]:

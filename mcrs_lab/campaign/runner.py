@@ -4,6 +4,9 @@ resumed first, no new start that the time budget cannot hold, a record of every 
 With ``fill`` the budget is a hard stop instead: every slot is kept busy until shortly before it, and the
 runs still going at the deadline are stopped as on SIGINT (checkpointed, recorded as stopped, resumed
 first by the next ``run``), so that a working session that ends at a known time loses no core-hours.
+With ``finish_first`` too, a freed slot takes the first run expected to end before the deadline (partial
+runs still resume first), then the rest: on a machine that may not keep its run folders between sessions,
+a run stopped at the deadline can be lost with them.
 
 Each child runs in its own session (process group), with one torch thread, its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
@@ -71,6 +74,19 @@ def _print(*parts: object) -> None:
     print(*parts, flush=True)
 
 
+def _next_run(
+    queue: list[tuple[tuple[Progress, list[str]], float | None]], left: float, finish_first: bool
+) -> int:
+    """The index in ``queue`` ((launch, its estimate in seconds) pairs, in the plan's order) of the run to
+    start with ``left`` seconds to the deadline: the first, or with ``finish_first`` the first that resumes a
+    partial run or is expected to end in time (none: the first)."""
+    if finish_first:
+        for index, ((state, _), estimate) in enumerate(queue):
+            if state.state == "partial" or (estimate is not None and estimate <= left):
+                return index
+    return 0
+
+
 class CampaignBusy(RuntimeError):
     """Another ``mcrs-campaign run`` holds the outputs folder."""
 
@@ -126,7 +142,7 @@ class Campaign:
         return [self.estimate_s(s, pace) for s in states if s.state in ("partial", "missing")]
 
     # ---------------------------------------------------------------------------------- running
-    def dry_run(self, hours: float, fill: bool = False) -> list[str]:
+    def dry_run(self, hours: float, fill: bool = False, finish_first: bool = False) -> list[str]:
         """The commands ``run`` would start, in order, with their estimated length; nothing is run."""
         to_record, launches = self.plan()
         pace = Pace.read(self.records)
@@ -137,8 +153,11 @@ class Campaign:
         deadline = hours * 3600
         slots = [0.0] * self.jobs
         estimates = [self.estimate_s(state, pace) for state, _ in launches]
-        for (state, command), estimate in zip(launches, estimates, strict=True):
+        queue = list(zip(launches, estimates, strict=True))
+        while queue:
             slot = min(range(self.jobs), key=slots.__getitem__)
+            index = _next_run(queue, deadline - slots[slot], finish_first)
+            (state, command), estimate = queue.pop(index)
             refusal = self._start_refusal(state, estimate, deadline - slots[slot], fill)
             if refusal is not None:
                 lines.append(refusal)
@@ -152,8 +171,9 @@ class Campaign:
                 slots[slot] += estimate or 0.0
             lines.append(f"{line}): {shlex.join(command)}")
         rule = "runs going then are stopped and resume next time" if fill else "no new start"
+        order = ", those that can end in time first" if finish_first else ""
         lines.append(left_line(estimates, self.jobs))
-        lines.append(f"{len(launches)} runs, {self.jobs} at a time, {rule} after {hours:g} h")
+        lines.append(f"{len(launches)} runs, {self.jobs} at a time{order}, {rule} after {hours:g} h")
         return lines
 
     def _start_refusal(self, state: Progress, estimate: float | None, left: float, fill: bool) -> str | None:
@@ -169,7 +189,7 @@ class Campaign:
             )
         return None
 
-    def run(self, hours: float, fill: bool = False) -> int:
+    def run(self, hours: float, fill: bool = False, finish_first: bool = False) -> int:
         """Run the plan within ``hours`` (with ``fill``: stop what still runs then); returns 0 when every
         run it started ended well or was stopped at the deadline and the rest were left for lack of time,
         1 when a point was refused (its run directory in use by a live run, or not the campaign's) or a
@@ -188,9 +208,9 @@ class Campaign:
             lock.truncate()
             lock.write(str(os.getpid()))
             lock.flush()
-            return self._run(hours, fill)
+            return self._run(hours, fill, finish_first)
 
-    def _run(self, hours: float, fill: bool) -> int:
+    def _run(self, hours: float, fill: bool, finish_first: bool) -> int:
         deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
@@ -210,8 +230,11 @@ class Campaign:
                     not_started += len(queue)
                     break
                 while queue and len(running) < self.jobs and self.stop_signal is None:
-                    state, command = queue.pop(0)
-                    estimate = self.estimate_s(state, pace)
+                    estimates = [self.estimate_s(state, pace) for state, _ in queue]
+                    index = _next_run(
+                        list(zip(queue, estimates, strict=True)), deadline - time.time(), finish_first
+                    )
+                    (state, command), estimate = queue.pop(index), estimates[index]
                     refusal = self._start_refusal(state, estimate, deadline - time.time(), fill)
                     if refusal is not None:
                         _print(refusal)
