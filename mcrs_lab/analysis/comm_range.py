@@ -11,14 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from mcrs.env.metrics import METRIC_LABELS
 from mcrs.viz.learning_curves import confidence_half_width
-from mcrs_lab.analysis.runs import EvaluationRow, is_heuristic_policy
+from mcrs_lab.analysis.policy_identity import policy_label
+from mcrs_lab.analysis.runs import EvaluationRow
 
 #: The panels of figure 5 (and the reward).
 RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncertainty", "episode_reward")}
@@ -33,43 +32,6 @@ class RangeCurve:
     mean: dict[str, np.ndarray]
     half_width: dict[str, np.ndarray]
     seeds: np.ndarray
-
-
-def _run_config(policy: str) -> tuple[Path, Any] | None:
-    """The training run a checkpoint or run directory belongs to, and its ``config.yaml`` (None: not
-    found or not readable)."""
-    path = Path(policy)
-    for run_dir in (path, path.parent, path.parent.parent):
-        config = run_dir / "config.yaml"
-        if config.is_file():
-            try:
-                return run_dir, OmegaConf.load(config)
-            except Exception:  # not a readable run config
-                return None
-    return None
-
-
-def policy_label(policy: str) -> str:
-    """A heuristic's name, or ``trained <algo>`` for a checkpoint (read from its run's config)."""
-    if is_heuristic_policy(policy):
-        return policy
-    found = _run_config(policy)
-    algo = OmegaConf.select(found[1], "algo.name") if found else None
-    return f"trained {algo}" if algo else f"trained {Path(policy).stem}"
-
-
-def trained_run_id(policy: str) -> str | None:
-    """``<experiment>/<run folder>`` of a checkpoint's training run (the campaign's point id), or None for
-    a heuristic or a run whose config is not found: what tells two runs of one folder name apart when
-    their experiments differ (``shields_gamma/map20_qmix_gamma0.5_seed0``, ``shields_view/...``)."""
-    if is_heuristic_policy(policy):
-        return None
-    found = _run_config(policy)
-    if found is None:
-        return None
-    run_dir, config = found
-    experiment = OmegaConf.select(config, "experiment")
-    return f"{experiment}/{run_dir.name}" if isinstance(experiment, str) and experiment else None
 
 
 def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:

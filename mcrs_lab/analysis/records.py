@@ -27,8 +27,8 @@ from omegaconf import OmegaConf
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
-from mcrs_lab.analysis.comm_range import policy_label, trained_run_id
 from mcrs_lab.analysis.curves import Q_TOT
+from mcrs_lab.analysis.policy_identity import policy_label, trained_run_id
 from mcrs_lab.analysis.record_schema import RecordError
 from mcrs_lab.analysis.runs import (
     RECORD_FORMAT,
