@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -414,6 +415,27 @@ def test_finish_first_starts_the_runs_that_can_end_before_the_deadline_first(tmp
     )
     with pytest.raises(SystemExit, match="--finish-first needs --fill"):
         campaign_main(["run", *[a for a in args if a != "--fill"], "--finish-first"])
+
+
+def test_threads_reach_every_command_and_the_cores_bound_them(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS)
+    first, _ = load_matrix(matrix)[0]
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "o"), "--records", str(tmp_path / "r")]
+    cores = os.cpu_count() or 1
+    assert (
+        campaign_main(["run", *args, "--hours", "1", "--jobs", "1", "--threads", str(cores), "--dry-run"])
+        == 0
+    )
+    starts = [line for line in capsys.readouterr().out.splitlines() if line.startswith("start ")]
+    assert len(starts) == 2 and all(f" threads={cores} " in line for line in starts)
+    assert "threads=2" in first.resume_command(tmp_path, 100, threads=2)
+    with pytest.raises(
+        SystemExit, match=rf"--threads={cores + 1}: must be >= 1, with --jobs x --threads <= {cores}"
+    ):
+        campaign_main(["run", *args, "--hours", "1", "--jobs", "1", "--threads", str(cores + 1), "--dry-run"])
+    with pytest.raises(SystemExit, match=r"--threads=0: must be >= 1"):
+        campaign_main(["run", *args, "--hours", "1", "--jobs", "1", "--threads", "0", "--dry-run"])
 
 
 EVALUATION = """

@@ -4,6 +4,7 @@
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
     mcrs-campaign run --hours 2.5 --fill                 the same, every slot busy, stopped (resumable) at 2.5 h
     mcrs-campaign run --hours 2.5 --fill --finish-first  the same, the runs that can end by then started first
+    mcrs-campaign run --hours 2 --jobs 1 --threads 2 --only <point>   one slow point on both cores
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
@@ -71,6 +72,13 @@ def build_parser() -> argparse.ArgumentParser:
         "still resume first), then the rest (for a machine that may not keep its run folders)",
     )
     run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
+    run.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads of each run (default 1: two 1-thread runs side by side make the most env steps "
+        "an hour; one 2-thread run, --jobs 1 --threads 2, ends a slow point sooner)",
+    )
     run.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
     run.add_argument("--keep-replay", action="store_true", help="do not prune finished runs' last.pt")
     run.add_argument(
@@ -125,14 +133,19 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_jobs(jobs: int) -> None:
+def _check_jobs(jobs: int, threads: int = 1) -> None:
     cores = os.cpu_count() or 1
     if not 1 <= jobs <= cores:  # each run has one torch thread: more runs than cores only queue
         raise SystemExit(f"mcrs-campaign: error: --jobs={jobs}: must be >= 1 and <= {cores} (CPU cores)")
+    if not 1 <= threads <= cores // jobs:  # threads of one run that wait for a core spin (OpenMP)
+        raise SystemExit(
+            f"mcrs-campaign: error: --threads={threads}: must be >= 1, with --jobs x --threads <= {cores} "
+            f"(CPU cores; --jobs={jobs})"
+        )
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    _check_jobs(args.jobs)
+    _check_jobs(args.jobs, args.threads)
     if not (math.isfinite(args.hours) and 0 < args.hours <= MAX_HOURS):
         raise SystemExit(
             f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"
@@ -144,7 +157,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     points, total = _points(args)
     evaluations = [] if args.no_evaluate else _evaluations(args)
     campaign = Campaign(
-        points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations
+        points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations, args.threads
     )
     if args.dry_run:
         print("\n".join(campaign.dry_run(args.hours, args.fill, args.finish_first)))

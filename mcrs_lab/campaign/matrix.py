@@ -98,8 +98,9 @@ class Point:
         """What ``--only`` can name: a figure, an experiment, a map, an algorithm, ``seed<k>``, the id."""
         return {*self.figures, self.experiment, self.env, self.algo, f"seed{self.seed}", self.id}
 
-    def train_command(self, outputs: Path) -> list[str]:
-        """``mcrs-train`` for a fresh run: the preset with every swept field fixed, one run, one thread."""
+    def train_command(self, outputs: Path, threads: int = 1) -> list[str]:
+        """``mcrs-train`` for a fresh run: the preset with every swept field fixed, one run, ``threads``
+        torch threads (one: two runs side by side use two cores best, docs/PERFORMANCE.md)."""
         values = [f"{k}={v}" for k, v in self.settings]
         return [
             sys.executable,
@@ -112,12 +113,12 @@ class Point:
             *values,
             *self.overrides,
             f"seed={self.seed}",
-            "threads=1",
+            f"threads={threads}",
             "hydra.mode=RUN",
             f"hydra.run.dir={self.run_dir(outputs)}",
         ]
 
-    def resume_command(self, outputs: Path, total_env_steps: int) -> list[str]:
+    def resume_command(self, outputs: Path, total_env_steps: int, threads: int = 1) -> list[str]:
         """``mcrs-train resume=`` to the budget's length; Hydra's own files of the first launch are kept."""
         run_dir = self.run_dir(outputs)
         return [
@@ -126,7 +127,7 @@ class Point:
             "mcrs.train",
             f"resume={run_dir}",
             f"train.total_env_steps={total_env_steps}",
-            "threads=1",
+            f"threads={threads}",
             # a run first launched before checkpoint_minutes' default of 10 keeps its saved 0 otherwise
             "train.checkpoint_minutes=10",
             "logger.progress_bar=false",

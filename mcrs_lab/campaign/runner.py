@@ -8,7 +8,7 @@ With ``finish_first`` too, a freed slot takes the first run expected to end befo
 runs still resume first), then the rest: on a machine that may not keep its run folders between sessions,
 a run stopped at the deadline can be lost with them.
 
-Each child runs in its own session (process group), with one torch thread, its output appended to
+Each child runs in its own session (process group), with one torch thread (``threads``: more), its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
 exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
 recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them. A run that
@@ -103,9 +103,10 @@ class Campaign:
         jobs: int = 2,
         prune: bool = True,
         evaluations: list[Evaluation] | None = None,
+        threads: int = 1,
     ) -> None:
         self.points, self.outputs, self.records = points, outputs, records
-        self.total, self.jobs, self.prune = total_env_steps, jobs, prune
+        self.total, self.jobs, self.prune, self.threads = total_env_steps, jobs, prune, threads
         self.evaluations = evaluations or []
         self.stop_signal: int | None = None
         self.failed = 0  # runs of this campaign that ended with a non-zero exit status (not stopped by it)
@@ -119,9 +120,13 @@ class Campaign:
         states = self.status()
         to_record = [s for s in states if s.state == "unrecorded"]
         launches = [
-            (s, s.point.resume_command(self.outputs, self.total)) for s in states if s.state == "partial"
+            (s, s.point.resume_command(self.outputs, self.total, self.threads))
+            for s in states
+            if s.state == "partial"
         ]
-        launches += [(s, s.point.train_command(self.outputs)) for s in states if s.state == "missing"]
+        launches += [
+            (s, s.point.train_command(self.outputs, self.threads)) for s in states if s.state == "missing"
+        ]
         return to_record, launches
 
     # -------------------------------------------------------------------------------- estimates
@@ -305,7 +310,7 @@ class Campaign:
         log = open(run_dir / LOG, "a")  # noqa: SIM115 (closed when the child ends)
         log.write(f"\n$ {shlex.join(command)}\n")
         log.flush()
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+        env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "HYDRA_FULL_ERROR": "0"}
         process = subprocess.Popen(
             command, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
         )
