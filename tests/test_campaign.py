@@ -188,7 +188,11 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
     assert table[done.id] == ["done", "200", "record of x"]
     assert table[unrecorded.id] == ["unrecorded", "200", str(unrecorded.run_dir(outputs))]
     assert table[partial.id] == ["partial", "100", str(partial.run_dir(outputs))]
-    assert table[missing.id] == ["missing", "0", "a stopped record at 50 steps of x"]
+    assert table[missing.id] == [
+        "missing",
+        "0",
+        "a stopped record at 50 steps of x, no checkpoint of it here: starts from 0",
+    ]
     assert "4 points (200 env steps each): 1 done, 1 unrecorded, 1 partial, 1 missing" in out
     assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
     plan = capsys.readouterr().out.splitlines()

@@ -51,5 +51,8 @@ def progress(point: Point, outputs: Path, records: Path, total_env_steps: int) -
         return Progress(point, "partial", steps, str(run_dir))
     note = ""
     if record is not None:
-        note = f"a {record.get('status')} record at {record.get('checkpoint_env_steps')} steps of {record.get('run_dir')}"
+        note = (
+            f"a {record.get('status')} record at {record.get('checkpoint_env_steps')} steps of "
+            f"{record.get('run_dir')}, no checkpoint of it here: starts from 0"
+        )
     return Progress(point, "missing", 0, note)
