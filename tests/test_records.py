@@ -246,3 +246,27 @@ def test_learning_curves_carry_the_heuristics_as_lines(tmp_path: Path) -> None:
     report_main([str(tmp_path / "qmix_0"), str(tmp_path / "qmix_1"), "--out", str(without)])
     assert "No heuristic lines" in (without / "report.md").read_text()
     assert (out / "learning_curves.png").read_bytes() != (without / "learning_curves.png").read_bytes()
+
+
+def test_every_committed_record_lies_where_its_content_puts_it() -> None:
+    """``mcrs-campaign status`` and the evaluations find a point's record by the path its content gives
+    (``training_record_path``, ``evaluation_record_path``): a record saved under another name (a copy made
+    by hand) would leave its point "missing" and be counted again beside the next one."""
+    from mcrs_lab.analysis.records import RECORDS_DIR, evaluation_record_path, training_record_path
+    from mcrs_lab.analysis.runs import read_record
+
+    root = Path(__file__).resolve().parents[1] / RECORDS_DIR
+    paths = sorted(root.rglob("*.json"))
+    assert len(paths) > 300  # figure 7's, table 4's, the heuristics', the near campaign's and the probes'
+    misplaced = []
+    for path in paths:
+        record = read_record(path)
+        assert record is not None, f"{path}: not a record of this version"
+        study_root = path.parents[2]  # <root>/<experiment>/<budget>/<point>, <root>/<study>/<map>/<policy>
+        if record["kind"] == "training":
+            expected = training_record_path(study_root, record["config"])
+        else:
+            expected = evaluation_record_path(study_root, record)
+        if expected != path:
+            misplaced.append(f"{path.relative_to(root)} (belongs at {expected.relative_to(root)})")
+    assert not misplaced, misplaced
