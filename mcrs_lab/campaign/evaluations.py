@@ -25,7 +25,13 @@ from typing import Any
 
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.untrusted import UntrustedInput, confined
-from mcrs_lab.analysis.records import RecordError, evaluation_record_name, make_record, write_record
+from mcrs_lab.analysis.records import (
+    RecordError,
+    evaluation_record_name,
+    make_record,
+    trained_policy_name,
+    write_record,
+)
 from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
 from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
 
@@ -72,7 +78,7 @@ class EvaluationJob:
             return any(folder.glob(evaluation_record_name(self.policy, "*", seed)))
         # A trained policy's records name its run: <label>-<experiment>-<run folder> (self.label is the
         # point id, <experiment>/<run folder>).
-        if any(folder.glob(evaluation_record_name(f"*-{self.label.replace('/', '-')}", "*", seed))):
+        if any(folder.glob(evaluation_record_name(trained_policy_name("*", self.label), "*", seed))):
             return True
         # Records made before the run's experiment was kept name the folder alone; one counts only where
         # its policy path runs through the point's experiment (two experiments' runs share folder names).
