@@ -248,6 +248,22 @@ def test_mixed_maps_are_skipped_with_the_reason(tmp_path: Path, capsys) -> None:
     assert read_csv(tmp_path / "r20" / "final.csv")[0]["seeds"] == "1"
 
 
+def test_many_runs_of_another_map_are_one_terminal_line_and_each_a_line_of_report_md(
+    tmp_path: Path, capsys
+) -> None:
+    """A campaign's records folder holds every map: reporting one map must not print a line per run of
+    the others, while report.md still names each skipped file."""
+    make_run(tmp_path, "a", env="map10")
+    others = [make_run(tmp_path, f"m20_{seed}", env="map20", seed=seed) for seed in range(4)]
+    out = tmp_path / "report"
+    report_main([str(tmp_path), "--out", str(out), "--env", "map10"])
+    printed = capsys.readouterr().out.split("\nskipped ")[1]
+    assert printed.startswith("4 ")
+    assert "4 files (" in printed and printed.count("the report is on map10") == 1
+    text = (out / "report.md").read_text()
+    assert all(f"`{run}`: map map20, the report is on map10" in text for run in others)
+
+
 def test_missing_metrics_skip_the_run_for_that_metric_only(tmp_path: Path) -> None:
     make_run(tmp_path, "full", seed=0)
     make_run(tmp_path, "partial", seed=1, metrics=("episode_reward",))

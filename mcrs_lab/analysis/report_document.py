@@ -42,5 +42,20 @@ class Report:
         path = self.out / "report.md"
         path.write_text(text)
         if unique:
-            print(f"\nskipped {len(unique)}:\n{skipped}", flush=True)
+            print(f"\nskipped {len(unique)} (each in {path}):\n{_grouped_by_reason(unique)}", flush=True)
         return path
+
+
+def _grouped_by_reason(skipped: list[tuple[str, str]], listed: int = 3) -> str:
+    """The terminal's list of skipped files: a reason shared by more than ``listed`` files (every run of
+    another map in a campaign's records folder) is one line with their count, not one line each."""
+    by_reason: dict[str, list[str]] = {}
+    for path, reason in skipped:
+        by_reason.setdefault(reason, []).append(path)
+    lines = []
+    for reason, paths in by_reason.items():
+        if len(paths) > listed:
+            lines.append(f"- {len(paths)} files (`{paths[0]}`, ...): {reason}")
+        else:
+            lines += [f"- `{p}`: {reason}" for p in paths]
+    return "\n".join(lines)
