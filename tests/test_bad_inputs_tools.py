@@ -111,8 +111,11 @@ BAD_CAMPAIGN_FILES: list[tuple[str, str]] = [
     (POINTS.replace("[0, 2]", "[abc]"), "sweep env.comm_range=['abc']: numbers only"),
     (POINTS.replace("    algo: [qmix]\n", ""), "a mapping with experiment, env and algo"),
     (POINTS.replace("figures:\n  figa:", "figures:\n  figa: 3\n  figb:"), "figure figa: a mapping with"),
-    (POINTS.replace("figures:", "figures: 3\nx:"), "figures: a mapping"),
-    ("[1, 2]\n", "a mapping with budget, seeds, figures"),
+    (POINTS.split("figures:")[0] + "figures: 3\n", "figures: a mapping"),
+    ("[1, 2]\n", "not a campaign file: a mapping with figures"),
+    ("root:x:0:0:root:/root:/bin/bash\n", "not a campaign file"),  # any file, read as a mapping
+    (POINTS.replace("figures:", "figure:"), "not a campaign file"),
+    (POINTS + "evaluation: {}\n", "unknown keys ['evaluation']; allowed: ['budget', 'evaluations',"),
     (ALIAS_BOMB, "holds YAML anchors or aliases"),
     (DEEP, "is nested deeper than 32 levels"),
     ("a: [1, 2\n", "is not a valid config (bad YAML"),

@@ -23,6 +23,7 @@ from mcrs_lab.analysis.records import point_name, swept_fields
 #: a config group.
 DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
 FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also", "seeds"}
+FILE_KEYS = {"budget", "seeds", "figures", "overrides", "evaluations"}
 
 
 class MatrixError(ValueError):
@@ -47,8 +48,13 @@ def load_campaign_file(path: Path) -> dict[str, Any]:
         spec = read_yaml(path)
     except UntrustedInput as error:
         raise MatrixError(str(error)) from None
-    if not isinstance(spec, dict):
-        raise MatrixError(f"{path}: a mapping with budget, seeds, figures (and overrides, evaluations)")
+    if not isinstance(spec, dict) or "figures" not in spec:
+        raise MatrixError(
+            f"{path}: not a campaign file: a mapping with figures (and budget, seeds, overrides, evaluations)"
+        )
+    unknown = sorted(str(k) for k in set(spec) - FILE_KEYS)
+    if unknown:
+        raise MatrixError(f"{path}: unknown keys {unknown}; allowed: {sorted(FILE_KEYS)}")
     return spec
 
 
