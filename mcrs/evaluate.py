@@ -72,9 +72,14 @@ def policy_names(policy: str) -> list[str]:
     """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
     if policy == ALL:
         return list(POLICIES)
-    from mcrs.policies.trained import looks_like_checkpoint
+    from mcrs.policies.trained import looks_like_checkpoint, resolve_checkpoint
 
     if policy not in POLICIES and looks_like_checkpoint(policy):
+        if not resolve_checkpoint(policy).is_file():  # before any episode runs or progress is shown
+            raise ValueError(
+                f"policy={policy}: no checkpoint there (a run directory with checkpoints/, or a .pt file); "
+                f"or one of {[*sorted(POLICIES), ALL]}"
+            )
         return [policy]
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; allowed: {[*sorted(POLICIES), ALL]}")

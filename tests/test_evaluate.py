@@ -122,6 +122,19 @@ def test_run_rejects_unknown_policy(tmp_path: Path) -> None:
     assert not (tmp_path / "metrics.csv").exists()
 
 
+@pytest.mark.parametrize("where", ["missing", "empty_run", "missing.pt"])
+def test_run_rejects_a_policy_path_without_a_checkpoint_before_any_episode(
+    where: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mistyped run directory is named at once, not after a progress bar has started."""
+    (tmp_path / "empty_run").mkdir()
+    policy = tmp_path / where
+    with pytest.raises(ValueError, match=rf"policy={policy}: no checkpoint there .*'greedy'"):
+        run(_compose([f"policy={policy}", *TINY]), tmp_path / "out")
+    assert "steps" not in capsys.readouterr().out  # no episode was started
+    assert not (tmp_path / "out" / "metrics.csv").exists()
+
+
 def _cli(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
     return subprocess.run(
