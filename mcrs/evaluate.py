@@ -72,14 +72,19 @@ def policy_names(policy: str) -> list[str]:
     """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
     if policy == ALL:
         return list(POLICIES)
-    from mcrs.policies.trained import looks_like_checkpoint, resolve_checkpoint
+    from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
 
     if policy not in POLICIES and looks_like_checkpoint(policy):
         if not resolve_checkpoint(policy).is_file():  # before any episode runs or progress is shown
             raise ValueError(
-                f"policy={policy}: no checkpoint there (a run directory with checkpoints/, or a .pt file); "
+                f"policy={policy}: no checkpoint there (a run directory with checkpoints/, a .pt file or an "
+                f"exported .pt2); "
                 f"or one of {[*sorted(POLICIES), ALL]}"
             )
+        if is_exported(policy):  # not an exported agent: refused here too, before any progress is shown
+            from mcrs.policies.export import read_description
+
+            read_description(policy)
         return [policy]
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; allowed: {[*sorted(POLICIES), ALL]}")

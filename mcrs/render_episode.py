@@ -31,9 +31,7 @@ class RenderConfig:
     """``conf/render.yaml``'s fields, typed: Hydra refuses ``seed=abc`` or ``gif=maybe`` itself."""
 
     env: Any = MISSING  # the env group (conf/env/), validated by mcrs.env.config.from_mapping
-    policy: str = (
-        "greedy"  # random | lawnmower | greedy | coverage | a checkpoint (.pt file or run directory)
-    )
+    policy: str = "greedy"  # random | lawnmower | greedy | coverage | a checkpoint (.pt, run dir) or .pt2
     seed: int = 0  # the episode's and the policy's seed
     uav: int = 0  # the UAV of the uncertainty contours
     gif: bool = True  # also write episode.gif

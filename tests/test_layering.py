@@ -40,6 +40,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "tasks",
         "evaluate",
         "render_episode",
+        "export_agent",
         "train",
         "mcrs",
     ),

@@ -20,16 +20,22 @@ POLICIES: dict[str, type[Policy]] = {
 def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
     """Build the named policy for ``env_config``; its random choices follow ``seed``.
 
-    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``, ``coverage``) or the path of an
-    ``mcrs-train`` checkpoint (a ``.pt`` file or a run directory), whose agent then acts greedily.
+    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``, ``coverage``), the path of an
+    ``mcrs-train`` checkpoint (a ``.pt`` file or a run directory) or of an ``mcrs-export`` file (``.pt2``),
+    whose agent then acts greedily.
     """
-    from mcrs.policies.trained import TrainedPolicy, looks_like_checkpoint
+    from mcrs.policies.trained import TrainedPolicy, is_exported, looks_like_checkpoint
 
+    if name not in POLICIES and is_exported(name):
+        from mcrs.policies.export import exported_policy
+
+        return exported_policy(name, env_config, seed)
     if name not in POLICIES and looks_like_checkpoint(name):
         return TrainedPolicy.from_checkpoint(name, env_config, seed)
     if name not in POLICIES:
         raise ValueError(
-            f"unknown policy {name!r}; allowed: {sorted(POLICIES)} or a checkpoint (.pt file or run directory)"
+            f"unknown policy {name!r}; allowed: {sorted(POLICIES)}, a checkpoint (.pt file or run directory) "
+            "or an exported agent (.pt2)"
         )
     return POLICIES[name](env_config, seed)
 
@@ -38,11 +44,12 @@ def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
     """``env_config`` as the named policy must play it: a checkpoint's agent keeps the observation fields it
     was trained with (``far_view``: what the agent reads, not the task: dynamics and rewards are the same),
     so one evaluation can hold policies that see differently; a heuristic plays ``env_config`` itself."""
-    from mcrs.policies.trained import looks_like_checkpoint, observation_settings
+    from mcrs.policies import export, trained
 
-    if name in POLICIES or not looks_like_checkpoint(name):
+    if name in POLICIES or not trained.looks_like_checkpoint(name):
         return env_config
-    changed = {k: v for k, v in observation_settings(name).items() if getattr(env_config, k) != v}
+    settings = export.observation_settings if trained.is_exported(name) else trained.observation_settings
+    changed = {k: v for k, v in settings(name).items() if getattr(env_config, k) != v}
     return env_config.replace(**changed) if changed else env_config
 
 

@@ -7,11 +7,13 @@ The recurrent state lives in the policy and restarts wherever ``step_count == 0`
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 
 from mcrs.env.config import EnvConfig, from_mapping, with_legacy_values
 from mcrs.env.core import N_ACTIONS
@@ -24,6 +26,8 @@ log = logging.getLogger(__name__)
 #: Env fields that shape what a trained agent observes but not the task it plays (beyond the paper):
 #: evaluations play a checkpoint with its own values of these (mcrs.policies.policy_env).
 OBSERVATION_FIELDS = ("far_view",)
+#: The file suffix of an exported agent (``mcrs-export``, mcrs.policies.export).
+EXPORTED_SUFFIX = ".pt2"
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -52,89 +56,161 @@ def observation_settings(path: str | Path) -> dict[str, Any]:
 
 
 def looks_like_checkpoint(name: str) -> bool:
-    return name.endswith(".pt") or "/" in name or Path(name).expanduser().is_dir()
+    """A policy name that is a path: a checkpoint, a run directory or an exported agent."""
+    return name.endswith((".pt", EXPORTED_SUFFIX)) or "/" in name or Path(name).expanduser().is_dir()
+
+
+def is_exported(name: str) -> bool:
+    """A policy name that is an ``mcrs-export`` file (mcrs.policies.export)."""
+    return name.endswith(EXPORTED_SUFFIX)
+
+
+class GreedyAgentStep(nn.Module):
+    """One greedy step of the whole team: what a trained policy computes, as one module.
+
+    ``forward(observation [E, N, obs] float, action_mask [E, N, A] bool, last_action [E, N] int64 (-1 at an
+    episode's first step), hidden [E, N, H] float (zeros at the first step)) -> (action [E, N] int64,
+    hidden [E, N, H])``: the best allowed action of each agent. Rows (agents) are computed independently,
+    the agent's index in ``N`` being its one-hot id. :class:`TrainedPolicy` acts through it and
+    ``mcrs-export`` writes it as a ``torch.export`` program, so the deployed file computes what
+    ``mcrs-eval`` scores.
+    """
+
+    def __init__(self, agent: RecurrentAgent) -> None:
+        super().__init__()
+        self.agent = agent
+
+    def forward(
+        self,
+        observation: torch.Tensor,
+        action_mask: torch.Tensor,
+        last_action: torch.Tensor,
+        hidden: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        q, hidden = self.agent.step(self.agent.build_inputs(observation, last_action), hidden)
+        return q.masked_fill(~action_mask, float("-inf")).argmax(-1), hidden
+
+
+@dataclass(frozen=True)
+class TrainedAgent:
+    """A checkpoint's agent with what it was trained on."""
+
+    agent: RecurrentAgent
+    env: EnvConfig  # the env config it was trained on
+    path: Path  # the checkpoint file read
+    config: dict[str, Any]  # the run's whole config, as saved
+    env_steps: int | None  # the checkpoint's env steps (None: a file that does not say)
+    legacy: bool  # the config predates a field and was read with its old default
+
+
+def load_trained_agent(path: str | Path) -> TrainedAgent:
+    """The agent of the checkpoint ``path`` (a ``.pt`` file or a run directory), refused by name when the
+    file lacks a usable config or agent or holds NaN or inf weights."""
+    path = resolve_checkpoint(path)
+    state = ckpt.load(path)
+    try:
+        saved_env, legacy = with_legacy_values(state["config"]["env"])
+        trained = from_mapping(saved_env)
+        model = state["config"]["model"]
+        weights = state["learner"]["agent"]
+    except (KeyError, TypeError, ValueError) as error:
+        reason = "; ".join(line.strip(" -") for line in str(error).splitlines() if line.strip())
+        raise ckpt.CheckpointError(
+            f"checkpoint {path} lacks a usable config or agent ({type(error).__name__}: {reason})"
+        ) from None
+    bad = [k for k, v in weights.items() if not isinstance(v, torch.Tensor) or not torch.isfinite(v).all()]
+    if bad:  # NaN or inf weights would act (argmax of NaN) and be evaluated as a policy: refused
+        raise ckpt.CheckpointError(
+            f"checkpoint {path}: the agent's weights {', '.join(bad[:3])} hold NaN or inf (or are not "
+            "tensors): not a trained policy"
+        )
+    try:
+        agent = RecurrentAgent(
+            trained.obs_dim,
+            N_ACTIONS,
+            trained.n_uavs,
+            model["hidden_dim"],
+            model["agent_id"],
+            model["last_action"],
+        )
+        agent.load_state_dict(weights)
+    except (KeyError, TypeError, ValueError, RuntimeError) as error:  # wrong shapes, missing fields
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise ckpt.CheckpointError(f"checkpoint {path}: its agent cannot be built: {first}") from None
+    counters = state.get("counters")
+    env_steps = counters.get("env_steps") if isinstance(counters, dict) else None
+    return TrainedAgent(
+        agent.eval(),
+        trained,
+        path,
+        state["config"],
+        env_steps if isinstance(env_steps, int) else None,
+        legacy,
+    )
+
+
+def check_playable(
+    trained: EnvConfig, env_config: EnvConfig, source: str | Path, legacy: bool = False
+) -> None:
+    """Refuse (ValueError, naming the override) an agent trained on ``trained`` playing ``env_config``:
+    another map or team, or other observation fields; warn when only the safety rule differs."""
+    if trained.safety_rule != env_config.safety_rule:  # allowed (a policy judged under either rule): said
+        made = " (saved before the field existed)" if legacy else ""
+        log.warning(
+            "%s was trained under safety_rule=%s%s; this environment uses safety_rule=%s "
+            "(pass env.safety_rule=%s to evaluate it under its own rule)",
+            source, trained.safety_rule, made, env_config.safety_rule, trained.safety_rule,
+        )  # fmt: skip
+    for field in OBSERVATION_FIELDS:
+        if getattr(trained, field) != getattr(env_config, field):
+            value = getattr(trained, field)
+            raise ValueError(
+                f"{source} was trained with env.{field}={value}; this environment has "
+                f"env.{field}={getattr(env_config, field)}: pass env.{field}={value} (it shapes what the "
+                "agent observes)"
+            )
+    for field in ("width", "height", "n_uavs", "obs_dim"):
+        if getattr(trained, field) != getattr(env_config, field):
+            raise ValueError(
+                f"{source} was trained on {trained.name} ({trained.width}x{trained.height}, "
+                f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
+                f"{env_config.height}, {env_config.n_uavs} UAVs): pass env={trained.name}"
+            )
 
 
 class TrainedPolicy(Policy):
-    """Greedy actions of a trained shared recurrent agent."""
+    """Greedy actions of a trained shared recurrent agent (a checkpoint's, or an exported program's)."""
 
-    def __init__(self, config: EnvConfig, agent: RecurrentAgent, seed: int = 0) -> None:
+    def __init__(self, config: EnvConfig, step: nn.Module, hidden_dim: int, seed: int = 0) -> None:
         super().__init__(config, seed)
-        self.agent = agent.to(config.device).eval()
+        self.step = step
+        self.hidden_dim = hidden_dim
         self._hidden: torch.Tensor | None = None
         self._last_action: torch.Tensor | None = None
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, env_config: EnvConfig, seed: int = 0) -> TrainedPolicy:
         """Load the agent of ``path``; ``env_config`` must have the map and team it was trained on."""
-        path = resolve_checkpoint(path)
-        state = ckpt.load(path)
-        try:
-            saved_env, legacy = with_legacy_values(state["config"]["env"])
-            trained = from_mapping(saved_env)
-            model = state["config"]["model"]
-            weights = state["learner"]["agent"]
-        except (KeyError, TypeError, ValueError) as error:
-            reason = "; ".join(line.strip(" -") for line in str(error).splitlines() if line.strip())
-            raise ckpt.CheckpointError(
-                f"checkpoint {path} lacks a usable config or agent ({type(error).__name__}: {reason})"
-            ) from None
-        bad = [
-            k for k, v in weights.items() if not isinstance(v, torch.Tensor) or not torch.isfinite(v).all()
-        ]
-        if bad:  # NaN or inf weights would act (argmax of NaN) and be evaluated as a policy: refused
-            raise ckpt.CheckpointError(
-                f"checkpoint {path}: the agent's weights {', '.join(bad[:3])} hold NaN or inf (or are not "
-                "tensors): not a trained policy"
-            )
-        if trained.safety_rule != env_config.safety_rule:  # allowed (a policy judged under either rule): said
-            made = " (saved before the field existed)" if legacy else ""
-            log.warning(
-                "checkpoint %s was trained under safety_rule=%s%s; this environment uses safety_rule=%s "
-                "(pass env.safety_rule=%s to evaluate it under its own rule)",
-                path, trained.safety_rule, made, env_config.safety_rule, trained.safety_rule,
-            )  # fmt: skip
-        for field in OBSERVATION_FIELDS:
-            if getattr(trained, field) != getattr(env_config, field):
-                value = getattr(trained, field)
-                raise ValueError(
-                    f"checkpoint {path} was trained with env.{field}={value}; this environment has "
-                    f"env.{field}={getattr(env_config, field)}: pass env.{field}={value} (it shapes what the "
-                    "agent observes)"
-                )
-        for field in ("width", "height", "n_uavs", "obs_dim"):
-            if getattr(trained, field) != getattr(env_config, field):
-                raise ValueError(
-                    f"checkpoint {path} was trained on {trained.name} ({trained.width}x{trained.height}, "
-                    f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
-                    f"{env_config.height}, {env_config.n_uavs} UAVs): pass env={trained.name}"
-                )
-        try:
-            agent = RecurrentAgent(
-                trained.obs_dim,
-                N_ACTIONS,
-                trained.n_uavs,
-                model["hidden_dim"],
-                model["agent_id"],
-                model["last_action"],
-            )
-            agent.load_state_dict(weights)
-        except (KeyError, TypeError, ValueError, RuntimeError) as error:  # wrong shapes, missing fields
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
-            raise ckpt.CheckpointError(f"checkpoint {path}: its agent cannot be built: {first}") from None
-        return cls(env_config, agent, seed)
+        trained = load_trained_agent(path)
+        check_playable(trained.env, env_config, f"checkpoint {trained.path}", trained.legacy)
+        agent = trained.agent.to(env_config.device)
+        return cls(env_config, GreedyAgentStep(agent), agent.hidden_dim, seed)
+
+    @property
+    def agent(self) -> RecurrentAgent | None:
+        """The checkpoint's agent network (None for an exported program, which has no modules to show)."""
+        return self.step.agent if isinstance(self.step, GreedyAgentStep) else None
 
     @torch.no_grad()
     def act(self, tensordict: TensorDictBase) -> torch.Tensor:
         obs, mask = tensordict.get(OBSERVATION), tensordict.get(ACTION_MASK)
         E, N = obs.shape[:2]
         if self._hidden is None or self._hidden.shape[0] != E:
-            self._hidden = obs.new_zeros(E, N, self.agent.hidden_dim)
+            self._hidden = obs.new_zeros(E, N, self.hidden_dim)
             self._last_action = torch.full((E, N), -1, dtype=torch.int64, device=obs.device)
         first = (tensordict.get("step_count").view(E) == 0).view(E, 1)
         hidden = self._hidden.masked_fill(first.unsqueeze(-1), 0.0)
         last_action = self._last_action.masked_fill(first, -1)
-        q, self._hidden = self.agent.step(self.agent.build_inputs(obs, last_action), hidden)
-        action = q.masked_fill(~mask, float("-inf")).argmax(-1)
+        action, self._hidden = self.step(obs, mask, last_action, hidden)
         self._last_action = action
         return action

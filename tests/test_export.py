@@ -1,0 +1,200 @@
+"""``mcrs-export``: a trained agent as a ``torch.export`` file that runs without mcrs and plays as the
+checkpoint it came from."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcrs.env import scenario
+from mcrs.env.layout import ObservationLayout
+from mcrs.evaluate import evaluate_policy, policy_names
+from mcrs.experiment.trainer import Experiment
+from mcrs.export_agent import main as export_main
+from mcrs.policies import export
+from mcrs.policies.trained import GreedyAgentStep, load_trained_agent
+from tests.train_helpers import compose_config
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("run")
+    Experiment(compose_config("train.total_env_steps=80", "env=map10"), path).run()
+    return path
+
+
+@pytest.fixture(scope="module")
+def exported(run_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return export.export_agent(run_dir, tmp_path_factory.mktemp("export") / "agent.pt2")
+
+
+def _inputs(E: int, N: int, obs_dim: int, hidden: int, seed: int) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(E, N, 8, generator=g) > 0.3
+    mask[..., 0] = True  # every agent has an allowed move
+    return (
+        torch.rand(E, N, obs_dim, generator=g),
+        mask,
+        torch.randint(-1, 8, (E, N), generator=g),
+        torch.randn(E, N, hidden, generator=g),
+    )
+
+
+def test_the_exported_program_computes_the_checkpoints_greedy_step(run_dir: Path, exported: Path) -> None:
+    step, meta = export.load_exported(exported)
+    reference = GreedyAgentStep(load_trained_agent(run_dir).agent)
+    for E in (1, 5):  # any number of environments, not only the traced example's
+        args = _inputs(E, meta["n_agents"], meta["obs_dim"], meta["hidden_dim"], seed=E)
+        action, hidden = step(*args)
+        with torch.no_grad():
+            expected_action, expected_hidden = reference(*args)
+        assert action.dtype == torch.int64 and action.shape == (E, meta["n_agents"])
+        assert torch.equal(action, expected_action)
+        assert torch.equal(hidden, expected_hidden)
+        assert bool(args[1].gather(-1, action.unsqueeze(-1)).all())  # only allowed moves
+
+
+def test_each_agents_row_is_its_own(exported: Path) -> None:
+    """What the description promises a single vehicle: its row's output depends on its row's inputs only."""
+    step, meta = export.load_exported(exported)
+    args = _inputs(3, meta["n_agents"], meta["obs_dim"], meta["hidden_dim"], seed=0)
+    others = _inputs(3, meta["n_agents"], meta["obs_dim"], meta["hidden_dim"], seed=1)
+    mixed = tuple(torch.cat([a[:, :1], b[:, 1:]], dim=1) for a, b in zip(args, others, strict=True))
+    action, hidden = step(*args)
+    mixed_action, mixed_hidden = step(*mixed)
+    assert torch.equal(action[:, 0], mixed_action[:, 0])
+    assert torch.allclose(hidden[:, 0], mixed_hidden[:, 0], rtol=0, atol=1e-6)
+    assert not torch.equal(hidden[:, 1:], mixed_hidden[:, 1:])  # the other rows did change
+
+
+def test_the_description_says_how_to_build_the_inputs(run_dir: Path, exported: Path) -> None:
+    meta = export.read_description(exported)
+    env = scenario("map10")
+    layout = ObservationLayout.from_config(env)
+    assert meta["env"]["name"] == "map10" and meta["n_agents"] == env.n_uavs == 4
+    assert meta["obs_dim"] == env.obs_dim and meta["n_actions"] == len(meta["moves"]) == 8
+    assert meta["observation_layout"]["no_fly"] == [layout.no_fly.start, layout.no_fly.stop]
+    assert meta["algo"] == "qmix" and meta["env_steps"] == load_trained_agent(run_dir).env_steps > 0
+    assert set(meta["inputs"]) == {"observation", "action_mask", "last_action", "hidden"}
+
+
+def test_the_file_runs_in_a_process_without_mcrs(exported: Path) -> None:
+    script = f"""
+import sys, torch
+step = torch.export.load({str(exported)!r}).module()
+n = 4
+action, hidden = step(torch.zeros(2, n, 36), torch.ones(2, n, 8, dtype=torch.bool),
+                      torch.full((2, n), -1), torch.zeros(2, n, 16))
+assert not [m for m in sys.modules if m == "mcrs" or m.startswith("mcrs.")], "mcrs was imported"
+print(tuple(action.shape), tuple(hidden.shape))
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd="/")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "(2, 4) (2, 4, 16)"
+
+
+def test_mcrs_eval_scores_the_file_as_the_checkpoint(run_dir: Path, exported: Path) -> None:
+    env_config = scenario("map10", max_steps=10)
+    ours = evaluate_policy(env_config, str(exported), episodes=4, seed=3)
+    theirs = evaluate_policy(env_config, str(run_dir), episodes=4, seed=3)
+    assert ours == theirs
+    with pytest.raises(ValueError, match=r"exported agent .* trained on map10.*pass env=map10"):
+        evaluate_policy(scenario("map20"), str(exported), episodes=1, seed=0)
+
+
+def test_the_command_writes_and_refuses_by_name(run_dir: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "a.pt2"
+    assert export_main([str(run_dir), str(out)]) == 0
+    assert "a.pt2" in capsys.readouterr().out
+    before = out.read_bytes()
+    assert export_main([str(run_dir), str(out)]) == 1  # exists
+    assert "exists: pass --force" in capsys.readouterr().err and out.read_bytes() == before
+    assert export_main([str(run_dir), str(tmp_path / "a.onnx")]) == 1
+    assert "ends in .pt2" in capsys.readouterr().err
+    assert export_main([str(run_dir), str(tmp_path / "missing" / "a.pt2")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert export_main([str(tmp_path / "no_run"), str(tmp_path / "b.pt2")]) == 1
+    assert "checkpoint" in capsys.readouterr().err and not (tmp_path / "b.pt2").exists()
+    assert export_main([str(run_dir), str(out), "--force"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pt2"]  # no temporary left
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(
+    run_dir: Path, exported: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "agent.pt2"
+    out.write_bytes(exported.read_bytes())
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch.export, "save", full_disk)
+    assert export_main([str(run_dir), str(out), "--force"]) == 1
+    assert out.read_bytes() == exported.read_bytes()
+    assert [p.name for p in tmp_path.iterdir()] == ["agent.pt2"]
+
+
+def _rewritten(exported: Path, path: Path, description: bytes | None) -> Path:
+    """``exported`` with its mcrs.json replaced by ``description`` (None: removed)."""
+    with zipfile.ZipFile(exported) as source, zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as target:
+        for member in source.infolist():
+            if member.filename.endswith("extra/mcrs.json"):
+                if description is not None:
+                    target.writestr(member, description)
+            else:
+                target.writestr(member, source.read(member))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (None, "does not exist"),
+        (b"", "cannot be read safely"),
+        (b"not a zip archive at all", "not a zip archive"),
+        ("no description", r"not an exported mcrs agent \(no extra/mcrs.json"),
+        (b"{not json", "is not JSON"),
+        (json.dumps({"format": "something else"}).encode(), "no 'mcrs-exported-agent' marker"),
+        (json.dumps({"format": "mcrs-exported-agent", "version": 99}).encode(), "export version 99"),
+    ],
+)
+def test_a_file_that_is_not_an_exported_agent_is_refused_by_name(
+    exported: Path, tmp_path: Path, content: bytes | str | None, message: str
+) -> None:
+    path = tmp_path / "bad.pt2"
+    if content == "no description":
+        _rewritten(exported, path, None)
+    elif isinstance(content, bytes) and content.startswith(b"{"):
+        _rewritten(exported, path, content)
+    elif content is not None:
+        path.write_bytes(content)
+    with pytest.raises(export.ExportError, match=message):
+        export.load_exported(path)
+    if content is not None:  # mcrs-eval refuses it before any episode runs
+        with pytest.raises(ValueError, match=message):
+            policy_names(str(path))
+
+
+def test_a_checkpoint_renamed_pt2_is_not_taken_for_an_export(run_dir: Path, tmp_path: Path) -> None:
+    model = sorted((run_dir / "checkpoints").glob("model_*.pt"))[-1]
+    renamed = tmp_path / "model.pt2"
+    renamed.write_bytes(model.read_bytes())
+    with pytest.raises(export.ExportError, match="not an exported mcrs agent"):
+        export.exported_policy(renamed, scenario("map10"))
+
+
+def test_a_refusal_is_one_line_and_an_exit_status(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "mcrs.export_agent", str(tmp_path / "no_run"), str(tmp_path / "a.pt2")],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 1
+    assert out.stderr.startswith("mcrs-export: error: checkpoint ") and out.stderr.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
