@@ -198,3 +198,15 @@ def test_a_refusal_is_one_line_and_an_exit_status(tmp_path: Path) -> None:
     assert out.returncode == 1
     assert out.stderr.startswith("mcrs-export: error: checkpoint ") and out.stderr.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_deployment_example_flies_each_uav_on_its_own(exported: Path) -> None:
+    """examples/deploy_exported.py: every UAV calls the file with its own row and picks the team call's move."""
+    example = Path(__file__).parents[1] / "examples" / "deploy_exported.py"
+    out = subprocess.run(
+        [sys.executable, str(example), str(exported), "--episodes", "1", "--seed", "4"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "episode 0 (seed 4): team reward" in out.stdout and "every UAV decided alone" in out.stdout
