@@ -687,7 +687,51 @@ def test_a_point_in_use_by_a_live_run_is_not_started_and_the_exit_status_says_so
     out = capsys.readouterr().out
     assert f"not started: {point.id}: its run directory {point.run_dir(outputs)} is in use by process" in out
     assert (
-        "campaign: 1 runs not started: their directories are in use or not the campaign's (exit status 1)"
-        in out
+        "campaign: 1 runs not started: another campaign trains them, or their directories are in use or "
+        "not the campaign's (exit status 1)" in out
     )
     assert not (point.run_dir(outputs) / "campaign.log").exists()
+
+
+def test_a_point_another_campaign_trains_is_not_started_whatever_its_outputs(tmp_path: Path, capsys) -> None:
+    """Two runners recording into one folder with different --outputs must not train one point twice."""
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("[0, 2]", "[0]"))
+    (point,), _ = load_matrix(matrix)
+    records, theirs, ours = tmp_path / "records", tmp_path / "theirs", tmp_path / "ours"
+    held = runner.claim_point(records, point, theirs)  # the other runner, training the point now
+    assert not isinstance(held, str)
+    try:
+        args = ["--matrix", str(matrix), "--outputs", str(ours), "--records", str(records)]
+        assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1"]) == 1
+        assert runner.claim_point(records, point, ours) == f"pid {os.getpid()}, outputs {theirs.resolve()}"
+    finally:
+        held.close()
+    out = capsys.readouterr().out
+    assert (
+        f"not started: {point.id}: another mcrs-campaign run trains it (pid {os.getpid()}, outputs "
+        f"{theirs.resolve()}; {runner.claim_path(records, point)}); its record lands in {records}" in out
+    )
+    assert not point.run_dir(ours).exists()
+    again = runner.claim_point(records, point, ours)  # released: free again
+    assert not isinstance(again, str)
+    again.close()
+
+
+def test_a_point_recorded_since_the_plan_was_made_is_not_started(tmp_path: Path, capsys) -> None:
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("[0, 2]", "[0]"))
+    (point,), _ = load_matrix(matrix)
+    records = tmp_path / "records"
+    campaign = runner.Campaign([point], tmp_path / "outputs", records, total_env_steps=200, jobs=1)
+    _, [(state, command)] = campaign.plan()
+    assert state.state == "missing"
+    write_record(point.record_path(records), {  # another runner finished it meanwhile
+        "format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "elsewhere",
+        "status": "finished", **RECORD_FIELDS})  # fmt: skip
+    assert campaign._launch(state, command) is None
+    assert f"not started: {point.id}: done meanwhile (its record in {records})" in capsys.readouterr().out
+    assert not point.run_dir(tmp_path / "outputs").exists()
+    free = runner.claim_point(records, point, tmp_path / "outputs")
+    assert not isinstance(free, str)
+    free.close()

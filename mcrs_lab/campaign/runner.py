@@ -52,6 +52,9 @@ STOP_GRACE_S = 120.0
 #: first evaluation and its checkpoint would be most of it).
 FILL_FLOOR_S = 600.0
 LOG = "campaign.log"
+#: Under the records folder: one lock file per point being trained, shared by every runner that records
+#: there (the lock per outputs folder cannot see a runner with other --outputs).
+CLAIMS = ".claims"
 
 
 @dataclass
@@ -62,6 +65,7 @@ class Job:
     command: list[str]
     process: subprocess.Popen
     log: IO[str]
+    claim: IO[str]  # the point's lock (claim_point), shared with the child
     started: float = field(default_factory=time.time)
     machine: dict[str, Any] = field(default_factory=machine_facts)
 
@@ -72,6 +76,32 @@ def _hours(seconds: float | None) -> str:
 
 def _print(*parts: object) -> None:
     print(*parts, flush=True)
+
+
+def claim_path(records: Path, point: Point) -> Path:
+    return records / CLAIMS / f"{point.id.replace('/', '--')}.lock"
+
+
+def claim_point(records: Path, point: Point, outputs: Path) -> IO[str] | str:
+    """Hold ``point`` while this process trains it: the open lock file, or, when another process holds
+    it, who that is. Two runners recording into one folder with different ``--outputs`` would otherwise
+    both train it. The child inherits the handle, so the hold lasts as long as the run, whatever becomes of
+    the runner; closing it in every process that has it lets the point go."""
+    path = claim_path(records, point)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = open(path, "a+")  # noqa: SIM115 (kept open while the point trains)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "a process"
+        handle.close()
+        return holder
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"pid {os.getpid()}, outputs {outputs.resolve()}")
+    handle.flush()
+    return handle
 
 
 def _next_run(
@@ -198,8 +228,8 @@ class Campaign:
         """Run the plan within ``hours`` (with ``fill``: stop what still runs then); returns 0 when every
         run it started ended well or was stopped at the deadline and the rest were left for lack of time,
         1 when a point was refused (its run directory in use by a live run, or not the campaign's) or a
-        run failed, 128 + the signal that stopped it. One campaign at a time per outputs folder: a second
-        one would start the same points."""
+        run failed, 128 + the signal that stopped it. One campaign at a time per outputs folder (a second
+        one would start the same points), and one runner per point whatever the outputs (claim_point)."""
         self.outputs.mkdir(parents=True, exist_ok=True)
         with open(self.outputs / ".campaign.lock", "a+") as lock:
             try:
@@ -266,8 +296,8 @@ class Campaign:
         _print(f"campaign: {ended} runs ended{stopped}, {not_started} not started (time budget)")
         if refused:
             _print(
-                f"campaign: {refused} runs not started: their directories are in use or not the campaign's "
-                "(exit status 1)"
+                f"campaign: {refused} runs not started: another campaign trains them, or their directories "
+                "are in use or not the campaign's (exit status 1)"
             )
         if self.failed:
             _print(f"campaign: {self.failed} runs failed (exit status 1)")
@@ -298,8 +328,20 @@ class Campaign:
 
     def _launch(self, state: Progress, command: list[str]) -> Job | None:
         run_dir = state.point.run_dir(self.outputs)
+        claim = claim_point(self.records, state.point, self.outputs)
+        if isinstance(claim, str):
+            _print(
+                f"not started: {state.point.id}: another mcrs-campaign run trains it ({claim}; "
+                f"{claim_path(self.records, state.point)}); its record lands in {self.records} when it ends"
+            )
+            return None
+        if progress(state.point, self.outputs, self.records, self.total).state == "done":
+            claim.close()  # another runner finished and recorded it since this one's plan was made
+            _print(f"not started: {state.point.id}: done meanwhile (its record in {self.records})")
+            return None
         refusal = self._refusal(state.point, state.state)
         if refusal is not None:
+            claim.close()
             _print(f"not started: {refusal}")
             return None
         if state.state == "missing" and run_dir.exists():  # a start that died before its first checkpoint
@@ -312,11 +354,16 @@ class Campaign:
         log.flush()
         env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "HYDRA_FULL_ERROR": "0"}
         process = subprocess.Popen(
-            command, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            command,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+            pass_fds=(claim.fileno(),),
         )
         what = "resumed" if state.state == "partial" else "started"
         _print(f"{what} {state.point.id} (pid {process.pid}): {shlex.join(command)}")
-        return Job(state.point, command, process, log)
+        return Job(state.point, command, process, log, claim)
 
     def _finish(self, job: Job, stopped: bool = False) -> None:
         job.log.close()
@@ -342,6 +389,7 @@ class Campaign:
                 + "\n  ".join(tail)
             )
         self._record(job.point)
+        job.claim.close()  # ended and recorded: the point is free again
 
     def _record(self, point: Point) -> None:
         run_dir = point.run_dir(self.outputs)
