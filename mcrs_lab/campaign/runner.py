@@ -328,6 +328,10 @@ class Campaign:
 
     def _launch(self, state: Progress, command: list[str]) -> Job | None:
         run_dir = state.point.run_dir(self.outputs)
+        refusal = self._refusal(state.point, state.state)  # first: a refused point leaves no trace
+        if refusal is not None:
+            _print(f"not started: {refusal}")
+            return None
         claim = claim_point(self.records, state.point, self.outputs)
         if isinstance(claim, str):
             _print(
@@ -338,11 +342,6 @@ class Campaign:
         if progress(state.point, self.outputs, self.records, self.total).state == "done":
             claim.close()  # another runner finished and recorded it since this one's plan was made
             _print(f"not started: {state.point.id}: done meanwhile (its record in {self.records})")
-            return None
-        refusal = self._refusal(state.point, state.state)
-        if refusal is not None:
-            claim.close()
-            _print(f"not started: {refusal}")
             return None
         if state.state == "missing" and run_dir.exists():  # a start that died before its first checkpoint
             aside = run_dir.with_name(f"{run_dir.name}.failed-{time.strftime('%Y%m%d-%H%M%S')}")
