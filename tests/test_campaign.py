@@ -701,18 +701,22 @@ def test_a_point_another_campaign_trains_is_not_started_whatever_its_outputs(tmp
     records, theirs, ours = tmp_path / "records", tmp_path / "theirs", tmp_path / "ours"
     held = runner.claim_point(records, point, theirs)  # the other runner, training the point now
     assert not isinstance(held, str)
+    holder = f"pid {os.getpid()}, outputs {theirs.resolve()}"
+    args = ["--matrix", str(matrix), "--outputs", str(ours), "--records", str(records)]
     try:
-        args = ["--matrix", str(matrix), "--outputs", str(ours), "--records", str(records)]
         assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1"]) == 1
-        assert runner.claim_point(records, point, ours) == f"pid {os.getpid()}, outputs {theirs.resolve()}"
+        assert (
+            f"not started: {point.id}: another mcrs-campaign run trains it ({holder}; "
+            f"{runner.claim_path(records, point)}); its record lands in {records}" in capsys.readouterr().out
+        )
+        assert runner.claim_point(records, point, ours) == holder
+        assert campaign_main(["status", *args]) == 0  # status says who trains it
+        assert f"training now: {holder}" in capsys.readouterr().out
     finally:
         held.close()
-    out = capsys.readouterr().out
-    assert (
-        f"not started: {point.id}: another mcrs-campaign run trains it (pid {os.getpid()}, outputs "
-        f"{theirs.resolve()}; {runner.claim_path(records, point)}); its record lands in {records}" in out
-    )
     assert not point.run_dir(ours).exists()
+    assert runner.claim_holder(records, point) is None
+    assert campaign_main(["status", *args]) == 0 and "training now" not in capsys.readouterr().out
     again = runner.claim_point(records, point, ours)  # released: free again
     assert not isinstance(again, str)
     again.close()

@@ -1,6 +1,6 @@
 """``mcrs-campaign``: the section-6 campaign (mcrs_lab/campaign/section6.yaml) on one machine.
 
-    mcrs-campaign status [--only fig7]                  which points are done, partial or missing
+    mcrs-campaign status [--only fig7]                  which points are done, partial or missing, which training
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
     mcrs-campaign run --hours 2.5 --fill                 the same, every slot busy, stopped (resumable) at 2.5 h
     mcrs-campaign run --hours 2.5 --fill --finish-first  the same, the runs that can end by then started first
@@ -27,8 +27,8 @@ from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, wri
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs_lab.campaign.pace import left_line
-from mcrs_lab.campaign.progress import STATES
-from mcrs_lab.campaign.runner import FILL_FLOOR_S, Campaign, CampaignBusy
+from mcrs_lab.campaign.progress import STATES, Progress
+from mcrs_lab.campaign.runner import FILL_FLOOR_S, Campaign, CampaignBusy, claim_holder
 
 OUTPUTS_DIR = Path("outputs/campaign")
 #: --hours beyond a year is a typo (and time.time() + inf never ends).
@@ -51,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs go")
         p.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
 
-    status = sub.add_parser("status", help="done, unrecorded, partial or missing, per point")
+    status = sub.add_parser(
+        "status", help="done, unrecorded, partial or missing, per point, and who trains it now"
+    )
     matrix_options(status)
     status.add_argument("--jobs", type=int, default=2, help="runs at a time, for the time left")
     run = sub.add_parser("run", help="run the next points within a time budget")
@@ -116,12 +118,21 @@ def _points(args: argparse.Namespace) -> tuple[list[Point], int]:
     return points, budget_steps(points[0].budget) if points else 0
 
 
+def _where(state: Progress, records: Path) -> str:
+    """The status table's last column: the record or run directory, and who trains the point now."""
+    holder = None if state.state == "done" else claim_holder(records, state.point)
+    return state.note if holder is None else "; ".join(filter(None, [f"training now: {holder}", state.note]))
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     _check_jobs(args.jobs)
     points, total = _points(args)
     campaign = Campaign(points, args.outputs, args.records, total, args.jobs)
     states = campaign.status()
-    rows = [[s.point.id, ",".join(s.point.figures), s.state, f"{s.env_steps:,}", s.note] for s in states]
+    rows = [
+        [s.point.id, ",".join(s.point.figures), s.state, f"{s.env_steps:,}", _where(s, args.records)]
+        for s in states
+    ]
     print(markdown(["point", "figures", "state", "env steps", "where"], rows))
     counts = Counter(s.state for s in states)
     print(

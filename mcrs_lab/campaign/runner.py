@@ -104,6 +104,21 @@ def claim_point(records: Path, point: Point, outputs: Path) -> IO[str] | str:
     return handle
 
 
+def claim_holder(records: Path, point: Point) -> str | None:
+    """Who holds ``point`` now (``"pid 7438, outputs /work/o"``), or None; creates nothing."""
+    try:
+        fd = os.open(claim_path(records, point), os.O_RDWR)
+    except OSError:  # no claim file: never claimed
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return os.pread(fd, 300, 0).decode(errors="replace").strip() or "a process"
+    finally:
+        os.close(fd)  # closing drops a lock taken here
+    return None
+
+
 def _next_run(
     queue: list[tuple[tuple[Progress, list[str]], float | None]], left: float, finish_first: bool
 ) -> int:
