@@ -4,8 +4,9 @@
     mcrs-export <run>/checkpoints/model_000500000.pt agent.pt2 --force
 
 The file takes the team's observations, action masks, previous actions and hidden states and returns the
-greedy actions and the next hidden states (its ``extra/mcrs.json`` says which is which); ``mcrs-eval
-policy=agent.pt2`` scores it. See docs/TRAINING.md, "Deploying a trained agent".
+greedy actions and the next hidden states (its ``extra/mcrs.json`` says which is which); it is loaded back
+and checked against the checkpoint before it replaces ``out``. ``mcrs-eval policy=agent.pt2`` scores its
+weights. See docs/TRAINING.md, "Deploying a trained agent".
 """
 
 from __future__ import annotations

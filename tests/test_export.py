@@ -210,3 +210,74 @@ def test_the_deployment_example_flies_each_uav_on_its_own(exported: Path) -> Non
     )
     assert out.returncode == 0, out.stderr
     assert "episode 0 (seed 4): team reward" in out.stdout and "every UAV decided alone" in out.stdout
+
+
+def _with_member(exported: Path, path: Path, edit) -> Path:
+    """``exported`` rewritten member by member through ``edit(name, data) -> data | None`` (None: dropped),
+    plus what ``edit(None, None)`` returns as extra ``(name, data)`` members."""
+    with zipfile.ZipFile(exported) as source, zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as target:
+        top = source.namelist()[0].split("/", 1)[0]
+        for member in source.infolist():
+            data = edit(member.filename.split("/", 1)[1], source.read(member))
+            if data is not None:
+                target.writestr(member, data)
+        for name, data in edit(None, None) or []:
+            target.writestr(f"{top}/{name}", data)
+    return path
+
+
+def test_the_tools_never_run_code_stored_in_the_file(exported: Path, tmp_path: Path) -> None:
+    """torch.export.load executes a program's shape guards (Python text in models/model.json): mcrs-eval
+    reads the weights instead, so a file whose guards run a command plays, and the command never runs."""
+    marker = tmp_path / "ran"
+    payload = f"__import__('pathlib').Path({str(marker)!r}).touch() is None"
+
+    def poison(name, data):
+        if name != "models/model.json":
+            return None if name is None else data
+        program = json.loads(data)
+        program["guards_code"] = [payload]
+        return json.dumps(program).encode()
+
+    crafted = _with_member(exported, tmp_path / "crafted.pt2", poison)
+    result = evaluate_policy(scenario("map10", max_steps=5), str(crafted), episodes=2, seed=0)
+    assert result["episode_reward"][1] >= 0 and not marker.exists()
+    export.load_exported(crafted)[0](*_inputs(1, 4, 36, 16, seed=0))  # the file's own program does run it
+    assert marker.exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda n, d: [("data/aotinductor/model/model.so", b"ELF")] if n is None else d, "unexpected archive member"),
+        (lambda n, d: [("data/weights/model.pt", b"x")] if n is None else d, "unexpected archive member"),
+        (
+            lambda n, d: d.replace(b'"use_pickle": false', b'"use_pickle": true', 1)
+            if n == "data/weights/model_weights_config.json" else (None if n is None else d),
+            "is not a plain float32 tensor",
+        ),
+        (
+            lambda n, d: b'{"config": {"c": {"path_name": "custom_obj_0"}}}'
+            if n == "data/constants/model_constants_config.json" else (None if n is None else d),
+            "constant-free",
+        ),
+        (
+            lambda n, d: d[:-4] if n == "data/weights/weight_0" else (None if n is None else d),
+            "is not a plain float32 tensor",
+        ),
+        (
+            lambda n, d: d.replace(b'"hidden_dim": 16', b'"hidden_dim": 32')
+            if n == "extra/mcrs.json" else (None if n is None else d),
+            "do not fit its description",
+        ),
+    ],
+)  # fmt: skip
+def test_a_tampered_export_is_refused_by_name_before_anything_runs(
+    exported: Path, tmp_path: Path, edit, message: str
+) -> None:
+    crafted = _with_member(exported, tmp_path / "crafted.pt2", edit)
+    with pytest.raises(export.ExportError, match=message):
+        export.exported_policy(crafted, scenario("map10"))
+    if message != "do not fit its description":  # the program is never loaded either
+        with pytest.raises(export.ExportError, match=message):
+            export.load_exported(crafted)

@@ -2,20 +2,28 @@
 
 ``export_agent`` writes :class:`~mcrs.policies.trained.GreedyAgentStep` of a checkpoint as a ``.pt2``
 archive (``torch.export.save``) with a JSON description beside the program (``extra/mcrs.json``: the task
-it was trained on, the action table, the inputs and outputs). On a vehicle, or in any other program::
+it was trained on, the action table, the inputs and outputs), then loads the file back and checks that it
+computes what the checkpoint's step computes. On a vehicle, or in any other program::
 
     import torch
     step = torch.export.load("agent.pt2").module()
     action, hidden = step(observation, action_mask, last_action, hidden)
 
-``load_exported`` reads such a file back with its description, refusing by name a file that is not one;
-``mcrs-eval policy=agent.pt2`` scores it, so the file that is deployed is the file that was evaluated.
+The mcrs tools never run a ``.pt2``'s program: ``torch.export.load`` unpickles parts of the archive and
+executes Python text stored in it (shape guards), so a crafted file runs its own code (torch's
+documentation says not to load untrusted files). ``mcrs-eval policy=agent.pt2`` and ``mcrs-render`` read
+the description and the raw weight bytes instead (:func:`read_weights`: plain float32 tensors, nothing
+unpickled, every member of the archive named in advance) into the same ``GreedyAgentStep``.
+:func:`load_exported` is ``torch.export.load`` with the same checks first, for files you made.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
+import shutil
 import tempfile
 import warnings
 import zipfile
@@ -28,6 +36,7 @@ from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.env.core import MOVES, N_ACTIONS
 from mcrs.env.layout import ObservationLayout
 from mcrs.experiment.untrusted import check_archive
+from mcrs.models.agent import RecurrentAgent
 from mcrs.policies.trained import (
     EXPORTED_SUFFIX,
     OBSERVATION_FIELDS,
@@ -43,6 +52,14 @@ VERSION = 1
 DESCRIPTION = "mcrs.json"  # the archive's extra file that describes the program
 #: The most environments one call of the exported program takes (torch.export needs a bound).
 MAX_ENVS = 1 << 16
+#: The members of an archive that ``torch.export.save`` writes for one program with no constants, below
+#: its one top folder: anything else (AOTInductor libraries, pickled payloads, legacy files) is refused.
+MEMBERS = re.compile(
+    r"(archive_format|archive_version|byteorder|\.data/version|\.data/serialization_id|models/model\.json"
+    r"|data/weights/model_weights_config\.json|data/weights/weight_\d+"
+    r"|data/constants/model_constants_config\.json|data/sample_inputs/model\.pt|extra/mcrs\.json)"
+)
+FLOAT32, STRIDED = 7, 7  # torch._export.serde.schema's ScalarType.FLOAT and Layout.Strided
 
 INPUTS = {
     "observation": "[E, N, obs_dim] float32: each UAV's observation (observation_layout: the slices)",
@@ -68,6 +85,7 @@ def description(trained_env: EnvConfig, config: dict[str, Any], source: Path, en
         for name, part in vars(layout).items()
         if isinstance(part, slice) and part.stop > part.start
     }
+    model = config["model"]
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -76,10 +94,11 @@ def description(trained_env: EnvConfig, config: dict[str, Any], source: Path, en
         "algo": config.get("algo", {}).get("name"),
         "seed": config.get("seed"),
         "env": trained_env.scenario(),
+        "model": {key: model[key] for key in ("hidden_dim", "agent_id", "last_action")},
         "n_agents": trained_env.n_uavs,
         "obs_dim": trained_env.obs_dim,
         "n_actions": N_ACTIONS,
-        "hidden_dim": int(config["model"]["hidden_dim"]),
+        "hidden_dim": int(model["hidden_dim"]),
         "moves": [list(move) for move in MOVES],
         "observation_layout": slices,
         "inputs": INPUTS,
@@ -87,9 +106,24 @@ def description(trained_env: EnvConfig, config: dict[str, Any], source: Path, en
     }
 
 
+def _example_inputs(
+    E: int, n_agents: int, obs_dim: int, hidden_dim: int, seed: int
+) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(E, n_agents, N_ACTIONS, generator=g) > 0.5
+    mask[..., 0] = True
+    return (
+        torch.rand(E, n_agents, obs_dim, generator=g) * 2 - 1,
+        mask,
+        torch.randint(-1, N_ACTIONS, (E, n_agents), generator=g),
+        torch.randn(E, n_agents, hidden_dim, generator=g),
+    )
+
+
 def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -> Path:
     """Write the agent of the checkpoint ``policy`` (a ``.pt`` file or a run directory) to ``out``
-    (``.pt2``), atomically: a failure leaves no file, or the old one, behind."""
+    (``.pt2``), atomically (a failure leaves no file, or the old one), once the written file has been
+    loaded back and has computed the checkpoint's actions and hidden states."""
     out = Path(out).expanduser()
     if out.suffix != SUFFIX:
         raise ExportError(f"out={out}: an exported agent's file name ends in {SUFFIX}")
@@ -99,27 +133,52 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
         raise ExportError(f"out={out}: the folder {out.parent} does not exist")
     trained = load_trained_agent(policy)
     step = GreedyAgentStep(trained.agent.cpu())
-    E, N, H = 2, trained.env.n_uavs, trained.agent.hidden_dim
-    example = (
-        torch.zeros(E, N, trained.env.obs_dim),
-        torch.ones(E, N, N_ACTIONS, dtype=torch.bool),
-        torch.full((E, N), -1, dtype=torch.int64),
-        torch.zeros(E, N, H),
-    )
+    shape = (trained.env.n_uavs, trained.env.obs_dim, trained.agent.hidden_dim)
     envs = torch.export.Dim("envs", min=1, max=MAX_ENVS)
     with warnings.catch_warnings():  # nn.GRU re-points its flat weights while traced: harmless here
         warnings.filterwarnings("ignore", message=".*were assigned during export.*")
-        program = torch.export.export(step, example, dynamic_shapes=tuple({0: envs} for _ in example))
+        program = torch.export.export(
+            step, _example_inputs(2, *shape, seed=0), dynamic_shapes=tuple({0: envs} for _ in range(4))
+        )
     text = json.dumps(description(trained.env, trained.config, trained.path, trained.env_steps), indent=1)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=f".tmp{SUFFIX}", dir=out.parent)
-    os.close(fd)
+    folder = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", suffix=".tmp", dir=out.parent))
     try:
+        tmp = folder / out.name  # the archive's top folder is named after the file
         torch.export.save(program, tmp, extra_files={DESCRIPTION: text})
+        _check_written(tmp, step, shape)
         os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     return out
+
+
+@torch.no_grad()
+def _check_written(path: Path, step: GreedyAgentStep, shape: tuple[int, int, int]) -> None:
+    """The file just written, loaded back, must compute ``step``'s outputs, and its weights read back
+    (:func:`read_weights`) must be ``step``'s."""
+    program, _ = load_exported(path)
+    for E in (1, 3):
+        args = _example_inputs(E, *shape, seed=E)
+        for got, want in zip(program(*args), step(*args), strict=True):
+            if not torch.equal(got, want):
+                raise ExportError(f"{path}: the exported program does not compute the agent's step (E={E})")
+    weights = read_weights(path, read_description(path))
+    if any(not torch.equal(weights[k], v) for k, v in step.agent.state_dict().items()):
+        raise ExportError(f"{path}: the weights read back differ from the agent's")
+
+
+def _members(archive: zipfile.ZipFile, path: Path) -> dict[str, str]:
+    """The archive's members by their name below the top folder; refuses one :data:`MEMBERS` does not name."""
+    names = {}
+    for full in archive.namelist():
+        name = full.split("/", 1)[-1]
+        if MEMBERS.fullmatch(name) is None:
+            raise ExportError(
+                f"exported agent {path}: unexpected archive member {full!r} (an mcrs export holds one "
+                "torch.export program, its raw float32 weights and mcrs.json; nothing pickled or compiled)"
+            )
+        names[name] = full
+    return names
 
 
 def read_description(path: str | Path) -> dict[str, Any]:
@@ -132,8 +191,9 @@ def read_description(path: str | Path) -> dict[str, Any]:
         refused = check_archive(path)
         if refused is None:
             with zipfile.ZipFile(path) as archive:
-                names = [n for n in archive.namelist() if n.split("/", 1)[-1] == f"extra/{DESCRIPTION}"]
-                text = archive.read(names[0]) if len(names) == 1 else None
+                key = f"extra/{DESCRIPTION}"
+                found = [n for n in archive.namelist() if n.split("/", 1)[-1] == key]
+                text = archive.read(_members(archive, path)[key]) if found else None
     except OSError as error:
         raise ExportError(f"exported agent {path} cannot be read: {error.strerror or error}") from None
     if refused is not None:
@@ -153,9 +213,78 @@ def read_description(path: str | Path) -> dict[str, Any]:
     return meta
 
 
+def read_weights(path: str | Path, meta: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """The agent's weights in the exported agent ``path``, as :class:`RecurrentAgent` names them, read as
+    raw little-endian float32 bytes (nothing unpickled); refuses a payload that is not one."""
+    path = Path(path).expanduser()
+    with zipfile.ZipFile(path) as archive:
+        members = _members(archive, path)
+        try:
+            order = archive.read(members["byteorder"]).decode()
+            config = json.loads(archive.read(members["data/weights/model_weights_config.json"]))["config"]
+            constants = json.loads(archive.read(members["data/constants/model_constants_config.json"]))
+        except (KeyError, UnicodeDecodeError, json.JSONDecodeError, TypeError) as error:
+            raise ExportError(f"exported agent {path}: its weight index cannot be read ({error!r})") from None
+        if order != "little" or constants != {"config": {}} or not isinstance(config, dict):
+            raise ExportError(
+                f"exported agent {path}: not the little-endian, constant-free program mcrs-export writes"
+            )
+        weights = {}
+        for fqn, entry in config.items():
+            try:
+                meta_t = entry["tensor_meta"]
+                sizes = [int(s["as_int"]) for s in meta_t["sizes"]]
+                strides = [int(s["as_int"]) for s in meta_t["strides"]]
+                plain = (
+                    entry["use_pickle"] is False
+                    and meta_t["dtype"] == FLOAT32
+                    and meta_t["layout"] == STRIDED
+                    and int(meta_t["storage_offset"]["as_int"]) == 0
+                    and strides == [math.prod(sizes[k + 1 :]) for k in range(len(sizes))]
+                    and fqn.startswith("agent.")
+                )
+                data = archive.read(members[f"data/weights/{entry['path_name']}"]) if plain else b""
+            except (KeyError, TypeError, ValueError) as error:
+                raise ExportError(
+                    f"exported agent {path}: weight {fqn!r} has no usable entry ({error!r})"
+                ) from None
+            if not plain or len(data) != 4 * math.prod(sizes):
+                raise ExportError(f"exported agent {path}: weight {fqn!r} is not a plain float32 tensor")
+            weights[fqn.removeprefix("agent.")] = torch.frombuffer(bytearray(data), dtype=torch.float32).view(
+                sizes
+            )
+    return weights
+
+
+def _agent(path: str | Path, meta: dict[str, Any]) -> tuple[RecurrentAgent, EnvConfig]:
+    """The agent of the exported file ``path``, built by mcrs from its description and raw weights."""
+    try:
+        trained = from_mapping(meta["env"])
+        model = meta["model"]
+        agent = RecurrentAgent(
+            trained.obs_dim, N_ACTIONS, trained.n_uavs, int(model["hidden_dim"]), bool(model["agent_id"]),
+            bool(model["last_action"]),
+        )  # fmt: skip
+    except (KeyError, TypeError, ValueError) as error:
+        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env or model ({error})") from None
+    weights = read_weights(path, meta)
+    try:
+        agent.load_state_dict(weights)
+    except RuntimeError as error:
+        first = (str(error).strip().splitlines() or ["?"])[0]
+        raise ExportError(f"exported agent {path}: its weights do not fit its description: {first}") from None
+    bad = [k for k, v in weights.items() if not torch.isfinite(v).all()]
+    if bad:
+        raise ExportError(f"exported agent {path}: the weights {', '.join(bad[:3])} hold NaN or inf")
+    return agent.eval(), trained
+
+
 def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
-    """The program of the exported agent ``path`` (a callable module) and its description."""
+    """The program of the exported agent ``path`` (``torch.export.load``) and its description, after the
+    checks of :func:`read_description` and :func:`read_weights`. Loading a program runs code stored in the
+    file: use it on files you made or trust; the mcrs tools never call it on a user's file."""
     meta = read_description(path)
+    read_weights(path, meta)
     try:
         program = torch.export.load(Path(path).expanduser())
     except Exception as error:  # a damaged program inside a sane archive
@@ -166,17 +295,13 @@ def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
 
 def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> TrainedPolicy:
     """The exported agent ``path`` as a policy of ``env_config`` (which must be the map and team it was
-    trained on), on the CPU: ``mcrs-eval`` and ``mcrs-render`` play it like a checkpoint."""
-    if env_config.device != "cpu":
-        raise ExportError(f"exported agent {path}: played on the CPU only (env.device={env_config.device})")
-    step, meta = load_exported(path)
-    try:
-        trained = from_mapping(meta["env"])
-        hidden_dim = int(meta["hidden_dim"])
-    except (KeyError, TypeError, ValueError) as error:
-        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env or hidden_dim ({error})") from None
+    trained on): its weights in mcrs's own step, so ``mcrs-eval`` and ``mcrs-render`` play it like a
+    checkpoint without running code from the file."""
+    meta = read_description(path)
+    agent, trained = _agent(path, meta)
     check_playable(trained, env_config, f"exported agent {path}")
-    return TrainedPolicy(env_config, step, hidden_dim, seed)
+    agent = agent.to(env_config.device)
+    return TrainedPolicy(env_config, GreedyAgentStep(agent), agent.hidden_dim, seed)
 
 
 def observation_settings(path: str | Path) -> dict[str, Any]:
