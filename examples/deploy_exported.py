@@ -3,7 +3,8 @@
     .venv/bin/mcrs-export outputs/map10/qmix/<run> agent.pt2
     .venv/bin/python examples/deploy_exported.py agent.pt2 [--episodes 3] [--seed 0]
 
-The policy is the ``.pt2`` file alone (``torch.export.load``): no mcrs model, config or checkpoint code.
+The policy is the ``.pt2`` file alone (``torch.export.load``: a file you made or trust, since loading a
+program runs code stored in it): no mcrs model, config or checkpoint code.
 Each UAV calls it as an onboard computer would, with its own row of the inputs only (zeros in the others)
 and its own hidden state; the simulator (mcrs's PettingZoo environment, built from the file's description)
 stands in for the world. For each step the example also makes one call for the whole team and checks
