@@ -10,7 +10,7 @@ import pytest
 from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION
 from mcrs_lab.campaign.cli import main as campaign_main
-from mcrs_lab.campaign.pace import Pace, left_line
+from mcrs_lab.campaign.pace import TWO_THREAD_SPEEDUP, Pace, left_line, thread_speedup
 from tests.test_campaign import TWO_POINTS
 
 #: test_campaign's two map10 points, and one on map15.
@@ -98,3 +98,27 @@ def test_status_and_the_dry_run_print_the_time_left(tmp_path: Path, capsys) -> N
     assert left in capsys.readouterr().out.splitlines()
     with pytest.raises(SystemExit, match="--jobs=0: must be >= 1"):
         campaign_main(["status", *args, "--jobs", "0"])
+
+
+def test_a_pace_is_per_thread_and_a_two_thread_run_is_counted_faster(tmp_path: Path, capsys) -> None:
+    """Records of 2-thread runs are brought down to one thread, and --threads 2 estimates are shorter by
+    the measured speed-up; without it `run --jobs 1 --threads 2` would refuse a run that fits."""
+    records = tmp_path / "records"
+    one = _training("map10", "qmix", 100, 1.0)
+    two = _training("map10", "vdn", 147, 1.0)
+    two["config"]["threads"] = 2
+    write_record(records / "comm_range" / "smoke" / "one.json", one)
+    write_record(records / "comm_range" / "smoke" / "two.json", two)
+    pace = Pace.read(records)
+    assert pace.speed("map10", "vdn") == pytest.approx(100 / 3600)  # 147 an hour at 2 threads = 100 at 1
+    assert pace.speed("map10", "qmix", threads=2) == pytest.approx(TWO_THREAD_SPEEDUP * 100 / 3600)
+    assert thread_speedup(4) == thread_speedup(2) == TWO_THREAD_SPEEDUP and thread_speedup(1) == 1.0
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(
+        TWO_POINTS.replace("[0, 2]", "[0]")
+    )  # one map10 qmix point of 200 env steps: 2 h at 1 thread
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "o"), "--records", str(records), "--dry-run"]
+    assert campaign_main(["run", *args, "--hours", "1.5", "--jobs", "1"]) == 0
+    assert "not started" in capsys.readouterr().out
+    assert campaign_main(["run", *args, "--hours", "1.5", "--jobs", "1", "--threads", "2"]) == 0
+    assert f"estimated {2 / TWO_THREAD_SPEEDUP:.2f} h" in capsys.readouterr().out

@@ -4,7 +4,9 @@ The campaign's own records (``<records>/<experiment>/<budget>/*.json``) come fir
 of a point's algorithm on its map, the records of older campaigns kept deeper in the same folder (the
 "near" campaign's ``near/<experiment>/<budget>/``) answer, since the simulator's and the learner's cost do
 not depend on the reward's reading. A pace is env steps per second of wall time over a run's sessions,
-evaluations and checkpoints included, as ``mcrs-campaign run`` will spend it.
+evaluations and checkpoints included, as ``mcrs-campaign run`` will spend it, for a run of one torch
+thread: a record of a run with more threads is brought down to one by :func:`thread_speedup`, and
+:meth:`Pace.speed` brings it up to the threads asked for.
 """
 
 from __future__ import annotations
@@ -16,8 +18,17 @@ from pathlib import Path
 from mcrs_lab.analysis.records import RecordError
 from mcrs_lab.analysis.runs import read_record
 
-#: (map, algorithm) -> env steps per second, averaged over the recorded runs.
+#: (map, algorithm) -> env steps per second of a 1-thread run, averaged over the recorded runs.
 Speeds = dict[tuple[str, str], float]
+#: One 2-thread run's env steps per second over those of one of two 1-thread runs side by side, measured
+#: by ``mcrs-bench-learner --launcher-steps`` (docs/PERFORMANCE.md, "Figures behind constants").
+TWO_THREAD_SPEEDUP = 1.47
+
+
+def thread_speedup(threads: int) -> float:
+    """How much faster a run of ``threads`` torch threads goes than a 1-thread run beside another: measured
+    for 2; more threads are counted as 2 (no figure for them: an estimate errs long, not short)."""
+    return 1.0 if threads <= 1 else TWO_THREAD_SPEEDUP
 
 
 def _speeds_of(paths: Iterable[Path]) -> Speeds:
@@ -35,7 +46,10 @@ def _speeds_of(paths: Iterable[Path]) -> Speeds:
         steps = record.get("checkpoint_env_steps") or 0
         if seconds and steps:
             key = (record["config"]["env"]["name"], record["config"]["algo"]["name"])
-            per.setdefault(key, []).append(steps / seconds)
+            threads = record["config"].get("threads")
+            per.setdefault(key, []).append(
+                steps / seconds / thread_speedup(threads if isinstance(threads, int) else 1)
+            )
     return {key: sum(values) / len(values) for key, values in per.items()}
 
 
@@ -51,17 +65,17 @@ class Pace:
         own = sorted(records.glob("*/*/*.json"))
         return cls(_speeds_of(own), _speeds_of(sorted(set(records.rglob("*.json")) - set(own))))
 
-    def speed(self, env: str, algo: str) -> float | None:
-        """Env steps per second of a run of ``algo`` on ``env``: that algorithm's own runs (this campaign's,
-        then older ones), else the slowest recorded algorithm on that map (an algorithm's first run would
-        otherwise look free); None when no run on that map is recorded."""
+    def speed(self, env: str, algo: str, threads: int = 1) -> float | None:
+        """Env steps per second of a run of ``algo`` on ``env`` with ``threads`` torch threads: that
+        algorithm's own runs (this campaign's, then older ones), else the slowest recorded algorithm on that
+        map (an algorithm's first run would otherwise look free); None when no run on that map is recorded."""
         for speeds in (self.own, self.older):
             if (env, algo) in speeds:
-                return speeds[env, algo]
+                return speeds[env, algo] * thread_speedup(threads)
         for speeds in (self.own, self.older):
             same_map = [value for (name, _), value in speeds.items() if name == env]
             if same_map:
-                return min(same_map)
+                return min(same_map) * thread_speedup(threads)
         return None
 
 

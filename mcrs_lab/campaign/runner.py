@@ -178,7 +178,7 @@ class Campaign:
     def estimate_s(self, state: Progress, pace: Pace) -> float | None:
         """Seconds left for a point: its own speed so far (a partial run), else the recorded runs' pace
         (mcrs_lab.campaign.pace); None when no run on its map is recorded."""
-        speed = pace.speed(state.point.env, state.point.algo)
+        speed = pace.speed(state.point.env, state.point.algo, self.threads)
         if state.state == "partial":
             seconds = loop_time_s(state.point.run_dir(self.outputs))
             if seconds and state.env_steps:
