@@ -281,3 +281,10 @@ def test_a_tampered_export_is_refused_by_name_before_anything_runs(
     if message != "do not fit its description":  # the program is never loaded either
         with pytest.raises(export.ExportError, match=message):
             export.load_exported(crafted)
+
+
+def test_mcrs_render_draws_an_exported_agents_episode(exported: Path, tmp_path: Path) -> None:
+    from mcrs.viz import write_episode_pictures
+
+    paths = write_episode_pictures(tmp_path, scenario("map10", max_steps=5), str(exported), seed=0, gif=False)
+    assert paths and all(p.is_file() for p in paths)
