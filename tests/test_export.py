@@ -270,6 +270,11 @@ def test_the_tools_never_run_code_stored_in_the_file(exported: Path, tmp_path: P
             if n == "extra/mcrs.json" else (None if n is None else d),
             "do not fit its description",
         ),
+        (  # a size that would take terabytes is refused from the weights' shapes, before any allocation
+            lambda n, d: d.replace(b'"hidden_dim": 16', b'"hidden_dim": 1000000000')
+            if n == "extra/mcrs.json" else (None if n is None else d),
+            "do not fit its description",
+        ),
     ],
 )  # fmt: skip
 def test_a_tampered_export_is_refused_by_name_before_anything_runs(

@@ -162,7 +162,7 @@ def _check_written(path: Path, step: GreedyAgentStep, shape: tuple[int, int, int
         for got, want in zip(program(*args), step(*args), strict=True):
             if not torch.equal(got, want):
                 raise ExportError(f"{path}: the exported program does not compute the agent's step (E={E})")
-    weights = read_weights(path, read_description(path))
+    weights = read_weights(path)
     if any(not torch.equal(weights[k], v) for k, v in step.agent.state_dict().items()):
         raise ExportError(f"{path}: the weights read back differ from the agent's")
 
@@ -213,7 +213,7 @@ def read_description(path: str | Path) -> dict[str, Any]:
     return meta
 
 
-def read_weights(path: str | Path, meta: dict[str, Any]) -> dict[str, torch.Tensor]:
+def read_weights(path: str | Path) -> dict[str, torch.Tensor]:
     """The agent's weights in the exported agent ``path``, as :class:`RecurrentAgent` names them, read as
     raw little-endian float32 bytes (nothing unpickled); refuses a payload that is not one."""
     path = Path(path).expanduser()
@@ -256,27 +256,45 @@ def read_weights(path: str | Path, meta: dict[str, Any]) -> dict[str, torch.Tens
     return weights
 
 
-def _agent(path: str | Path, meta: dict[str, Any]) -> tuple[RecurrentAgent, EnvConfig]:
-    """The agent of the exported file ``path``, built by mcrs from its description and raw weights."""
+def _trained_env(path: str | Path, meta: dict[str, Any]) -> EnvConfig:
     try:
-        trained = from_mapping(meta["env"])
-        model = meta["model"]
-        agent = RecurrentAgent(
-            trained.obs_dim, N_ACTIONS, trained.n_uavs, int(model["hidden_dim"]), bool(model["agent_id"]),
-            bool(model["last_action"]),
-        )  # fmt: skip
+        return from_mapping(meta["env"])
     except (KeyError, TypeError, ValueError) as error:
-        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env or model ({error})") from None
-    weights = read_weights(path, meta)
+        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env ({error})") from None
+
+
+def _agent(path: str | Path, meta: dict[str, Any], trained: EnvConfig) -> RecurrentAgent:
+    """The agent of the exported file ``path``, built by mcrs from its description and raw weights; the
+    sizes are checked against the weights read (bounded by the file) before anything is allocated."""
+    weights = read_weights(path)
+    try:
+        model = meta["model"]
+        hidden_dim, agent_id, last_action = (
+            int(model["hidden_dim"]),
+            bool(model["agent_id"]),
+            bool(model["last_action"]),
+        )
+    except (KeyError, TypeError, ValueError) as error:
+        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable model ({error})") from None
+    inputs = trained.obs_dim + (N_ACTIONS if last_action else 0) + (trained.n_uavs if agent_id else 0)
+    first = weights.get("fc1.weight")
+    if first is None or tuple(first.shape) != (hidden_dim, inputs):
+        raise ExportError(
+            f"exported agent {path}: its weights do not fit its description (fc1.weight "
+            f"{None if first is None else tuple(first.shape)}, described ({hidden_dim}, {inputs}))"
+        )
+    agent = RecurrentAgent(trained.obs_dim, N_ACTIONS, trained.n_uavs, hidden_dim, agent_id, last_action)
     try:
         agent.load_state_dict(weights)
     except RuntimeError as error:
-        first = (str(error).strip().splitlines() or ["?"])[0]
-        raise ExportError(f"exported agent {path}: its weights do not fit its description: {first}") from None
+        reason = (str(error).strip().splitlines() or ["?"])[0]
+        raise ExportError(
+            f"exported agent {path}: its weights do not fit its description: {reason}"
+        ) from None
     bad = [k for k, v in weights.items() if not torch.isfinite(v).all()]
     if bad:
         raise ExportError(f"exported agent {path}: the weights {', '.join(bad[:3])} hold NaN or inf")
-    return agent.eval(), trained
+    return agent.eval()
 
 
 def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
@@ -284,7 +302,7 @@ def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     checks of :func:`read_description` and :func:`read_weights`. Loading a program runs code stored in the
     file: use it on files you made or trust; the mcrs tools never call it on a user's file."""
     meta = read_description(path)
-    read_weights(path, meta)
+    read_weights(path)
     try:
         program = torch.export.load(Path(path).expanduser())
     except Exception as error:  # a damaged program inside a sane archive
@@ -298,9 +316,9 @@ def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> T
     trained on): its weights in mcrs's own step, so ``mcrs-eval`` and ``mcrs-render`` play it like a
     checkpoint without running code from the file."""
     meta = read_description(path)
-    agent, trained = _agent(path, meta)
-    check_playable(trained, env_config, f"exported agent {path}")
-    agent = agent.to(env_config.device)
+    trained = _trained_env(path, meta)
+    check_playable(trained, env_config, f"exported agent {path}")  # first: the sizes are then the env's
+    agent = _agent(path, meta, trained).to(env_config.device)
     return TrainedPolicy(env_config, GreedyAgentStep(agent), agent.hidden_dim, seed)
 
 
@@ -308,7 +326,7 @@ def observation_settings(path: str | Path) -> dict[str, Any]:
     """The exported agent's values of the observation fields (``mcrs.policies.policy_env``); none when its
     description has no usable env (loading the policy then names the problem)."""
     try:
-        trained = from_mapping(read_description(path)["env"])
-    except (KeyError, TypeError, ValueError):  # ExportError is a ValueError
+        trained = _trained_env(path, read_description(path))
+    except ValueError:  # ExportError is one: loading the policy names the problem
         return {}
     return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
