@@ -607,6 +607,10 @@ def _bad_env(state: dict[str, Any]) -> None:
     state["config"]["env"]["width"] = -3
 
 
+def _huge_env_value(state: dict[str, Any]) -> None:
+    state["config"]["env"]["comm_range"] = 10**400  # float() overflows: not a ValueError
+
+
 BAD_POLICIES: list[tuple[Callable[[dict[str, Any]], None], str]] = [
     (_nan_weight, "hold NaN or inf"),
     (_inf_weight, "hold NaN or inf"),
@@ -616,6 +620,7 @@ BAD_POLICIES: list[tuple[Callable[[dict[str, Any]], None], str]] = [
     (_no_agent, "lacks a usable config or agent (KeyError"),
     (_string_weight, "or are not tensors"),
     (_bad_env, "lacks a usable config or agent (ValueError"),
+    (_huge_env_value, "lacks a usable config or agent (OverflowError"),
 ]
 
 

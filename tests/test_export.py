@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -246,46 +247,115 @@ def test_the_tools_never_run_code_stored_in_the_file(exported: Path, tmp_path: P
     assert marker.exists()
 
 
-@pytest.mark.parametrize(
-    ("edit", "message"),
-    [
-        (lambda n, d: [("data/aotinductor/model/model.so", b"ELF")] if n is None else d, "unexpected archive member"),
-        (lambda n, d: [("data/weights/model.pt", b"x")] if n is None else d, "unexpected archive member"),
-        (
-            lambda n, d: d.replace(b'"use_pickle": false', b'"use_pickle": true', 1)
-            if n == "data/weights/model_weights_config.json" else (None if n is None else d),
-            "is not a plain float32 tensor",
-        ),
-        (
-            lambda n, d: b'{"config": {"c": {"path_name": "custom_obj_0"}}}'
-            if n == "data/constants/model_constants_config.json" else (None if n is None else d),
-            "constant-free",
-        ),
-        (
-            lambda n, d: d[:-4] if n == "data/weights/weight_0" else (None if n is None else d),
-            "is not a plain float32 tensor",
-        ),
-        (
-            lambda n, d: d.replace(b'"hidden_dim": 16', b'"hidden_dim": 32')
-            if n == "extra/mcrs.json" else (None if n is None else d),
-            "do not fit its description",
-        ),
-        (  # a size that would take terabytes is refused from the weights' shapes, before any allocation
-            lambda n, d: d.replace(b'"hidden_dim": 16', b'"hidden_dim": 1000000000')
-            if n == "extra/mcrs.json" else (None if n is None else d),
-            "do not fit its description",
-        ),
-    ],
-)  # fmt: skip
+def _changed(member: str, change):
+    """An edit for :func:`_with_member`: ``change(data)`` on one member, the others as they are."""
+    return lambda n, d: None if n is None else (change(d) if n == member else d)
+
+
+def _added(*members: tuple[str, bytes]):
+    return lambda n, d: list(members) if n is None else d
+
+
+def _weight_index(change):
+    def edit(data: bytes) -> bytes:
+        index = json.loads(data)
+        change(index["config"])
+        return json.dumps(index).encode()
+
+    return _changed("data/weights/model_weights_config.json", edit)
+
+
+def _description(change):
+    def edit(data: bytes) -> bytes:
+        meta = json.loads(data)
+        change(meta)
+        return json.dumps(meta).encode()
+
+    return _changed("extra/mcrs.json", edit)
+
+
+def _damaged(path: Path, member: str) -> None:
+    """Flip one byte of ``member``'s data in the file itself, so that its CRC no longer matches."""
+    with zipfile.ZipFile(path) as archive:
+        info = next(i for i in archive.infolist() if i.filename.endswith(member))
+    raw = bytearray(path.read_bytes())
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    raw[start + 10] ^= 0xFF
+    path.write_bytes(bytes(raw))
+
+
+#: Cases that only mcrs's reading of the description catches (the program loader does not read it).
+DESCRIPTION_ONLY = ("an int of 400 digits", "control characters in the name", "another hidden size",
+                    "a hidden size of a billion", "a reversed action table")  # fmt: skip
+
+
+#: (edit, what the refusal says): the tampered archives the tools meet, each refused before any episode.
+TAMPERED = {
+    "a compiled library": (_added(("data/aotinductor/model/model.so", b"ELF")), "unexpected archive member"),
+    "a legacy pickled state": (_added(("data/weights/model.pt", b"x")), "unexpected archive member"),
+    "a member given twice": (_added(("data/weights/weight_7", bytes(32))), "is there twice"),
+    "a pickled weight": (
+        _changed("data/weights/model_weights_config.json", lambda d: d.replace(b'"use_pickle": false', b'"use_pickle": true', 1)),
+        "is not a plain float32 tensor",
+    ),
+    "a constant": (
+        _changed("data/constants/model_constants_config.json", lambda d: b'{"config": {"c": {"path_name": "custom_obj_0"}}}'),
+        "constant-free",
+    ),
+    "a truncated weight": (_changed("data/weights/weight_0", lambda d: d[:-4]), "is not a plain float32 tensor"),
+    "a damaged member (CRC)": (_changed("data/weights/weight_0", lambda d: d), "cannot be read .Bad CRC"),
+    "800 tensors over one member": (
+        _weight_index(lambda c: c.update({f"agent.x{i}": c["agent.fc1.bias"] for i in range(800)})),
+        r"not the agent's 8 tensors \(unexpected: \['agent.x0', 'agent.x1'\] ...",
+    ),
+    "two tensors over one member": (
+        _weight_index(lambda c: c["agent.fc2.bias"].update(path_name=c["agent.fc1.bias"]["path_name"])),
+        "is not a plain float32 tensor of its own",
+    ),
+    "20,000 dimensions": (
+        _weight_index(lambda c: c["agent.fc1.bias"]["tensor_meta"].update(
+            sizes=[{"as_int": 16}] + [{"as_int": 1}] * 20000, strides=[{"as_int": 1}] * 20001)),
+        "is not a plain float32 tensor",
+    ),
+    "negative sizes": (
+        _weight_index(lambda c: c["agent.fc1.bias"]["tensor_meta"].update(
+            sizes=[{"as_int": -4}, {"as_int": -4}], strides=[{"as_int": -4}, {"as_int": 1}])),
+        "is not a plain float32 tensor",
+    ),
+    "a description nested 100,000 deep": (_changed("extra/mcrs.json", lambda d: b"[" * 100_000), "nested too deep"),
+    "a 2 MB description": (_changed("extra/mcrs.json", lambda d: d + b" " * (2 << 20)), "at most 1,048,576"),
+    "an int of 400 digits": (_description(lambda m: m["env"].update(comm_range=10**400)), "lacks a usable env"),
+    "control characters in the name": (
+        _description(lambda m: m["env"].update(name="map10\n\x1b[1Aall good")), "not a printable name"),
+    "another hidden size": (_description(lambda m: m["model"].update(hidden_dim=32)), "do not fit its description"),
+    "a hidden size of a billion": (  # refused from the weights' shapes, before anything is allocated
+        _description(lambda m: m["model"].update(hidden_dim=10**9)), "do not fit its description"),
+    "a reversed action table": (_description(lambda m: m["moves"].reverse()), "has a wrong moves"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(TAMPERED))
 def test_a_tampered_export_is_refused_by_name_before_anything_runs(
-    exported: Path, tmp_path: Path, edit, message: str
+    exported: Path, tmp_path: Path, case: str
 ) -> None:
-    crafted = _with_member(exported, tmp_path / "crafted.pt2", edit)
+    edit, message = TAMPERED[case]
+    with warnings.catch_warnings():  # zipfile warns of the duplicate name it is asked to write
+        warnings.simplefilter("ignore", UserWarning)
+        crafted = _with_member(exported, tmp_path / "crafted.pt2", edit)
+    if "CRC" in case:
+        _damaged(crafted, "data/weights/weight_0")
     with pytest.raises(export.ExportError, match=message):
         export.exported_policy(crafted, scenario("map10"))
-    if message != "do not fit its description":  # the program is never loaded either
-        with pytest.raises(export.ExportError, match=message):
+    if case not in DESCRIPTION_ONLY:
+        with pytest.raises(export.ExportError, match=message):  # nor is the program loaded
             export.load_exported(crafted)
+
+
+def test_the_weight_names_are_the_agents() -> None:
+    from mcrs.models.agent import RecurrentAgent
+
+    step = GreedyAgentStep(RecurrentAgent(5, 8, 2, 4))
+    assert sorted(step.state_dict()) == sorted(export.AGENT_WEIGHTS)
 
 
 def test_mcrs_render_draws_an_exported_agents_episode(exported: Path, tmp_path: Path) -> None:

@@ -60,6 +60,25 @@ MEMBERS = re.compile(
     r"|data/constants/model_constants_config\.json|data/sample_inputs/model\.pt|extra/mcrs\.json)"
 )
 FLOAT32, STRIDED = 7, 7  # torch._export.serde.schema's ScalarType.FLOAT and Layout.Strided
+#: The agent's tensors as ``torch.export`` names them (``GreedyAgentStep.agent``'s state dict).
+AGENT_WEIGHTS = tuple(
+    f"agent.{name}"
+    for name in ("fc1.weight", "fc1.bias", "rnn.weight_ih_l0", "rnn.weight_hh_l0", "rnn.bias_ih_l0",
+                 "rnn.bias_hh_l0", "fc2.weight", "fc2.bias")
+)  # fmt: skip
+#: The description's fields a user builds the inputs and reads the outputs by: checked against the agent.
+INTERFACE = (
+    "n_agents",
+    "obs_dim",
+    "n_actions",
+    "hidden_dim",
+    "moves",
+    "observation_layout",
+    "inputs",
+    "outputs",
+)
+#: The largest JSON member read (``mcrs.json``, the weight index): an honest one is a few kB.
+MAX_JSON_BYTES = 1 << 20
 
 INPUTS = {
     "observation": "[E, N, obs_dim] float32: each UAV's observation (observation_layout: the slices)",
@@ -167,100 +186,166 @@ def _check_written(path: Path, step: GreedyAgentStep, shape: tuple[int, int, int
         raise ExportError(f"{path}: the weights read back differ from the agent's")
 
 
-def _members(archive: zipfile.ZipFile, path: Path) -> dict[str, str]:
-    """The archive's members by their name below the top folder; refuses one :data:`MEMBERS` does not name."""
-    names = {}
-    for full in archive.namelist():
-        name = full.split("/", 1)[-1]
+def _members(archive: zipfile.ZipFile, path: Path) -> dict[str, zipfile.ZipInfo]:
+    """The archive's members by their name below the top folder; refuses one :data:`MEMBERS` does not name,
+    and a name given twice (zip readers disagree on which copy counts: mcrs would play other weights than
+    the program carries)."""
+    names: dict[str, zipfile.ZipInfo] = {}
+    for member in archive.infolist():
+        name = member.filename.split("/", 1)[-1]
         if MEMBERS.fullmatch(name) is None:
             raise ExportError(
-                f"exported agent {path}: unexpected archive member {full!r} (an mcrs export holds one "
-                "torch.export program, its raw float32 weights and mcrs.json; nothing pickled or compiled)"
+                f"exported agent {path}: unexpected archive member {member.filename!r} (an mcrs export holds "
+                "one torch.export program, its raw float32 weights and mcrs.json; nothing pickled or compiled)"
             )
-        names[name] = full
+        if name in names:
+            raise ExportError(f"exported agent {path}: the archive member {member.filename!r} is there twice")
+        names[name] = member
     return names
+
+
+def _read(archive: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path, limit: int | None = None) -> bytes:
+    """A member's bytes; a damaged or encrypted member, or one over ``limit`` bytes, refused by name."""
+    if limit is not None and member.file_size > limit:
+        raise ExportError(
+            f"exported agent {path}: {member.filename} holds {member.file_size:,} bytes (at most {limit:,})"
+        )
+    try:
+        return archive.read(member)
+    except (OSError, EOFError, RuntimeError, NotImplementedError, zipfile.BadZipFile) as error:
+        raise ExportError(f"exported agent {path}: {member.filename} cannot be read ({error})") from None
+
+
+def _json(archive: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path) -> Any:
+    try:
+        return json.loads(_read(archive, member, path, MAX_JSON_BYTES))
+    except (ValueError, RecursionError) as error:  # JSONDecodeError, UnicodeDecodeError, 5000-digit ints
+        reason = "nested too deep" if isinstance(error, RecursionError) else error
+        raise ExportError(f"exported agent {path}: {member.filename} is not JSON ({reason})") from None
+
+
+def _open(path: Path) -> zipfile.ZipFile:
+    """The archive ``path`` after :func:`check_archive`; refuses a file that is not a sane zip."""
+    try:
+        if not path.is_file():
+            raise ExportError(f"exported agent {path} does not exist")
+        refused = check_archive(path)
+        if refused is None:
+            return zipfile.ZipFile(path)
+    except (OSError, zipfile.BadZipFile, RuntimeError, EOFError) as error:
+        raise ExportError(
+            f"exported agent {path} cannot be read: {getattr(error, 'strerror', None) or error}"
+        ) from None
+    raise ExportError(f"exported agent {path} cannot be read safely: {refused}")
 
 
 def read_description(path: str | Path) -> dict[str, Any]:
     """The ``mcrs.json`` of the exported agent ``path``, read from the archive without loading the
     program; refuses (ExportError) a file that is not an exported mcrs agent of this version."""
     path = Path(path).expanduser()
-    try:
-        if not path.is_file():
-            raise ExportError(f"exported agent {path} does not exist")
-        refused = check_archive(path)
-        if refused is None:
-            with zipfile.ZipFile(path) as archive:
-                key = f"extra/{DESCRIPTION}"
-                found = [n for n in archive.namelist() if n.split("/", 1)[-1] == key]
-                text = archive.read(_members(archive, path)[key]) if found else None
-    except OSError as error:
-        raise ExportError(f"exported agent {path} cannot be read: {error.strerror or error}") from None
-    if refused is not None:
-        raise ExportError(f"exported agent {path} cannot be read safely: {refused}")
-    if text is None:
-        raise ExportError(
-            f"{path} is not an exported mcrs agent (no extra/{DESCRIPTION}; make one with mcrs-export)"
-        )
-    try:
-        meta = json.loads(text)
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ExportError(f"{path}: its {DESCRIPTION} is not JSON ({error})") from None
+    with _open(path) as archive:
+        key = f"extra/{DESCRIPTION}"
+        if not any(n.split("/", 1)[-1] == key for n in archive.namelist()):
+            raise ExportError(
+                f"{path} is not an exported mcrs agent (no extra/{DESCRIPTION}; make one with mcrs-export)"
+            )
+        meta = _json(archive, _members(archive, path)[key], path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ExportError(f"{path} is not an exported mcrs agent (no '{FORMAT}' marker in {DESCRIPTION})")
     if meta.get("version") != VERSION:
-        raise ExportError(f"{path} has export version {meta.get('version')}; this mcrs reads {VERSION}")
+        raise ExportError(
+            f"{path} has export version {str(meta.get('version'))[:20]}; this mcrs reads {VERSION}"
+        )
     return meta
+
+
+def _plain_float32(fqn: str, entry: Any) -> tuple[list[int], str] | None:
+    """The sizes and the member of a weight entry that is a plain contiguous float32 tensor of one or two
+    dimensions, as ``torch.export.save`` writes :class:`RecurrentAgent`'s; None for anything else."""
+    try:
+        meta = entry["tensor_meta"]
+        if len(meta["sizes"]) not in (1, 2) or len(meta["strides"]) != len(meta["sizes"]):
+            return None
+        sizes = [int(s["as_int"]) for s in meta["sizes"]]
+        strides = [int(s["as_int"]) for s in meta["strides"]]
+        plain = (
+            fqn in AGENT_WEIGHTS
+            and entry["use_pickle"] is False
+            and meta["dtype"] == FLOAT32
+            and meta["layout"] == STRIDED
+            and int(meta["storage_offset"]["as_int"]) == 0
+            and all(size >= 0 for size in sizes)
+            and strides == ([sizes[1], 1] if len(sizes) == 2 else [1])
+            and isinstance(entry["path_name"], str)
+        )
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return None
+    return (sizes, f"data/weights/{entry['path_name']}") if plain else None
 
 
 def read_weights(path: str | Path) -> dict[str, torch.Tensor]:
     """The agent's weights in the exported agent ``path``, as :class:`RecurrentAgent` names them, read as
-    raw little-endian float32 bytes (nothing unpickled); refuses a payload that is not one."""
+    raw little-endian float32 bytes (nothing unpickled): exactly the agent's tensors, each in a member of
+    its own of exactly its size; refuses anything else by name."""
     path = Path(path).expanduser()
-    with zipfile.ZipFile(path) as archive:
+    with _open(path) as archive:
         members = _members(archive, path)
-        try:
-            order = archive.read(members["byteorder"]).decode()
-            config = json.loads(archive.read(members["data/weights/model_weights_config.json"]))["config"]
-            constants = json.loads(archive.read(members["data/constants/model_constants_config.json"]))
-        except (KeyError, UnicodeDecodeError, json.JSONDecodeError, TypeError) as error:
-            raise ExportError(f"exported agent {path}: its weight index cannot be read ({error!r})") from None
-        if order != "little" or constants != {"config": {}} or not isinstance(config, dict):
+        needed = (
+            "byteorder",
+            "data/weights/model_weights_config.json",
+            "data/constants/model_constants_config.json",
+        )
+        missing = [name for name in needed if name not in members]
+        if missing:
+            raise ExportError(f"exported agent {path}: no {missing[0]} in the archive")
+        order = _read(archive, members["byteorder"], path, 16)
+        config = _json(archive, members[needed[1]], path)
+        constants = _json(archive, members[needed[2]], path)
+        if order != b"little" or constants != {"config": {}}:
             raise ExportError(
                 f"exported agent {path}: not the little-endian, constant-free program mcrs-export writes"
             )
-        weights = {}
-        for fqn, entry in config.items():
-            try:
-                meta_t = entry["tensor_meta"]
-                sizes = [int(s["as_int"]) for s in meta_t["sizes"]]
-                strides = [int(s["as_int"]) for s in meta_t["strides"]]
-                plain = (
-                    entry["use_pickle"] is False
-                    and meta_t["dtype"] == FLOAT32
-                    and meta_t["layout"] == STRIDED
-                    and int(meta_t["storage_offset"]["as_int"]) == 0
-                    and strides == [math.prod(sizes[k + 1 :]) for k in range(len(sizes))]
-                    and fqn.startswith("agent.")
-                )
-                data = archive.read(members[f"data/weights/{entry['path_name']}"]) if plain else b""
-            except (KeyError, TypeError, ValueError) as error:
+        entries = config.get("config") if isinstance(config, dict) else None
+        if not isinstance(entries, dict) or sorted(entries) != sorted(AGENT_WEIGHTS):
+            extra = sorted(set(entries) - set(AGENT_WEIGHTS)) if isinstance(entries, dict) else []
+            missing = (
+                sorted(set(AGENT_WEIGHTS) - set(entries)) if isinstance(entries, dict) else AGENT_WEIGHTS
+            )
+            raise ExportError(
+                f"exported agent {path}: its weight index is not the agent's {len(AGENT_WEIGHTS)} tensors "
+                f"(unexpected: {str(extra[:2])[:100]}{' ...' if len(extra) > 2 else ''}; missing: {list(missing)})"
+            )
+        weights, used = {}, set()
+        for fqn, entry in entries.items():
+            plain = _plain_float32(fqn, entry)
+            member = members.get(plain[1]) if plain is not None else None
+            if (
+                plain is None
+                or member is None
+                or plain[1] in used
+                or member.file_size != 4 * math.prod(plain[0])
+            ):
                 raise ExportError(
-                    f"exported agent {path}: weight {fqn!r} has no usable entry ({error!r})"
-                ) from None
-            if not plain or len(data) != 4 * math.prod(sizes):
-                raise ExportError(f"exported agent {path}: weight {fqn!r} is not a plain float32 tensor")
+                    f"exported agent {path}: weight {fqn!r} is not a plain float32 tensor of its own"
+                )
+            used.add(plain[1])
+            data = _read(archive, member, path)
             weights[fqn.removeprefix("agent.")] = torch.frombuffer(bytearray(data), dtype=torch.float32).view(
-                sizes
+                plain[0]
             )
     return weights
 
 
 def _trained_env(path: str | Path, meta: dict[str, Any]) -> EnvConfig:
+    """The scenario the description says the agent was trained on, validated as any env config."""
     try:
-        return from_mapping(meta["env"])
-    except (KeyError, TypeError, ValueError) as error:
-        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env ({error})") from None
+        env = meta["env"]
+        name = env["name"]
+        if not isinstance(name, str) or not name.isprintable() or len(name) > 64:
+            raise ValueError(f"name {name!r:.40}: not a printable name of at most 64 characters")
+        return from_mapping(env)
+    except (KeyError, TypeError, ValueError, OverflowError) as error:  # 10**400 overflows float()
+        raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env ({str(error)[:200]})") from None
 
 
 def _agent(path: str | Path, meta: dict[str, Any], trained: EnvConfig) -> RecurrentAgent:
@@ -318,7 +403,14 @@ def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> T
     meta = read_description(path)
     trained = _trained_env(path, meta)
     check_playable(trained, env_config, f"exported agent {path}")  # first: the sizes are then the env's
-    agent = _agent(path, meta, trained).to(env_config.device)
+    agent = _agent(path, meta, trained)
+    interface = description(trained, {"model": meta["model"]}, Path(), None)
+    wrong = [k for k in INTERFACE if meta.get(k) != interface[k]]
+    if wrong:  # a reader without mcrs would build its inputs or read its actions from these
+        raise ExportError(
+            f"exported agent {path}: its {DESCRIPTION} has a wrong {wrong[0]} for its agent and env"
+        )
+    agent = agent.to(env_config.device)
     return TrainedPolicy(env_config, GreedyAgentStep(agent), agent.hidden_dim, seed)
 
 

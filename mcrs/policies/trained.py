@@ -50,7 +50,7 @@ def observation_settings(path: str | Path) -> dict[str, Any]:
     state = ckpt.load(resolve_checkpoint(path), mmap=True)
     try:
         trained = from_mapping(with_legacy_values(state["config"]["env"])[0])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         return {}
     return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
 
@@ -113,7 +113,7 @@ def load_trained_agent(path: str | Path) -> TrainedAgent:
         trained = from_mapping(saved_env)
         model = state["config"]["model"]
         weights = state["learner"]["agent"]
-    except (KeyError, TypeError, ValueError) as error:
+    except (KeyError, TypeError, ValueError, OverflowError) as error:  # 10**400 overflows float()
         reason = "; ".join(line.strip(" -") for line in str(error).splitlines() if line.strip())
         raise ckpt.CheckpointError(
             f"checkpoint {path} lacks a usable config or agent ({type(error).__name__}: {reason})"
