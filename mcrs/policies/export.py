@@ -46,7 +46,6 @@ from mcrs.policies.trained import (
     load_trained_agent,
 )
 
-SUFFIX = EXPORTED_SUFFIX
 FORMAT = "mcrs-exported-agent"
 VERSION = 1
 DESCRIPTION = "mcrs.json"  # the archive's extra file that describes the program
@@ -144,8 +143,8 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
     (``.pt2``), atomically (a failure leaves no file, or the old one), once the written file has been
     loaded back and has computed the checkpoint's actions and hidden states."""
     out = Path(out).expanduser()
-    if out.suffix != SUFFIX:
-        raise ExportError(f"out={out}: an exported agent's file name ends in {SUFFIX}")
+    if out.suffix != EXPORTED_SUFFIX:
+        raise ExportError(f"out={out}: an exported agent's file name ends in {EXPORTED_SUFFIX}")
     if out.exists() and not overwrite:
         raise ExportError(f"out={out} exists: pass --force to replace it")
     if not out.parent.is_dir():
@@ -175,13 +174,12 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
 def _check_written(path: Path, step: GreedyAgentStep, shape: tuple[int, int, int]) -> None:
     """The file just written, loaded back, must compute ``step``'s outputs, and its weights read back
     (:func:`read_weights`) must be ``step``'s."""
-    program, _ = load_exported(path)
+    program, _, weights = _load(path)
     for E in (1, 3):
         args = _example_inputs(E, *shape, seed=E)
         for got, want in zip(program(*args), step(*args), strict=True):
             if not torch.equal(got, want):
                 raise ExportError(f"{path}: the exported program does not compute the agent's step (E={E})")
-    weights = read_weights(path)
     if any(not torch.equal(weights[k], v) for k, v in step.agent.state_dict().items()):
         raise ExportError(f"{path}: the weights read back differ from the agent's")
 
@@ -244,12 +242,16 @@ def read_description(path: str | Path) -> dict[str, Any]:
     program; refuses (ExportError) a file that is not an exported mcrs agent of this version."""
     path = Path(path).expanduser()
     with _open(path) as archive:
-        key = f"extra/{DESCRIPTION}"
-        if not any(n.split("/", 1)[-1] == key for n in archive.namelist()):
-            raise ExportError(
-                f"{path} is not an exported mcrs agent (no extra/{DESCRIPTION}; make one with mcrs-export)"
-            )
-        meta = _json(archive, _members(archive, path)[key], path)
+        return _description(archive, path)
+
+
+def _description(archive: zipfile.ZipFile, path: Path) -> dict[str, Any]:
+    key = f"extra/{DESCRIPTION}"
+    if not any(n.split("/", 1)[-1] == key for n in archive.namelist()):
+        raise ExportError(
+            f"{path} is not an exported mcrs agent (no extra/{DESCRIPTION}; make one with mcrs-export)"
+        )
+    meta = _json(archive, _members(archive, path)[key], path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ExportError(f"{path} is not an exported mcrs agent (no '{FORMAT}' marker in {DESCRIPTION})")
     if meta.get("version") != VERSION:
@@ -289,54 +291,51 @@ def read_weights(path: str | Path) -> dict[str, torch.Tensor]:
     its own of exactly its size; refuses anything else by name."""
     path = Path(path).expanduser()
     with _open(path) as archive:
-        members = _members(archive, path)
-        needed = (
-            "byteorder",
-            "data/weights/model_weights_config.json",
-            "data/constants/model_constants_config.json",
+        return _weights(archive, path)
+
+
+def _weights(archive: zipfile.ZipFile, path: Path) -> dict[str, torch.Tensor]:
+    members = _members(archive, path)
+    needed = (
+        "byteorder",
+        "data/weights/model_weights_config.json",
+        "data/constants/model_constants_config.json",
+    )
+    missing = [name for name in needed if name not in members]
+    if missing:
+        raise ExportError(f"exported agent {path}: no {missing[0]} in the archive")
+    order = _read(archive, members["byteorder"], path, 16)
+    config = _json(archive, members[needed[1]], path)
+    constants = _json(archive, members[needed[2]], path)
+    if order != b"little" or constants != {"config": {}}:
+        raise ExportError(
+            f"exported agent {path}: not the little-endian, constant-free program mcrs-export writes"
         )
-        missing = [name for name in needed if name not in members]
-        if missing:
-            raise ExportError(f"exported agent {path}: no {missing[0]} in the archive")
-        order = _read(archive, members["byteorder"], path, 16)
-        config = _json(archive, members[needed[1]], path)
-        constants = _json(archive, members[needed[2]], path)
-        if order != b"little" or constants != {"config": {}}:
+    entries = config.get("config") if isinstance(config, dict) else None
+    if not isinstance(entries, dict) or sorted(entries) != sorted(AGENT_WEIGHTS):
+        extra = sorted(set(entries) - set(AGENT_WEIGHTS)) if isinstance(entries, dict) else []
+        missing = sorted(set(AGENT_WEIGHTS) - set(entries)) if isinstance(entries, dict) else AGENT_WEIGHTS
+        raise ExportError(
+            f"exported agent {path}: its weight index is not the agent's {len(AGENT_WEIGHTS)} tensors "
+            f"(unexpected: {str(extra[:2])[:100]}{' ...' if len(extra) > 2 else ''}; missing: {list(missing)})"
+        )
+    weights, used = {}, set()
+    for fqn, entry in entries.items():
+        plain = _plain_float32(fqn, entry)
+        member = members.get(plain[1]) if plain is not None else None
+        if plain is None or member is None or plain[1] in used or member.file_size != 4 * math.prod(plain[0]):
             raise ExportError(
-                f"exported agent {path}: not the little-endian, constant-free program mcrs-export writes"
+                f"exported agent {path}: weight {fqn!r} is not a plain float32 tensor of its own"
             )
-        entries = config.get("config") if isinstance(config, dict) else None
-        if not isinstance(entries, dict) or sorted(entries) != sorted(AGENT_WEIGHTS):
-            extra = sorted(set(entries) - set(AGENT_WEIGHTS)) if isinstance(entries, dict) else []
-            missing = (
-                sorted(set(AGENT_WEIGHTS) - set(entries)) if isinstance(entries, dict) else AGENT_WEIGHTS
-            )
-            raise ExportError(
-                f"exported agent {path}: its weight index is not the agent's {len(AGENT_WEIGHTS)} tensors "
-                f"(unexpected: {str(extra[:2])[:100]}{' ...' if len(extra) > 2 else ''}; missing: {list(missing)})"
-            )
-        weights, used = {}, set()
-        for fqn, entry in entries.items():
-            plain = _plain_float32(fqn, entry)
-            member = members.get(plain[1]) if plain is not None else None
-            if (
-                plain is None
-                or member is None
-                or plain[1] in used
-                or member.file_size != 4 * math.prod(plain[0])
-            ):
-                raise ExportError(
-                    f"exported agent {path}: weight {fqn!r} is not a plain float32 tensor of its own"
-                )
-            used.add(plain[1])
-            data = _read(archive, member, path)
-            weights[fqn.removeprefix("agent.")] = torch.frombuffer(bytearray(data), dtype=torch.float32).view(
-                plain[0]
-            )
+        used.add(plain[1])
+        data = _read(archive, member, path)
+        weights[fqn.removeprefix("agent.")] = torch.frombuffer(bytearray(data), dtype=torch.float32).view(
+            plain[0]
+        )
     return weights
 
 
-def _trained_env(path: str | Path, meta: dict[str, Any]) -> EnvConfig:
+def _trained_env(path: Path, meta: dict[str, Any]) -> EnvConfig:
     """The scenario the description says the agent was trained on, validated as any env config."""
     try:
         env = meta["env"]
@@ -348,10 +347,11 @@ def _trained_env(path: str | Path, meta: dict[str, Any]) -> EnvConfig:
         raise ExportError(f"{path}: its {DESCRIPTION} lacks a usable env ({str(error)[:200]})") from None
 
 
-def _agent(path: str | Path, meta: dict[str, Any], trained: EnvConfig) -> RecurrentAgent:
+def _agent(
+    path: Path, meta: dict[str, Any], trained: EnvConfig, weights: dict[str, torch.Tensor]
+) -> RecurrentAgent:
     """The agent of the exported file ``path``, built by mcrs from its description and raw weights; the
     sizes are checked against the weights read (bounded by the file) before anything is allocated."""
-    weights = read_weights(path)
     try:
         model = meta["model"]
         hidden_dim, agent_id, last_action = (
@@ -386,24 +386,32 @@ def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     """The program of the exported agent ``path`` (``torch.export.load``) and its description, after the
     checks of :func:`read_description` and :func:`read_weights`. Loading a program runs code stored in the
     file: use it on files you made or trust; the mcrs tools never call it on a user's file."""
-    meta = read_description(path)
-    read_weights(path)
+    program, meta, _ = _load(Path(path).expanduser())
+    return program, meta
+
+
+def _load(path: Path) -> tuple[torch.nn.Module, dict[str, Any], dict[str, torch.Tensor]]:
+    """:func:`load_exported`, and the weights its checks read."""
+    with _open(path) as archive:
+        meta, weights = _description(archive, path), _weights(archive, path)
     try:
-        program = torch.export.load(Path(path).expanduser())
+        program = torch.export.load(path)
     except Exception as error:  # a damaged program inside a sane archive
         first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise ExportError(f"exported agent {path}: its program cannot be loaded: {first}") from None
-    return program.module(), meta
+    return program.module(), meta, weights
 
 
 def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> TrainedPolicy:
     """The exported agent ``path`` as a policy of ``env_config`` (which must be the map and team it was
     trained on): its weights in mcrs's own step, so ``mcrs-eval`` and ``mcrs-render`` play it like a
     checkpoint without running code from the file."""
-    meta = read_description(path)
-    trained = _trained_env(path, meta)
-    check_playable(trained, env_config, f"exported agent {path}")  # first: the sizes are then the env's
-    agent = _agent(path, meta, trained)
+    path = Path(path).expanduser()
+    with _open(path) as archive:
+        meta = _description(archive, path)
+        trained = _trained_env(path, meta)
+        check_playable(trained, env_config, f"exported agent {path}")  # first: the sizes are then the env's
+        agent = _agent(path, meta, trained, _weights(archive, path))
     interface = description(trained, {"model": meta["model"]}, Path(), None)
     wrong = [k for k in INTERFACE if meta.get(k) != interface[k]]
     if wrong:  # a reader without mcrs would build its inputs or read its actions from these
@@ -418,7 +426,7 @@ def observation_settings(path: str | Path) -> dict[str, Any]:
     """The exported agent's values of the observation fields (``mcrs.policies.policy_env``); none when its
     description has no usable env (loading the policy then names the problem)."""
     try:
-        trained = _trained_env(path, read_description(path))
+        trained = _trained_env(Path(path).expanduser(), read_description(path))
     except ValueError:  # ExportError is one: loading the policy names the problem
         return {}
     return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
