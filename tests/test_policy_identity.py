@@ -3,8 +3,11 @@
 
 from __future__ import annotations
 
+import json
+import zipfile
 from pathlib import Path
 
+from mcrs.policies import export
 from mcrs_lab.analysis.policy_identity import policy_label, trained_run_id
 
 
@@ -39,3 +42,22 @@ def test_heuristics_and_runs_without_a_usable_config_have_no_run(tmp_path: Path)
     assert (policy_label(str(tampered)), trained_run_id(str(tampered))) == ("trained tampered", None)
     listed = _run(tmp_path, "listed", "- not a mapping\n")
     assert (policy_label(str(listed)), trained_run_id(str(listed))) == ("trained listed", None)
+
+
+def _exported(path: Path, algo: object) -> Path:
+    """A ``.pt2`` that holds only the description ``mcrs-export`` writes (all the label reads of it)."""
+    description = {"format": export.FORMAT, "version": export.VERSION, "algo": algo}
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr(f"{path.stem}/extra/{export.DESCRIPTION}", json.dumps(description))
+    return path
+
+
+def test_an_exported_agent_is_named_by_the_algorithm_its_description_names(tmp_path: Path) -> None:
+    agent = _exported(tmp_path / "q.pt2", "qmix")
+    assert (policy_label(str(agent)), trained_run_id(str(agent))) == ("trained qmix", None)
+    # A name that is not a plain algorithm name (it becomes part of a record's file name) is not used.
+    for algo in ("../../x", "QMIX", 7, "a" * 40):
+        assert policy_label(str(_exported(tmp_path / "r.pt2", algo))) == "trained r"
+    # A file that is not an export keeps the file's name.
+    (tmp_path / "s.pt2").write_text("not a zip")
+    assert policy_label(str(tmp_path / "s.pt2")) == "trained s"

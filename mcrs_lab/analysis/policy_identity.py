@@ -8,11 +8,17 @@ its file name and the report's method name do not depend on the checkpoint still
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
 from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs.policies.export import ExportError, read_description
+from mcrs.policies.trained import EXPORTED_SUFFIX
 from mcrs_lab.analysis.runs import is_heuristic_policy
+
+#: An algorithm name read from an exported agent's description: it becomes part of a record's file name.
+ALGO_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")
 
 
 def _run_config(policy: str) -> tuple[Path, dict[str, Any]] | None:
@@ -37,8 +43,20 @@ def policy_label(policy: str) -> str:
         return policy
     found = _run_config(policy)
     algo = found[1].get("algo") if found else None
-    name = algo.get("name") if isinstance(algo, dict) else None
+    name = algo.get("name") if isinstance(algo, dict) else _exported_algo(policy)
     return f"trained {name}" if isinstance(name, str) and name else f"trained {Path(policy).stem}"
+
+
+def _exported_algo(policy: str) -> str | None:
+    """The algorithm an exported agent (``.pt2``, ``mcrs-export``) names in its description, when it is a
+    plain name; None for anything else (the description is read without running the file's program)."""
+    if not policy.endswith(EXPORTED_SUFFIX):
+        return None
+    try:
+        algo = read_description(policy).get("algo")
+    except ExportError:
+        return None
+    return algo if isinstance(algo, str) and ALGO_NAME.fullmatch(algo) else None
 
 
 def trained_run_id(policy: str) -> str | None:
