@@ -14,6 +14,7 @@ from torchrl.modules.models.multiagent import VDNMixer
 
 from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
 from mcrs.experiment.callbacks import Callback
+from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.config import compose, validate
 from mcrs.experiment.trainer import Experiment
 from mcrs.models.mixers import make_mixer
@@ -126,6 +127,41 @@ def test_a_registered_algorithm_trains(tmp_path: Path) -> None:
     with open(tmp_path / "logs" / "scalars" / "train" / "intrinsic_mean.csv") as f:
         rows = [float(value) for _, value in csv.reader(f)]
     assert rows and all(v == pytest.approx(0.5) for v in rows)
+
+
+@pytest.mark.slow
+def test_a_registered_algorithm_resumes_only_where_it_is_registered(tmp_path: Path, capsys) -> None:
+    config = compose("algo=qmix", *TINY, "algo.name=bonus_vdn", "train.total_env_steps=80")
+    longer = compose("algo=qmix", *TINY, "algo.name=bonus_vdn", "train.total_env_steps=120")
+    register_algorithm("bonus_vdn", BonusVDN)
+    try:
+        Experiment(config, tmp_path).run()
+    finally:
+        ALGORITHMS.pop("bonus_vdn")
+    # Without its registration the run would resume as the built-in algorithm, its bonus silently gone.
+    with pytest.raises(CheckpointError) as refused:
+        Experiment(longer, tmp_path, resume=True)
+    assert (
+        f"algorithm.class: '{BonusVDN.__module__}.BonusVDN' in the checkpoint, "
+        "'mcrs.experiment.algorithms.Algorithm' in this run: " in str(refused.value)
+    )
+    assert "register_algorithm" in str(refused.value)
+    register_algorithm("bonus_vdn", BonusVDN)
+    try:
+        Experiment(longer, tmp_path, resume=True).run()
+    finally:
+        ALGORITHMS.pop("bonus_vdn")
+    with open(tmp_path / "logs" / "scalars" / "train" / "intrinsic_mean.csv") as f:
+        steps = [int(float(step)) for step, _ in csv.reader(f)]
+    assert steps[-1] > 80  # the bonus went on after the resume
+
+
+def test_an_unregistered_name_is_said_to_be_the_built_in_algorithm(tmp_path: Path, caplog) -> None:
+    with caplog.at_level("INFO", logger="mcrs.run"):
+        Experiment(compose("algo=qmix", *TINY, "algo.name=qmxi"), tmp_path).close()
+    assert (
+        "algo.name=qmxi is not a registered algorithm: trained as the built-in Algorithm(qmxi" in caplog.text
+    )
 
 
 @pytest.mark.slow

@@ -86,6 +86,24 @@ def test_user_callback_hooks_run_and_its_state_is_checkpointed(tmp_path: Path) -
     resumed.close()
 
 
+class Stateless(Callback):
+    name = "stateless"
+
+
+def test_a_resume_keeps_every_callback_with_state_and_admits_stateless_ones(tmp_path: Path) -> None:
+    Experiment(tiny("train.total_env_steps=80"), tmp_path / "run", callbacks=[Recorder()]).run()
+    longer = tiny("train.total_env_steps=120")
+    # Dropping a callback whose state the checkpoint holds would lose it: refused, naming it.
+    with pytest.raises(ckpt.CheckpointError, match="holds the state of the callback 'recorder'"):
+        Experiment(longer, tmp_path / "run", resume=True)
+    # A stateless callback may join a resumed run (API.md's resume adds one); one with state may not.
+    Experiment(longer, tmp_path / "run", resume=True, callbacks=[Recorder(), Stateless()]).close()
+    Experiment(tiny("train.total_env_steps=80"), tmp_path / "plain").run()
+    with pytest.raises(ckpt.CheckpointError, match="no state for this run's 'recorder' callback"):
+        Experiment(longer, tmp_path / "plain", resume=True, callbacks=[Recorder()])
+    Experiment(longer, tmp_path / "plain", resume=True, callbacks=[Stateless()]).run()
+
+
 def test_algorithm_callbacks_come_from_the_algo_config(tmp_path: Path) -> None:
     plain = Experiment(tiny(), tmp_path / "qmix")
     assert plain.callbacks == []

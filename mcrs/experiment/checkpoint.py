@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -239,10 +239,12 @@ def load_resumable(
     expected: dict[str, Any],
     fingerprint_of: Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]],
     map_location: str | torch.device,
+    advice: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """``path``'s state, if it belongs to the run whose fingerprint is ``expected`` and can resume it.
 
-    ``fingerprint_of(config, learner)`` derives a fingerprint for checkpoints written before they carried one.
+    ``fingerprint_of(config, learner)`` derives a fingerprint for checkpoints written before they carried one;
+    ``advice[field]`` ends the refusal of a checkpoint that differs first in ``field``.
     """
     from mcrs.experiment.rundir import first_difference
 
@@ -252,7 +254,8 @@ def load_resumable(
         saved = fingerprint_of(current_config(state.get("config", {})), state.get("learner", {}))
     difference = first_difference(saved, expected)
     if difference is not None:
-        raise CheckpointError(f"{path} does not belong to this run: {difference}")
+        hint = (advice or {}).get(difference.split(":", 1)[0], "")
+        raise CheckpointError(f"{path} does not belong to this run: {difference}{hint}")
     if "replay" not in state and "replay_blocks" not in state:
         raise CheckpointError(
             f"{path} has no replay buffer (train.save_replay=false): it holds weights, not a resumable run"

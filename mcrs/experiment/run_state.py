@@ -23,7 +23,16 @@ from mcrs.experiment.logging import log_event
 from mcrs.experiment.replay import load_replay_state_dict, replay_state_dict
 from mcrs.experiment.rundir import fingerprint, io_errors, truncate_csv_logs
 
-__all__ = ["RunState"]
+__all__ = ["RESUME_ADVICE", "RunState"]
+
+#: What a resume refused for a fingerprint field adds to its one line.
+RESUME_ADVICE = {
+    "algorithm.class": (
+        ": the checkpoint's algo.name is an algorithm registered by a module this process has not imported; "
+        "import it (it calls register_algorithm) before resuming, e.g. from the command line "
+        "python -c 'import my_module; from mcrs.train import main; main()' resume=<run dir>"
+    )
+}
 
 
 class RunState:
@@ -62,8 +71,14 @@ class RunState:
         learner = self.learner.weights() if learner is None else learner
         config = to_container(self.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
-        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second:
-        return {"format.version": out.pop("format.version"), **self.task.fingerprint(), **out}
+        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second,
+        algorithm = type(self.algorithm)  # then the algorithm's class (a registered one not imported)
+        return {
+            "format.version": out.pop("format.version"),
+            **self.task.fingerprint(),
+            "algorithm.class": f"{algorithm.__module__}.{algorithm.__qualname__}",
+            **out,
+        }
 
     def save(self, name: str = ckpt.LAST) -> Path:
         """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
@@ -113,19 +128,30 @@ class RunState:
         else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
             load_replay_state_dict(self.replay, state["replay"])
         saved = state.get("callbacks", {})
+        names = {callback.name for callback in self.callbacks}
+        lost = [name for name, value in saved.items() if name not in names and value]
+        if lost:  # a callback with state that this run would drop
+            raise ckpt.CheckpointError(
+                f"the checkpoint holds the state of the callback {lost[0]!r}, which this run does not have: "
+                "build the run with it (Experiment(..., callbacks=[...]), or its algorithm)"
+            )
         for callback in self.callbacks:
-            if callback.name not in saved:
+            if callback.name in saved:
+                callback.load_state_dict(saved[callback.name])
+            elif callback.state_dict():  # a stateless callback may join a resumed run; one with state not
                 raise ckpt.CheckpointError(
-                    f"the checkpoint has no state for this run's {callback.name!r} callback"
+                    f"the checkpoint has no state for this run's {callback.name!r} callback (the run that "
+                    "wrote it did not have it)"
                 )
-            callback.load_state_dict(saved[callback.name])
         known = {f.name for f in fields(Counters)}
         self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
         self.epsilon.set_env_steps(self.counters.env_steps)
 
     def _load(self, path: Path) -> None:
-        state = ckpt.load_resumable(path, self.fingerprint(), self.fingerprint, self.device)
+        state = ckpt.load_resumable(
+            path, self.fingerprint(), self.fingerprint, self.device, advice=RESUME_ADVICE
+        )
         self._resume_rng = state["rng"]  # restored last (_restore_rng), once everything is built
         try:
             self.load_state_dict(state)

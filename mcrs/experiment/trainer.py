@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mcrs.env.config import EnvConfig
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import algorithm_for
+from mcrs.experiment.algorithms import ALGORITHMS, algorithm_for
 from mcrs.experiment.budget import rounding_notes
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
@@ -40,7 +40,14 @@ from mcrs.experiment.counters import Counters, batch_seed
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.logging import log_event, log_scalars, make_logger, metrics_line, progress_bar
+from mcrs.experiment.logging import (
+    log_event,
+    log_scalars,
+    make_logger,
+    metrics_line,
+    progress_bar,
+    quiet_torchrl,
+)
 from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
 from mcrs.experiment.run_state import RunState
@@ -113,6 +120,7 @@ class Experiment(RunState):
 
     def _build(self, resume: bool, extra_callbacks: list[Callback]) -> None:
         cfg, t = self.config, self.config.train
+        quiet_torchrl()  # before the replay is built or loaded: TorchRL prints an INFO line for it
         if not resume:  # a fresh run never mixes its files with another run's
             prepare_fresh(self.run_dir, cfg.overwrite)
         self._log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
@@ -171,8 +179,15 @@ class Experiment(RunState):
         if resume:  # last: building the collector may draw random numbers
             self._restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
+        if str(cfg.algo.name) not in ALGORITHMS:  # a label of one's own, or a misspelt registered name
+            log_event(f"algo.name={cfg.algo.name} is not a registered algorithm: {self.algorithm_note}")
         for note in rounding_notes(t.num_envs * self.T, t.total_env_steps, t.eval_interval):
             log_event(note)
+
+    @property
+    def algorithm_note(self) -> str:
+        """What an unregistered ``algo.name`` trains (said in the log and by ``mcrs-train``)."""
+        return f"trained as the built-in {self.algorithm!r} (registered: {', '.join(ALGORITHMS)})"
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
