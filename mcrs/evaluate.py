@@ -140,9 +140,17 @@ def summarize(values: dict[str, torch.Tensor]) -> dict[str, tuple[float, float]]
 
 
 def evaluate_policy(
-    env_config: EnvConfig, policy_name: str, episodes: int, seed: int
+    env_config: EnvConfig | ScenarioConfig, policy_name: str, episodes: int, seed: int
 ) -> dict[str, tuple[float, float]]:
-    """``{metric: (mean, std)}`` over ``episodes`` episodes of ``policy_name`` on ``env_config``."""
+    """``{metric: (mean, std)}`` over ``episodes`` episodes of ``policy_name`` on ``env_config``: an
+    :class:`EnvConfig` (``experiment.env_config``) or a scenario (``config.env``, played on the CPU)."""
+    if isinstance(env_config, ScenarioConfig):
+        env_config = EnvConfig.from_scenario(env_config)
+    elif not isinstance(env_config, EnvConfig):
+        raise TypeError(
+            f"env_config: expected an EnvConfig (experiment.env_config) or a ScenarioConfig (config.env), "
+            f"got {type(env_config).__name__}"
+        )
     return summarize(episode_metrics(env_config, policy_name, episodes, seed))
 
 

@@ -32,6 +32,17 @@ def test_evaluate_policy_returns_every_metric(policy: str) -> None:
     assert result == evaluate_policy(cfg, policy, episodes=5, seed=1)  # reproducible
 
 
+def test_evaluate_policy_takes_the_composed_configs_scenario() -> None:
+    import mcrs
+
+    scenario_node = mcrs.compose("env=map10", "env.max_steps=6").env  # what a user holds: config.env
+    assert evaluate_policy(scenario_node, "greedy", 3, 0) == evaluate_policy(
+        scenario("map10", max_steps=6), "greedy", 3, 0
+    )
+    with pytest.raises(TypeError, match=r"env_config: expected an EnvConfig .* got str"):
+        evaluate_policy("map10", "greedy", 3, 0)  # type: ignore[arg-type]
+
+
 def test_episode_metrics_chunks_and_single_episode() -> None:
     cfg = scenario("map10", max_steps=6)
     values = episode_metrics(cfg, "random", episodes=7, seed=0, max_batch=3)

@@ -119,6 +119,9 @@ def test_training_keeps_torchrl_info_lines_off_the_console(
     Experiment(compose_config("train.total_env_steps=20"), tmp_path / "run").run()
     assert not any("LazyTensorStorage" in m for m in keep.messages), keep.messages
     assert torchrl.level == logging.WARNING
+    torchrl.setLevel(logging.INFO)  # a new process: a resume loads the replay before the logger is made
+    Experiment(compose_config("train.total_env_steps=40"), tmp_path / "run", resume=True).run()
+    assert not any("LazyTensorStorage" in m for m in keep.messages), keep.messages
 
     monkeypatch.setenv("RL_LOGGING_LEVEL", "INFO")  # TorchRL's own switch brings them back
     torchrl.setLevel(logging.INFO)
@@ -145,6 +148,13 @@ def test_progress_without_a_terminal_is_plain_lines_with_the_eta_and_the_latest_
         r"eval_reward=12.3",
         lines[1],
     ), lines
+
+
+def test_the_bars_last_line_shows_the_final_evaluation(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    config = compose_config("train.total_env_steps=60", "logger.progress_bar=true")
+    result = Experiment(config, tmp_path / "run").run()
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.endswith(f"eval_reward={result['episode_reward']:.1f}"), last
 
 
 def test_plain_progress_waits_its_interval_and_a_disabled_bar_prints_nothing(

@@ -210,7 +210,7 @@ def test_a_budget_off_whole_batches_from_a_preset_or_python_is_said_not_rounded_
         "train.total_env_steps=50 is not a whole number of collector batches of 40 env steps: "
         "the run trains 80 env steps",
         "train.eval_interval=60 is not a whole number of collector batches of 40 env steps: "
-        "the run evaluates every 80 env steps",
+        "the run evaluates at the first batch end at or after each multiple of it: env steps 80, 120, 200, ...",
     ]
     assert rounding_notes(40, 200, 120) == []  # whole batches: nothing to say
 
@@ -228,6 +228,36 @@ def test_the_experiment_logs_the_rounding_of_a_python_built_budget(tmp_path, cap
         "train.total_env_steps=50 is not a whole number of collector batches of 40 env steps: the run "
         "trains 80 env steps" in caplog.text
     )
+
+
+def test_the_evaluation_note_says_the_steps_the_run_evaluates_at(tmp_path, caplog) -> None:
+    import logging
+    import re
+
+    from mcrs.experiment.config import compose
+    from mcrs.experiment.logging import read_scalar_rows, scalar_file
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import TINY
+
+    config = compose("algo=qmix", *TINY, "train.total_env_steps=200", "train.eval_interval=60")
+    with caplog.at_level(logging.INFO, logger="mcrs.run"):
+        Experiment(config, tmp_path / "run").run()
+    said = re.search(r"train.eval_interval=60 .* env steps ([\d, ]+), \.\.\.", caplog.text)
+    assert said is not None, caplog.text
+    steps = [int(s) for s, _ in read_scalar_rows(scalar_file(tmp_path / "run", "eval/episode_reward"))]
+    assert steps[1:4] == [int(s) for s in said.group(1).split(", ")]  # after the one at step 0
+
+
+def test_a_run_that_never_updates_says_so(tmp_path, caplog) -> None:
+    import logging
+
+    from mcrs.experiment.config import compose
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import TINY
+
+    with caplog.at_level(logging.INFO, logger="mcrs.run"):
+        Experiment(compose("algo=qmix", *TINY, "train.updates_per_episode=0"), tmp_path / "run").close()
+    assert "train.updates_per_episode=0: the run collects and evaluates but never updates" in caplog.text
 
 
 @pytest.mark.parametrize("algo", ["qmix", "emu"])

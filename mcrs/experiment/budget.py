@@ -53,10 +53,12 @@ def rounding_notes(batch: int, total_env_steps: int, eval_interval: int) -> list
     notes = []
     for name, value in (("train.total_env_steps", total_env_steps), ("train.eval_interval", eval_interval)):
         if value > 0 and batch > 0 and value % batch:
-            rounded = -(-value // batch) * batch
-            what = "trains" if name == "train.total_env_steps" else "evaluates every"
+            if name == "train.total_env_steps":
+                what = f"trains {-(-value // batch) * batch:,} env steps"
+            else:  # evaluated at the first batch end at or after each multiple of the interval
+                steps = ", ".join(f"{-(-k * value // batch) * batch:,}" for k in (1, 2, 3))
+                what = f"evaluates at the first batch end at or after each multiple of it: env steps {steps}, ..."
             notes.append(
-                f"{name}={value} is not a whole number of collector batches of {batch} env steps: "
-                f"the run {what} {rounded:,} env steps"
+                f"{name}={value} is not a whole number of collector batches of {batch} env steps: the run {what}"
             )
     return notes

@@ -183,6 +183,10 @@ class Experiment(RunState):
             log_event(f"algo.name={cfg.algo.name} is not a registered algorithm: {self.algorithm_note}")
         for note in rounding_notes(t.num_envs * self.T, t.total_env_steps, t.eval_interval):
             log_event(note)
+        if t.updates_per_episode == 0:  # allowed (a collection-only run), never silent
+            log_event(
+                "train.updates_per_episode=0: the run collects and evaluates but never updates the networks"
+            )
 
     @property
     def algorithm_note(self) -> str:
@@ -237,6 +241,7 @@ class Experiment(RunState):
                         raise RunInterrupted(int(stop.signum or 0), self.run_dir, c.env_steps, path)
                     self._speed.observe()
                 self.evaluate()
+                progress.set_postfix(self._postfix())  # the bar's last line shows the final evaluation
                 if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
                     c.next_eval += t.eval_interval
                 if stats:  # batches since the last row (none: that row is already at this step)
