@@ -5,8 +5,8 @@ Hydra reports a misspelled key as ``Could not override 'env.comm_rage'. To appen
 option with its config search path. :func:`describe` turns each composition error into one line that names
 the key, group or override and lists what is allowed, closest match first::
 
-    env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_rounds, name, ...
-    algo=qmx: no such option of algo; allowed (closest first): qmix, emc, emu, ...
+    env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_budget, comm_delay, ...
+    algo=qmx: no such option of algo; allowed (closest first): qmix, cnn_semu, emc, ...
 
 :func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
 ``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
@@ -58,7 +58,7 @@ def ranked(name: str, allowed: Sequence[str]) -> list[str]:
 
 
 def _listing(name: str, allowed: Sequence[str]) -> str:
-    """``" (closest first): comm_range, comm_rounds, name, ..."``, or ``": a, b"`` when none is close."""
+    """``" (closest first): comm_range, comm_budget, ..."`` (every allowed name), or ``": a, b"`` when none is close."""
     order = ranked(name, allowed)
     close = difflib.SequenceMatcher(None, name, order[0]).ratio() >= CLOSE if order else False
     return f"{' (closest first)' if close else ''}: {', '.join(order)}"
