@@ -267,3 +267,20 @@ def test_reward_scale_reaches_the_learners_loss(algo: str) -> None:
     assert learner.loss.reward_scale == 0.05
     if algo == "emu":  # the threshold is compared with the env's returns: not scaled
         assert learner.loss.incentive.threshold == 365.0
+
+
+def test_a_misspelt_field_set_in_python_is_an_error_naming_the_closest() -> None:
+    import mcrs
+
+    config = mcrs.compose("algo=qmix")
+    config.train.total_env_steps = 3200  # a field: set
+    assert config.train.total_env_steps == 3200
+    for node, name, closest in (
+        (config.train, "total_env_step", "total_env_steps"),
+        (config.env, "comm_rage", "comm_range"),
+        (config.algo.memory, "dleta", "delta"),
+        (config, "sed", "seed"),
+    ):
+        with pytest.raises(AttributeError, match=rf"has no field '{name}' \(closest: {closest}"):
+            setattr(node, name, 1)
+        assert not hasattr(node, name)

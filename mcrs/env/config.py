@@ -7,6 +7,7 @@ commands see.
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, make_dataclass, replace
 from importlib import resources
@@ -34,6 +35,22 @@ N_FAR_VIEW = 8
 LEGACY_SCENARIO_VALUES = {"safety_rule": "near"}
 #: evidence_decay's bound on max_steps * -ln(1 - decay): (1 - decay)^max_steps stays a normal float32.
 MAX_DECAY_EXPONENT = 80.0
+
+
+class FieldsOnly:
+    """A mutable config dataclass that takes no attribute that is not one of its fields: a field misspelt
+    in Python (``config.train.total_env_step = 3200``) is an error naming the closest fields, not a new
+    attribute the run never reads."""
+
+    __slots__ = ()
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        known = getattr(self, "__dataclass_fields__", None)
+        if known is not None and name not in known and not name.startswith("_"):
+            close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+            hint = f"closest: {', '.join(close)}" if close else f"its fields: {', '.join(known)}"
+            raise AttributeError(f"{type(self).__name__} has no field {name!r} ({hint})")
+        super().__setattr__(name, value)
 
 
 @dataclass(frozen=True)
@@ -163,6 +180,7 @@ def _scenario_schema() -> type:
             for f in fields(EnvConfig)
             if f.name not in RUNTIME_FIELDS
         ],
+        bases=(FieldsOnly,),
         namespace={
             "__doc__": "The scenario part of :class:`EnvConfig` (the ``env`` node of the configs).",
             "__module__": __name__,

@@ -20,7 +20,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mcrs.env.config import ScenarioConfig
+from mcrs.env.config import FieldsOnly, ScenarioConfig
 
 # The choices, as the modules that implement them define them (mcrs.models.mixers.MIXERS, ...; a test keeps
 # them equal): written out here so that composing and checking a config imports neither torch nor TorchRL,
@@ -88,7 +88,7 @@ class ConfigError(ValueError):
 
 
 @dataclass
-class MemoryConfig:
+class MemoryConfig(FieldsOnly):
     """The episodic buffer D_E and its state embedding phi (paper Algorithm 1, eq. 31; table 3)."""
 
     enabled: bool = False
@@ -114,7 +114,7 @@ class MemoryConfig:
 
 
 @dataclass
-class AlgoConfig:
+class AlgoConfig(FieldsOnly):
     """The value-factorisation algorithm: which mixer, the TD target and the episodic-memory terms."""
 
     name: str = "qmix"  # label of the algorithm (run names, reports)
@@ -144,7 +144,7 @@ class AlgoConfig:
 
 
 @dataclass
-class ModelConfig:
+class ModelConfig(FieldsOnly):
     """The shared recurrent agent network."""
 
     name: ModelName = ModelName.gru
@@ -154,7 +154,7 @@ class ModelConfig:
 
 
 @dataclass
-class LoggerConfig:
+class LoggerConfig(FieldsOnly):
     """Where metrics go (TorchRL loggers). Nothing leaves the machine unless wandb_mode=online."""
 
     backend: LoggerBackend = LoggerBackend.csv
@@ -166,7 +166,7 @@ class LoggerConfig:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(FieldsOnly):
     """The training loop. Intervals count env steps (agent-team transitions), as in pymarl."""
 
     total_env_steps: int = 2_000_000
@@ -199,7 +199,7 @@ class TrainConfig:
 
 
 @dataclass
-class Config:
+class Config(FieldsOnly):
     """The whole ``mcrs-train`` config (``conf/config.yaml``)."""
 
     env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario; conf/env/ holds the presets
@@ -228,17 +228,16 @@ def as_typed(cfg: Config | DictConfig) -> Config:
     """The typed :class:`Config` of a composed ``DictConfig`` (a :class:`Config` is returned as it is)."""
     if isinstance(cfg, Config):
         return cfg
+    given = _keys(OmegaConf.to_container(cfg, resolve=False))
+    unknown = sorted(given - _keys(OmegaConf.to_container(OmegaConf.structured(Config), resolve=False)))
+    if unknown:  # a key forced past the schema (``+env.widht=3``): no field would ever read it
+        raise ConfigError(f"invalid config: unknown field(s) {', '.join(unknown)}: no schema has them")
     try:
-        typed = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), cfg))
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), cfg))
     except OmegaConfBaseException as error:
         key = getattr(error, "full_key", None)
         first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise ConfigError(f"invalid config: {key + ': ' if key else ''}{first}") from None
-    given = _keys(OmegaConf.to_container(cfg, resolve=False))
-    unknown = sorted(given - _keys(OmegaConf.to_container(OmegaConf.structured(typed), resolve=False)))
-    if unknown:  # a key forced past the schema (``+env.widht=3``): to_object would drop it silently
-        raise ConfigError(f"invalid config: unknown field(s) {', '.join(unknown)}: no schema has them")
-    return typed
 
 
 def _keys(tree: Any, prefix: str = "") -> set[str]:
