@@ -101,6 +101,8 @@ REFUSED = {
     ("mcrs.train", "device=cuda:7"): "mcrs-train: error: invalid config:",
     ("mcrs.train", "+env.widht=3"): "mcrs-train: error: invalid config: unknown field(s) env.widht",
     ("mcrs.train", "-m", "algo=qmix,foo"): "mcrs-train: error: algo=foo: no such option of algo",
+    # A sweep's every job is checked before its first one starts (job 2 would fail after jobs 0 and 1 ran).
+    ("mcrs.train", "-m", "train.lr=0.001,-1", "seed=0,1"): "mcrs-train: error: invalid config of sweep job 2 of 4 (train.lr=-1 seed=0): train.lr=-1.0: must be > 0; no job was started",
     ("mcrs.evaluate", "env.comm_rage=3"): "mcrs-eval: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",
     ("mcrs.evaluate", "episodes=0"): "mcrs-eval: error: invalid config: episodes=0: must be >= 1",
     ("mcrs.render_episode", "env.comm_rage=3"): "mcrs-render: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",

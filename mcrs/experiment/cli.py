@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from mcrs.experiment.rundir import LOCK, describe_os_error, fresh_problem, lock_holder, resume_problem
+from mcrs.experiment.sweep import sweep_jobs
 
 F = TypeVar("F", bound=Callable[..., Any])
 #: Files Hydra (and the sweep's progress, mcrs.experiment.sweep) writes into a run or sweep directory before
@@ -209,7 +210,36 @@ class RunDirCheck(Callback):
         )
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        problem = self._invalid_job(config)
+        if problem:  # a sweep that would fail at its k-th job after hours of the others: refused now
+            raise SystemExit(f"{self.command}: error: {problem}")
         self._make(Path(str(config.hydra.sweep.dir)))
+
+    def _invalid_job(self, config: DictConfig) -> str | None:
+        """The first job of the sweep whose config the command will refuse (``validate``), composed as the
+        job will be; a job that does not compose is left to say so itself."""
+        jobs = sweep_jobs(config) if self.validate is not None else None
+        if not jobs:
+            return None
+        from hydra import compose
+        from hydra.utils import get_method
+
+        check, name = get_method(self.validate), str(config.hydra.job.config_name)
+        shared = set.intersection(*(set(job) for job in jobs))
+        for num, overrides in enumerate(jobs):
+            try:
+                job_config = compose(config_name=name, overrides=overrides)
+            except Exception:  # Hydra's composition errors: the job reports its own
+                continue
+            problems = check(job_config, overrides)
+            if problems:
+                swept = " ".join(o for o in overrides if o not in shared)
+                more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+                return (
+                    f"invalid config of sweep job {num} of {len(jobs)} ({swept}): {problems[0]}{more}; "
+                    "no job was started"
+                )
+        return None
 
     def _make(self, directory: Path) -> None:
         try:

@@ -92,9 +92,10 @@ class SweepProgress(Callback):
 
 
 # ---------------------------------------------------------------------------------------- the rows
-def sweep_size(config: DictConfig) -> int | None:
-    """How many jobs the basic sweeper makes of ``hydra.sweeper.params`` and the command line's overrides
-    (the product of the swept values), or None for another sweeper or overrides it cannot read."""
+def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
+    """Each job's overrides as the basic sweeper makes them of ``hydra.sweeper.params`` and the command
+    line's overrides (the product of the swept values), or None for another sweeper or overrides it cannot
+    read (each job then meets them itself)."""
     target = str(OmegaConf.select(config, "hydra.sweeper._target_", default="") or "")
     if not target.endswith("BasicSweeper"):
         return None
@@ -106,9 +107,15 @@ def sweep_size(config: DictConfig) -> int | None:
         arguments = [f"{k}={v}" for k, v in params.items()]
         arguments += list(OmegaConf.select(config, "hydra.overrides.task", default=None) or [])
         overrides = OverridesParser.create().parse_overrides(arguments)
-        return sum(len(batch) for batch in BasicSweeper.split_arguments(overrides, None))
-    except Exception:  # a count is a nicety: an override it cannot read leaves it unknown
+        return [list(job) for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
+    except Exception:  # the list is a nicety (the count, the early check): unreadable, it is unknown
         return None
+
+
+def sweep_size(config: DictConfig) -> int | None:
+    """How many jobs the basic sweeper makes (:func:`sweep_jobs`), or None when that is unknown."""
+    jobs = sweep_jobs(config)
+    return None if jobs is None else len(jobs)
 
 
 def job_results(output_dir: Path, returned: Any = None) -> tuple[str, str]:
