@@ -149,6 +149,13 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
     if str(cfg.algo.name) not in ALGORITHMS:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: algo.name={cfg.algo.name} is not a registered algorithm: {experiment.algorithm_note}")
+    done = experiment.counters.env_steps
+    if resume and done >= cfg.train.total_env_steps:
+        print(
+            f"note: the run is already at {done:,} env steps (train.total_env_steps={cfg.train.total_env_steps:,}): "
+            "nothing to train; pass a larger train.total_env_steps to train on",
+            flush=True,
+        )
     result = experiment.run()
     reward = result.get("episode_reward", float("nan"))
     print(

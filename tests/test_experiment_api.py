@@ -117,6 +117,20 @@ def test_algorithm_callbacks_come_from_the_algo_config(tmp_path: Path) -> None:
     emc.close()
     with pytest.raises(ValueError, match="distinct names"):
         Experiment(tiny(), tmp_path / "twice", callbacks=[Recorder(), Recorder()])
+    with pytest.raises(
+        TypeError, match=r"callbacks\[0\]: the class Recorder, not an instance: pass Recorder\(\)"
+    ):
+        Experiment(tiny(), tmp_path / "class", callbacks=[Recorder])  # type: ignore[list-item]
+    with pytest.raises(
+        TypeError, match=r"callbacks\[1\]: expected an mcrs.Callback instance, got builtin_function_or_method"
+    ):
+        Experiment(tiny(), tmp_path / "function", callbacks=[Recorder(), len])  # type: ignore[list-item]
+    assert not (tmp_path / "class").exists() and not (tmp_path / "function").exists()  # refused first
+
+
+def test_compose_names_overrides_passed_as_one_list() -> None:
+    with pytest.raises(TypeError, match=r"compose takes each override as a string .* got a list"):
+        compose(["algo=qmix"])  # type: ignore[arg-type]
 
 
 def test_learner_state_is_the_loss_modules(tmp_path: Path) -> None:

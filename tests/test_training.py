@@ -284,3 +284,17 @@ def test_resume_may_switch_the_collector(tmp_path: Path) -> None:
     args = [f"resume={tmp_path / 'run'}", "train.collector=multiprocess", "train.collector_workers=4"]
     cfg, _ = resume_config(compose_config(*args), args)
     assert cfg.train.collector == "multiprocess" and cfg.train.collector_workers == 4
+
+
+def test_a_resume_to_a_length_the_run_has_passed_says_there_is_nothing_to_train(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    from mcrs.train import run
+
+    Experiment(compose_config("train.total_env_steps=80"), tmp_path / "run").run()
+    overrides = [f"resume={tmp_path / 'run'}", "train.total_env_steps=40"]
+    run(compose_config(*overrides), tmp_path / "run", overrides)
+    assert (
+        "note: the run is already at 80 env steps (train.total_env_steps=40): nothing to train"
+        in capsys.readouterr().out
+    )

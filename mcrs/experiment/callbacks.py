@@ -127,7 +127,17 @@ def append_scalar(stats: dict[str, list[torch.Tensor]], key: str, value: float |
 
 
 def check_names(callbacks: list[Callback]) -> None:
-    """Callbacks key their checkpoint state and timers by name: two with one name would collide."""
+    """Every callback is a :class:`Callback` instance, and callbacks key their checkpoint state and timers
+    by name: two with one name would collide."""
+    for k, callback in enumerate(callbacks):
+        if isinstance(callback, type) and issubclass(callback, Callback):
+            raise TypeError(
+                f"callbacks[{k}]: the class {callback.__name__}, not an instance: pass {callback.__name__}()"
+            )
+        if not isinstance(callback, Callback):
+            raise TypeError(
+                f"callbacks[{k}]: expected an mcrs.Callback instance, got {type(callback).__name__}"
+            )
     names = [cb.name for cb in callbacks]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:

@@ -374,6 +374,12 @@ def compose(*overrides: str) -> Config:
 
     from mcrs.experiment.cli import describe
 
+    wrong = [o for o in overrides if not isinstance(o, str)]
+    if wrong:  # compose(["algo=qmix"]) would fail deep in Hydra's parser
+        raise TypeError(
+            f"compose takes each override as a string argument, compose('algo=qmix', 'env=map20'); got a "
+            f"{type(wrong[0]).__name__} (a list of overrides: compose(*overrides))"
+        )
     register_configs()
     try:
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):

@@ -94,6 +94,7 @@ class Experiment(RunState):
         callbacks: list[Callback] | None = None,
         task: Task | None = None,
     ) -> None:
+        check_names(list(callbacks or []))  # before anything is built or written
         self.config = as_typed(config)
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
         self.task = MCRSTask(self.env_config) if task is None else task
