@@ -15,7 +15,7 @@ from torchrl.modules.models.multiagent import VDNMixer
 from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
 from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.checkpoint import CheckpointError
-from mcrs.experiment.config import compose, validate
+from mcrs.experiment.config import ConfigError, compose, validate
 from mcrs.experiment.trainer import Experiment
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
@@ -176,3 +176,56 @@ def test_the_memory_writes_its_keys_in_on_train_batch(tmp_path: Path) -> None:
     assert experiment.callback("memory").on_train_batch(batch, 40) == {}
     assert all(batch.get(key, None) is not None for key in keys)
     assert set(experiment.learner.loss.in_keys) >= set(keys)
+
+
+PLUGIN = """
+from mcrs.experiment.algorithms import Algorithm
+from mcrs.models.mixers import make_mixer
+
+
+class PluginVDN(Algorithm):
+    def mixer(self, task):
+        return make_mixer("vdn", task.n_agents, task.state_shape, task.n_actions)
+
+
+NOT_AN_ALGORITHM = 3
+"""
+
+
+def _install_plugin(root: Path, entries: str) -> None:
+    """A package installed as pip would leave it: its module and its dist-info with entry points."""
+    (root / "mcrs_test_plugin.py").write_text(PLUGIN)
+    info = root / "mcrs_test_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mcrs-test-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[mcrs.algorithms]\n{entries}")
+
+
+def test_an_installed_algorithm_is_found_by_its_name_in_any_process(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _install_plugin(
+        tmp_path,
+        "plugin_vdn = mcrs_test_plugin:PluginVDN\nplugin_int = mcrs_test_plugin:NOT_AN_ALGORITHM\n"
+        "plugin_gone = mcrs_test_plugin_gone:Algo\n",
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    run = tmp_path / "run"
+    try:
+        config = compose("algo=qmix", *TINY, "algo.name=plugin_vdn", "train.total_env_steps=40")
+        experiment = Experiment(config, run)
+        assert type(experiment.algorithm).__name__ == "PluginVDN"
+        assert isinstance(experiment.learner.mixer, VDNMixer)
+        experiment.run()
+        ALGORITHMS.pop("plugin_vdn")  # a new process: the resume finds it again by its name
+        longer = compose("algo=qmix", *TINY, "algo.name=plugin_vdn", "train.total_env_steps=80")
+        Experiment(longer, run, resume=True).run()
+    finally:
+        ALGORITHMS.pop("plugin_vdn", None)
+    with pytest.raises(ConfigError, match=r"algo.name=plugin_int: the entry point .* is 3, not an Algorithm"):
+        algorithm_for(compose("algo=qmix", "algo.name=plugin_int").algo)
+    with pytest.raises(
+        ConfigError, match=r"algo.name=plugin_gone: .* cannot be loaded: ModuleNotFoundError: No module"
+    ):
+        algorithm_for(compose("algo=qmix", "algo.name=plugin_gone").algo)
+    assert "plugin_int" not in ALGORITHMS and "plugin_gone" not in ALGORITHMS

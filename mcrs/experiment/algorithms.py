@@ -23,8 +23,12 @@ subclasses :class:`Algorithm`, overrides the parts it changes and is registered 
 
     Experiment(compose("algo=qmix", "algo.name=my_algo"), "outputs/run").run()
 
-:func:`algorithm_for` is the one place that reads ``algo.name``; a name nobody registered (a label of one's
-own) gets the built-in :class:`Algorithm`.
+An installed package can name its algorithms in the entry-point group ``mcrs.algorithms`` (its
+``pyproject.toml``: ``[project.entry-points."mcrs.algorithms"]`` ``my_algo = "my_pkg.algos:MyAlgorithm"``):
+``algo.name=my_algo`` then finds it from ``mcrs-train``, a sweep's launcher or a resume, without an import.
+
+:func:`algorithm_for` is the one place that reads ``algo.name``; a name nobody registered or installed (a
+label of one's own) gets the built-in :class:`Algorithm`.
 """
 
 from __future__ import annotations
@@ -38,11 +42,19 @@ from mcrs.env.config import EnvConfig
 from mcrs.experiment.callbacks import Callback, CuriosityCallback
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.learner import Learner, build_mixer
-from mcrs.experiment.schema import AlgoConfig, Config, ModelConfig, TrainConfig
+from mcrs.experiment.schema import AlgoConfig, Config, ConfigError, ModelConfig, TrainConfig
 from mcrs.experiment.task import Task
 from mcrs.objectives.incentive import Incentive, make_incentive
 
-__all__ = ["ALGORITHMS", "BUILT_IN", "Algorithm", "algorithm_for", "register_algorithm"]
+__all__ = [
+    "ALGORITHMS",
+    "BUILT_IN",
+    "ENTRY_POINT_GROUP",
+    "Algorithm",
+    "algorithm_for",
+    "register_algorithm",
+    "register_installed",
+]
 
 
 class Algorithm:
@@ -115,7 +127,35 @@ def register_algorithm(
     return add if algorithm is None else add(algorithm)
 
 
+#: The entry-point group in which installed packages name their algorithms (``algo.name`` -> class).
+ENTRY_POINT_GROUP = "mcrs.algorithms"
+
+
 def algorithm_for(algo: AlgoConfig) -> Algorithm:
-    """The algorithm of an ``algo`` config node: the class registered under ``algo.name``, else the
-    built-in :class:`Algorithm` (its parts follow the node's knobs)."""
-    return ALGORITHMS.get(str(algo.name), Algorithm)(algo)
+    """The algorithm of an ``algo`` config node: the class registered under ``algo.name`` (or installed
+    under it, :data:`ENTRY_POINT_GROUP`), else the built-in :class:`Algorithm` (its parts follow the
+    node's knobs)."""
+    name = str(algo.name)
+    if name not in ALGORITHMS:
+        register_installed(name)
+    return ALGORITHMS.get(name, Algorithm)(algo)
+
+
+def register_installed(name: str) -> bool:
+    """Register the algorithm an installed package names ``name`` in :data:`ENTRY_POINT_GROUP`; False when
+    none does. One that cannot be loaded, or is not an :class:`Algorithm`, is a :class:`ConfigError`
+    naming ``algo.name`` and the entry point."""
+    from importlib.metadata import entry_points
+
+    for entry in entry_points(group=ENTRY_POINT_GROUP, name=name):
+        where = f"algo.name={name}: the entry point {entry.value!r} of {getattr(entry.dist, 'name', '?')}"
+        try:
+            algorithm = entry.load()
+        except Exception as error:  # an installed plugin's own import error, said in one line
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ConfigError(f"{where} cannot be loaded: {type(error).__name__}: {first}") from None
+        if not (isinstance(algorithm, type) and issubclass(algorithm, Algorithm)):
+            raise ConfigError(f"{where} is {algorithm!r}, not an Algorithm subclass")
+        register_algorithm(name, algorithm)
+        return True
+    return False

@@ -29,8 +29,8 @@ __all__ = ["RESUME_ADVICE", "RunState"]
 RESUME_ADVICE = {
     "algorithm.class": (
         ": the checkpoint's algo.name is an algorithm registered by a module this process has not imported; "
-        "import it (it calls register_algorithm) before resuming, e.g. from the command line "
-        "python -c 'import my_module; from mcrs.train import main; main()' resume=<run dir>"
+        "import it (it calls register_algorithm) before resuming, or install it under the entry-point group "
+        "mcrs.algorithms (docs/API.md, 'An algorithm of your own')"
     )
 }
 
