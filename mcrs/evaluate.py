@@ -32,6 +32,7 @@ from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, make_policy, policy_env
 
 ALL = "all"
@@ -49,6 +50,7 @@ class EvalConfig:
     seed: int = 0  # seeds the environments and the policy's generator
     figures: bool = True  # scene.png, uncertainty_contours.png, episode.gif
     device: str = "cpu"  # where the environments run
+    threads: str = "auto"  # torch CPU threads: auto (the cores the load leaves free), 0 (torch's: all) or N
 
 
 ConfigStore.instance().store(name="mcrs_eval_config", node=EvalConfig)
@@ -65,6 +67,9 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
     problem = device_problem(cfg.device)
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
+    problem = threads_problem(cfg.threads, cpu_count())
+    if problem:
+        errors.append(f"threads={cfg.threads}: {problem}")
     return errors
 
 
@@ -230,6 +235,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     if errors:
         raise ValueError("invalid config: " + "; ".join(errors))
     names = policy_names(str(cfg.policy))
+    apply_threads(cfg.threads)
     episodes, seed = int(cfg.episodes), int(cfg.seed)
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")

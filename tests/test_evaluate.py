@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from mcrs.env import METRICS, scenario
@@ -125,6 +126,19 @@ def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
     for policy in results:
         for name in ("scene.png", "uncertainty_contours.png", "episode.gif"):
             assert (tmp_path / policy / name).stat().st_size > 1000
+
+
+def test_threads_sets_torchs_threads_and_a_bad_value_is_refused(tmp_path: Path) -> None:
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        run(_compose(["threads=1", "figures=false", *TINY]), tmp_path / "one")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match=r"threads=x: allowed values are auto .*, 0 .* or 1 to"):
+        run(_compose(["threads=x", *TINY]), tmp_path / "bad")
+    assert not (tmp_path / "bad" / "metrics.csv").exists()
 
 
 def test_run_rejects_unknown_policy(tmp_path: Path) -> None:
