@@ -28,7 +28,7 @@ from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.metrics import METRIC_LABELS, METRICS
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import evaluation
-from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.cli import one_line_errors, ranked, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR
@@ -92,7 +92,11 @@ def policy_names(policy: str) -> list[str]:
             read_description(policy)
         return [policy]
     if policy not in POLICIES:
-        raise ValueError(f"unknown policy {policy!r}; allowed: {[*sorted(POLICIES), ALL]}")
+        allowed = ", ".join(ranked(policy, [*sorted(POLICIES), ALL]))  # closest first
+        raise ValueError(
+            f"unknown policy {policy!r}; allowed: {allowed}, or a checkpoint (a run directory or a .pt "
+            "file) or an exported agent (.pt2)"
+        )
     return [policy]
 
 

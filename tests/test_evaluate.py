@@ -83,6 +83,11 @@ def test_policy_names() -> None:
         ValueError, match=r"unknown policy 'bogus'; allowed: .*greedy.*lawnmower.*random.*all"
     ):
         policy_names("bogus")
+    with pytest.raises(
+        ValueError,
+        match=r"unknown policy 'greedyy'; allowed: greedy, coverage, .*, or a checkpoint .* exported agent",
+    ):
+        policy_names("greedyy")  # the closest first
 
 
 def _compose(overrides: list[str]):
