@@ -55,6 +55,9 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
 def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:
     with pytest.raises(ValueError, match=r"trained on map10.*pass env=map10"):
         make_policy(str(run_dir), scenario("map20"))
+    # The same map with a field overridden: the field is the advice (env=map10 is already chosen).
+    with pytest.raises(ValueError, match=r"this environment is map10 \(10x10, 3 UAVs\): pass env.n_uavs=4$"):
+        make_policy(str(run_dir), scenario("map10", n_uavs=3))
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("greedyy", scenario("map10"))
 
@@ -67,7 +70,7 @@ def far_view_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_a_far_view_checkpoint_is_played_with_the_view_it_was_trained_with(
-    far_view_run: Path, tmp_path: Path
+    far_view_run: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ):
     """``env.far_view`` is what the agent reads, not the task: evaluations, pictures and the ledger play a
     checkpoint with its own value, beside heuristics on the task as given; built directly it is named."""
@@ -75,7 +78,12 @@ def test_a_far_view_checkpoint_is_played_with_the_view_it_was_trained_with(
     from mcrs_lab.analysis.ledger import play
 
     paper = scenario("map10", max_steps=10)
-    assert policy_env(str(far_view_run), paper) == paper.replace(far_view=2)
+    with caplog.at_level("WARNING", logger="mcrs.policies"):
+        assert policy_env(str(far_view_run), paper) == paper.replace(far_view=2)
+    assert (
+        "observes with env.far_view=2, as it was trained, whatever this evaluation's env.far_view=0"
+        in caplog.text
+    )
     assert policy_env("greedy", paper) is paper
     with pytest.raises(
         ValueError, match=r"trained with env.far_view=2; this environment has env.far_view=0: pass "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from mcrs.env.config import EnvConfig
 from mcrs.policies.base import Policy
 from mcrs.policies.coverage import CoveragePolicy
@@ -50,6 +52,13 @@ def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
         return env_config
     settings = export.observation_settings if trained.is_exported(name) else trained.observation_settings
     changed = {k: v for k, v in settings(name).items() if getattr(env_config, k) != v}
+    if changed:  # said: an env.far_view=... on the command line does not reach this policy
+        logging.getLogger(__name__).warning(
+            "%s observes with %s, as it was trained, whatever this evaluation's %s (the task is the same)",
+            name,
+            ", ".join(f"env.{k}={v}" for k, v in changed.items()),
+            ", ".join(f"env.{k}={getattr(env_config, k)}" for k in changed),
+        )
     return env_config.replace(**changed) if changed else env_config
 
 

@@ -169,13 +169,17 @@ def check_playable(
                 f"env.{field}={getattr(env_config, field)}: pass env.{field}={value} (it shapes what the "
                 "agent observes)"
             )
-    for field in ("width", "height", "n_uavs", "obs_dim"):
-        if getattr(trained, field) != getattr(env_config, field):
-            raise ValueError(
-                f"{source} was trained on {trained.name} ({trained.width}x{trained.height}, "
-                f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
-                f"{env_config.height}, {env_config.n_uavs} UAVs): pass env={trained.name}"
-            )
+    differ = [f for f in ("width", "height", "n_uavs") if getattr(trained, f) != getattr(env_config, f)]
+    if differ or trained.obs_dim != env_config.obs_dim:
+        fields = " ".join(f"env.{f}={getattr(trained, f)}" for f in differ)
+        advice = (  # the same preset with a field overridden: that field; another map: its preset
+            f"pass {fields}" if trained.name == env_config.name and differ else f"pass env={trained.name}"
+        )
+        raise ValueError(
+            f"{source} was trained on {trained.name} ({trained.width}x{trained.height}, "
+            f"{trained.n_uavs} UAVs); this environment is {env_config.name} ({env_config.width}x"
+            f"{env_config.height}, {env_config.n_uavs} UAVs): {advice}"
+        )
 
 
 class TrainedPolicy(Policy):
