@@ -464,3 +464,17 @@ def test_cli_refuses_the_values_that_used_to_crash_late(tmp_path) -> None:
         for expected in commands[args]:
             assert expected in err, err
     assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_dir() and p.name.endswith("_seed0")]
+
+
+def test_each_problem_is_one_line_named_by_its_field() -> None:
+    """A scenario's problems are the config's own lines (``env.<field>``), and ``train.num_envs`` is said
+    once, by its own rule, not again as the env's runtime field."""
+    with pytest.raises(ConfigError) as one:
+        validate(compose_config("train.num_envs=0"))
+    assert str(one.value).splitlines() == ["invalid config:", "  - train.num_envs=0: must be > 0"]
+    with pytest.raises(ConfigError) as two:
+        validate(compose_config("env.width=0", "env.n_uavs=-1"))
+    assert str(two.value).splitlines()[1:] == [
+        "  - env.width=0: must be an integer >= 1",
+        "  - env.n_uavs=-1: must be an integer >= 1",
+    ]

@@ -182,6 +182,14 @@ def validation_errors(cfg: Config | DictConfig, deep: bool = True) -> list[str]:
     return _problems(as_typed(cfg), deep)[0]
 
 
+def _env_errors(message: str) -> list[str]:
+    """The scenario's problems as the config's lines (``env.width=0: must be ...``), one per problem."""
+    head = "invalid environment config:\n  - "
+    if not message.startswith(head):
+        return [f"env: {message}"]
+    return [f"env.{line}" for line in message.removeprefix(head).split("\n  - ")]
+
+
 def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | None]:
     """Every problem of a config, and the env config it runs on (None when the env part is wrong)."""
     errors: list[str] = _type_errors(cfg)
@@ -192,12 +200,15 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
     problem = device_problem(cfg.device)  # no torch import for "cpu"; a GPU asked for is checked at once
     if problem:
         errors.append(f"device={cfg.device!r}: {problem}")
-    try:  # the scenario's own rules (on the CPU when the device is wrong: that is reported above)
+    try:  # the scenario's own rules (on the CPU when the device is wrong, one env when train.num_envs is:
+        # both are reported by their own rules)
         env_config = EnvConfig.from_scenario(
-            cfg.env, num_envs=t.num_envs, device="cpu" if problem or not deep else cfg.device
+            cfg.env,
+            num_envs=t.num_envs if isinstance(t.num_envs, int) and t.num_envs >= 1 else 1,
+            device="cpu" if problem or not deep else cfg.device,
         )
     except (ValueError, TypeError) as error:
-        errors.append(f"env: {error}")
+        errors += _env_errors(str(error))
     _choice(errors, "algo.mixer", a.mixer, Mixer)
     _choice(errors, "algo.time_limit", a.time_limit, TimeLimit)
     _choice(errors, "train.optimizer", t.optimizer, Optimizer)
