@@ -100,6 +100,8 @@ REFUSED = {
     ("mcrs.train", "train.lr=-1"): "mcrs-train: error: invalid config:",
     ("mcrs.train", "device=cuda:7"): "mcrs-train: error: invalid config:",
     ("mcrs.train", "+env.widht=3"): "mcrs-train: error: invalid config: unknown field(s) env.widht",
+    ("mcrs.train", "env.num_envs=4"): "mcrs-train: error: env.num_envs: not a scenario key (how the env runs, not the task): set train.num_envs (mcrs-train) or episodes (mcrs-eval)",
+    ("mcrs.evaluate", "env.device=cpu"): "mcrs-eval: error: env.device: not a scenario key (how the env runs, not the task): set device",
     ("mcrs.train", "-m", "algo=qmix,foo"): "mcrs-train: error: algo=foo: no such option of algo",
     # A sweep's every job is checked before its first one starts (job 2 would fail after jobs 0 and 1 ran).
     ("mcrs.train", "-m", "train.lr=0.001,-1", "seed=0,1"): "mcrs-train: error: invalid config of sweep job 2 of 4 (train.lr=-1 seed=0): train.lr=-1.0: must be > 0; no job was started",

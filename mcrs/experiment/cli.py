@@ -86,7 +86,18 @@ def describe(error: BaseException) -> str:
     return "; ".join(lines) or type(error).__name__
 
 
+#: The env's runtime fields (``EnvConfig.num_envs``, ``device``): not scenario keys, set by each command.
+RUNTIME_KEYS = {
+    "env.num_envs": "train.num_envs (mcrs-train) or episodes (mcrs-eval)",
+    "env.device": "device",
+}
+
+
 def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
+    if full_key in RUNTIME_KEYS:
+        return (
+            f"{full_key}: not a scenario key (how the env runs, not the task): set {RUNTIME_KEYS[full_key]}"
+        )
     parent, _, key = full_key.rpartition(".")
     node = getattr(error, "parent_node", None)
     keys = [str(k) for k in node if str(k) != "hydra"] if isinstance(node, DictConfig) else []
