@@ -10,14 +10,18 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
+from torch import nn
 from torchrl.modules.models.multiagent import VDNMixer
 
+from mcrs.env.config import scenario
 from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
 from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.config import ConfigError, compose, validate
+from mcrs.experiment.learner import Learner
 from mcrs.experiment.trainer import Experiment
 from mcrs.models.mixers import make_mixer
+from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
 from mcrs.train import CONFIG_DIR
 from tests.train_helpers import TINY, TINY_MEMORY
@@ -229,3 +233,42 @@ def test_an_installed_algorithm_is_found_by_its_name_in_any_process(
     ):
         algorithm_for(compose("algo=qmix", "algo.name=plugin_gone").algo)
     assert "plugin_int" not in ALGORITHMS and "plugin_gone" not in ALGORITHMS
+
+
+class ClippedTargets(ValueFactorisationLoss):
+    """Another TD target (clipped), as a loss subclass: what Algorithm.loss exists for."""
+
+    calls = 0
+
+    def targets(self, reward, next_value, done, terminated):
+        ClippedTargets.calls += 1
+        return super().targets(reward, next_value, done, terminated).clamp(-1.0, 1.0)
+
+
+class ClippedQMIX(Algorithm):
+    def loss(self, agent, mixer):
+        base = super().loss(agent, mixer)
+        return ClippedTargets(agent, mixer, gamma=base.gamma, incentive=self.incentive)
+
+
+def test_an_algorithms_loss_is_its_own_and_the_learner_is_built_around_it(tmp_path: Path) -> None:
+    register_algorithm("clipped_qmix", ClippedQMIX)
+    try:
+        config = compose("algo=qmix", *TINY, "algo.name=clipped_qmix", "train.total_env_steps=40")
+        experiment = Experiment(config, tmp_path)
+        learner = experiment.learner
+        assert type(learner.loss) is ClippedTargets and learner.target_updater.loss_module is learner.loss
+        assert learner.loss.tensor_keys.state == "state"  # the task's keys are set on it
+        experiment.run()
+    finally:
+        ALGORITHMS.pop("clipped_qmix")
+    assert ClippedTargets.calls > 0
+    with pytest.raises(TypeError, match="the learner's loss must be a ValueFactorisationLoss"):
+        Learner(
+            compose("algo=qmix").algo,
+            config.model,
+            config.train,
+            scenario("map10"),
+            CPU,
+            loss=lambda a, m: nn.MSELoss(),
+        )

@@ -5,7 +5,9 @@ An :class:`Algorithm` holds the parts of a run that differ between algorithms::
     mixer(task)                the mixing network (algo.mixer: QMIX, VDN, QPLEX)
     incentive                  EMU's incentive strategy (algo.incentive, mcrs.objectives.incentive), one
                                object for the loss and the episodic memory
-    learner(...)               the Learner with that mixer and incentive; the loss's keys follow from them
+    loss(agent, mixer)         the TD loss (a ValueFactorisationLoss, or a subclass: another target, another
+                               TD error), with that incentive
+    learner(...)               the Learner with that mixer and loss; the loss's keys follow from them
                                and algo.memory_weight (ValueFactorisationLoss.in_keys)
     callbacks(...)             what it adds to the loop: EMC's curiosity (algo.curiosity_scale > 0), then the
                                episodic memory (algo.memory.enabled); both write the keys the loss reads
@@ -41,9 +43,10 @@ from torch import nn
 from mcrs.env.config import EnvConfig
 from mcrs.experiment.callbacks import Callback, CuriosityCallback
 from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.learner import Learner, build_mixer
+from mcrs.experiment.learner import Learner, build_loss, build_mixer
 from mcrs.experiment.schema import AlgoConfig, Config, ConfigError, ModelConfig, TrainConfig
 from mcrs.experiment.task import Task
+from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import Incentive, make_incentive
 
 __all__ = [
@@ -77,12 +80,24 @@ class Algorithm:
         """The mixing network over the task's state (``algo.mixer``)."""
         return build_mixer(self.algo, task)
 
+    def loss(self, agent: nn.Module, mixer: nn.Module) -> ValueFactorisationLoss:
+        """The TD loss over the agent and this mixer (``algo``'s target, memory term and this incentive);
+        return a subclass of :class:`ValueFactorisationLoss` to change the target or the TD error."""
+        return build_loss(self.algo, agent, mixer, self.incentive)
+
     def learner(
         self, model: ModelConfig, train: TrainConfig, env_config: EnvConfig | Task, device: torch.device
     ) -> Learner:
-        """The agent, this mixer and the TD loss with this incentive, with the optimiser."""
+        """The agent, this mixer and this loss, with the optimiser and the target updates."""
         return Learner(
-            self.algo, model, train, env_config, device, mixer=self.mixer, incentive=self.incentive
+            self.algo,
+            model,
+            train,
+            env_config,
+            device,
+            mixer=self.mixer,
+            incentive=self.incentive,
+            loss=self.loss,
         )
 
     def callbacks(

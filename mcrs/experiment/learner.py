@@ -56,6 +56,25 @@ def build_mixer(algo: AlgoConfig, env_config: EnvConfig | Task) -> nn.Module:
     )
 
 
+def build_loss(
+    algo: AlgoConfig, agent: nn.Module, mixer: nn.Module, incentive: Incentive | None = None
+) -> ValueFactorisationLoss:
+    """The TD loss of ``algo`` (its target: gamma, TD(lambda), double Q; the memory term; EMU's
+    incentive, ``algo.incentive``'s when none is given) over the agent and the mixer."""
+    if incentive is None:
+        incentive = make_incentive(str(algo.incentive), algo.incentive_threshold)
+    return ValueFactorisationLoss(
+        agent,
+        mixer,
+        gamma=algo.gamma,
+        td_lambda=algo.td_lambda,
+        double_q=algo.double_q,
+        memory_weight=algo.memory_weight,
+        incentive=incentive,
+        reward_scale=algo.reward_scale,
+    )
+
+
 def make_optimizer(params: list[nn.Parameter], train: TrainConfig) -> torch.optim.Optimizer:
     """``train.optimizer`` over ``params`` (the learner's, and EMC's curiosity networks')."""
     if str(train.optimizer) == "adam":
@@ -74,7 +93,11 @@ class Learner:
         mixer: builds the mixer from the task, right after the agent (so the networks draw their
             initial weights in that order); default :func:`build_mixer` of ``algo``.
         incentive: EMU's incentive strategy (:mod:`mcrs.objectives.incentive`); default ``algo.incentive``'s.
-            The :class:`~mcrs.experiment.algorithms.Algorithm` of a run passes both
+        loss: builds the TD loss from the agent and the mixer, a
+            :class:`~mcrs.objectives.ValueFactorisationLoss` (or a subclass: its keys are set from the
+            task, and the optimiser and the target updates are built around it); default
+            :func:`build_loss` of ``algo`` with ``incentive``.
+            The :class:`~mcrs.experiment.algorithms.Algorithm` of a run passes all three
             (:meth:`~mcrs.experiment.algorithms.Algorithm.learner`).
     """
 
@@ -88,22 +111,17 @@ class Learner:
         *,
         mixer: Callable[[Task], nn.Module] | None = None,
         incentive: Incentive | None = None,
+        loss: Callable[[nn.Module, nn.Module], ValueFactorisationLoss] | None = None,
     ) -> None:
         task = as_task(env_config)
         self.agent = build_agent(model, task).to(device)
         self.mixer = (mixer or partial(build_mixer, algo))(task).to(device)
-        if incentive is None:
-            incentive = make_incentive(str(algo.incentive), algo.incentive_threshold)
-        self.loss = ValueFactorisationLoss(
-            self.agent,
-            self.mixer,
-            gamma=algo.gamma,
-            td_lambda=algo.td_lambda,
-            double_q=algo.double_q,
-            memory_weight=algo.memory_weight,
-            incentive=incentive,
-            reward_scale=algo.reward_scale,
-        )
+        make_loss = loss or (lambda agent, mixer_: build_loss(algo, agent, mixer_, incentive))
+        self.loss = make_loss(self.agent, self.mixer)
+        if not isinstance(self.loss, ValueFactorisationLoss):
+            raise TypeError(
+                f"the learner's loss must be a ValueFactorisationLoss (or a subclass), got {type(self.loss).__name__}"
+            )
         self.loss.set_keys(**task.loss_keys())
         self.params = [*self.agent.parameters(), *self.mixer.parameters()]
         self.optimizer = make_optimizer(self.params, train)
