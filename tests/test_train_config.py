@@ -110,7 +110,7 @@ def test_unknown_group_options_list_the_allowed_ones(group: str) -> None:
         ("model.hidden_dim=0", "model.hidden_dim=0: must be > 0"),
         ("device=cuda:7", "device='cuda:7'"),
         ("device=tpu", "device='tpu'"),
-        ("env.n_uavs=0", "env:"),
+        ("env.n_uavs=0", "env.n_uavs=0: must be an integer >= 1"),
         ("env.comm_range=-1", "comm_range"),
     ],
 )

@@ -52,6 +52,16 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
     assert all(p.is_file() for p in paths)
 
 
+def test_a_replay_block_is_named_for_what_it_is(run_dir: Path) -> None:
+    from mcrs.experiment.checkpoint import CheckpointError
+
+    block = sorted((run_dir / "checkpoints").glob("replay_*.pt"))[0]
+    with pytest.raises(
+        CheckpointError, match=r"is a block of its run's replay buffer .* pass the run directory"
+    ):
+        make_policy(str(block), scenario("map10"))
+
+
 def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:
     with pytest.raises(ValueError, match=r"trained on map10.*pass env=map10"):
         make_policy(str(run_dir), scenario("map20"))

@@ -108,6 +108,11 @@ def load_trained_agent(path: str | Path) -> TrainedAgent:
     file lacks a usable config or agent or holds NaN or inf weights."""
     path = resolve_checkpoint(path)
     state = ckpt.load(path)
+    if isinstance(state, dict) and "replay_block" in state:  # checkpoints/replay_*.pt: episodes, no agent
+        raise ckpt.CheckpointError(
+            f"{path} is a block of its run's replay buffer (episodes), not a checkpoint: pass the run "
+            "directory or a checkpoints/model_<steps>.pt file"
+        )
     try:
         saved_env, legacy = with_legacy_values(state["config"]["env"])
         trained = from_mapping(saved_env)
