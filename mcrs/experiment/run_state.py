@@ -122,31 +122,37 @@ class RunState:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
         restored by the caller once everything is built."""
+        saved = state.get("callbacks", {})
+        self._check_callbacks(saved)  # before anything is restored
         self.learner.load_state_dict(state["learner"])
         if "replay_blocks" in state:
             self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())
         else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
             load_replay_state_dict(self.replay, state["replay"])
-        saved = state.get("callbacks", {})
+        for callback in self.callbacks:
+            if callback.name in saved:
+                callback.load_state_dict(saved[callback.name])
+        known = {f.name for f in fields(Counters)}
+        self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
+        self.last_eval = dict(state.get("last_eval", {}))
+        self.epsilon.set_env_steps(self.counters.env_steps)
+
+    def _check_callbacks(self, saved: dict[str, Any]) -> None:
+        """No callback's saved state is dropped, and no callback with state starts from nothing; a stateless
+        callback may join a resumed run."""
         names = {callback.name for callback in self.callbacks}
         lost = [name for name, value in saved.items() if name not in names and value]
-        if lost:  # a callback with state that this run would drop
+        if lost:
             raise ckpt.CheckpointError(
                 f"the checkpoint holds the state of the callback {lost[0]!r}, which this run does not have: "
                 "build the run with it (Experiment(..., callbacks=[...]), or its algorithm)"
             )
         for callback in self.callbacks:
-            if callback.name in saved:
-                callback.load_state_dict(saved[callback.name])
-            elif callback.state_dict():  # a stateless callback may join a resumed run; one with state not
+            if callback.name not in saved and callback.state_dict():
                 raise ckpt.CheckpointError(
                     f"the checkpoint has no state for this run's {callback.name!r} callback (the run that "
                     "wrote it did not have it)"
                 )
-        known = {f.name for f in fields(Counters)}
-        self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
-        self.last_eval = dict(state.get("last_eval", {}))
-        self.epsilon.set_env_steps(self.counters.env_steps)
 
     def _load(self, path: Path) -> None:
         state = ckpt.load_resumable(
