@@ -139,7 +139,6 @@ def _read_run_config(path: Path) -> dict[str, Any]:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.algorithms import ALGORITHMS
     from mcrs.experiment.trainer import Experiment
 
     resume = cfg.resume is not None
@@ -147,8 +146,8 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
         cfg, run_dir = resume_config(cfg, overrides or [])
     experiment = Experiment(cfg, run_dir, resume=resume)
     print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
-    if str(cfg.algo.name) not in ALGORITHMS:  # a label of one's own, or a misspelt name: said, not refused
-        print(f"note: algo.name={cfg.algo.name} is not a registered algorithm: {experiment.algorithm_note}")
+    if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
+        print(f"note: {experiment.algorithm_note}")
     done = experiment.counters.env_steps
     if resume and done >= cfg.train.total_env_steps:
         print(

@@ -180,8 +180,8 @@ class Experiment(RunState):
         if resume:  # last: building the collector may draw random numbers
             self._restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
-        if str(cfg.algo.name) not in ALGORITHMS:  # a label of one's own, or a misspelt registered name
-            log_event(f"algo.name={cfg.algo.name} is not a registered algorithm: {self.algorithm_note}")
+        if self.algorithm_note:
+            log_event(self.algorithm_note)
         for note in rounding_notes(t.num_envs * self.T, t.total_env_steps, t.eval_interval):
             log_event(note)
         if t.updates_per_episode == 0:  # allowed (a collection-only run), never silent
@@ -190,9 +190,14 @@ class Experiment(RunState):
             )
 
     @property
-    def algorithm_note(self) -> str:
-        """What an unregistered ``algo.name`` trains (said in the log and by ``mcrs-train``)."""
-        return f"trained as the built-in {self.algorithm!r} (registered: {', '.join(ALGORITHMS)})"
+    def algorithm_note(self) -> str | None:
+        """What an unregistered ``algo.name`` (a label of one's own, or a misspelt name) trains, said in the
+        log and by ``mcrs-train``; None for a registered one."""
+        name = str(self.config.algo.name)
+        if name in ALGORITHMS:
+            return None
+        registered = ", ".join(ALGORITHMS)
+        return f"algo.name={name} is not a registered algorithm: trained as the built-in {self.algorithm!r} (registered: {registered})"
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
