@@ -33,7 +33,7 @@ from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
-from mcrs.policies import POLICIES, make_policy, policy_env
+from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
 
 ALL = "all"
 log = logging.getLogger(__name__)
@@ -133,6 +133,8 @@ def evaluate_episodes(
     (ETA included; plain lines when the console is no terminal), named after the policy it is running."""
     from mcrs.experiment.logging import progress_bar
 
+    for name in names:  # a checkpoint of another map or team: refused before the bar's first line
+        check_policy(name, env_config)
     chunks = math.ceil(episodes / min(episodes, MAX_BATCH))
     total = len(names) * chunks * env_config.max_steps
     per_episode = {}

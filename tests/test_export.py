@@ -4,6 +4,7 @@ checkpoint it came from."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -139,6 +140,29 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(
     assert export_main([str(run_dir), str(out), "--force"]) == 1
     assert out.read_bytes() == exported.read_bytes()
     assert [p.name for p in tmp_path.iterdir()] == ["agent.pt2"]
+
+
+def test_a_killed_exports_temporary_folder_goes_with_the_next_export(run_dir: Path, tmp_path: Path) -> None:
+    """SIGKILL skips the export's own clean-up: the next export to that file removes what the dead process
+    left, and nothing that a live process, or anything but an export, holds."""
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    dead = int(gone.stdout)
+    left = tmp_path / f".agent.{dead}.k2j4.tmp"  # as a killed export leaves it: the half-written archive
+    left.mkdir()
+    (left / "agent.pt2").write_bytes(b"PK half")
+    live = tmp_path / f".agent.{os.getppid()}.x9z1.tmp"  # another export still writing
+    live.mkdir()
+    foreign = tmp_path / f".agent.{dead}.mine.tmp"  # the pattern, but someone's own files
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep")
+    other = tmp_path / f".other.{dead}.a1.tmp"  # another file's
+    other.mkdir()
+    assert export_main([str(run_dir), str(tmp_path / "agent.pt2")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["agent.pt2", live.name, foreign.name, other.name]
+    )
 
 
 def _rewritten(exported: Path, path: Path, description: bytes | None) -> Path:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mcrs.env import MCRSEnv, scenario
-from mcrs.evaluate import evaluate_policy
+from mcrs.evaluate import evaluate_episodes, evaluate_policy
 from mcrs.experiment.trainer import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import make_policy
@@ -70,6 +70,21 @@ def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:
         make_policy(str(run_dir), scenario("map10", n_uavs=3))
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("greedyy", scenario("map10"))
+
+
+def test_mcrs_eval_refuses_another_maps_checkpoint_before_its_progress_bar(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mcrs.policies.export import export_agent
+
+    capsys.readouterr()
+    with pytest.raises(ValueError, match=r"trained on map10.*pass env=map10"):
+        evaluate_episodes(scenario("map20", num_envs=2), ["greedy", str(run_dir)], 2, 0, "mcrs-eval")
+    shown = capsys.readouterr()
+    assert "mcrs-eval" not in shown.out + shown.err  # no bar was started, no episode was played
+    export = export_agent(run_dir, tmp_path / "agent.pt2")
+    with pytest.raises(ValueError, match=r"exported agent .* trained on map10.*pass env=map10"):
+        evaluate_episodes(scenario("map20", num_envs=2), [str(export)], 2, 0, "mcrs-eval")
 
 
 @pytest.fixture(scope="module")

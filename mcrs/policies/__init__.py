@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from mcrs.env.config import EnvConfig
 from mcrs.policies.base import Policy
@@ -62,6 +63,27 @@ def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
     return env_config.replace(**changed) if changed else env_config
 
 
+def check_policy(name: str, env_config: EnvConfig) -> None:
+    """Refuse (ValueError, naming the override), before any episode runs or progress is shown, a checkpoint
+    or exported agent trained on another map or team than ``env_config``; reads its config only (what
+    :func:`make_policy` would refuse after loading it). Its observation fields are its own (:func:`policy_env`)."""
+    from mcrs.policies import export, trained
+
+    if name in POLICIES or not trained.looks_like_checkpoint(name):
+        return
+    exported = trained.is_exported(name)
+    env = export.trained_env(name) if exported else trained.trained_env(name)
+    if env is None:  # loading it names the problem
+        return
+    own = {field: getattr(env, field) for field in (*trained.OBSERVATION_FIELDS, "safety_rule")}
+    source = (
+        f"exported agent {Path(name).expanduser()}"
+        if exported
+        else f"checkpoint {trained.resolve_checkpoint(name)}"
+    )
+    trained.check_playable(env, env_config.replace(**own), source)
+
+
 __all__ = [
     "POLICIES",
     "CoveragePolicy",
@@ -69,6 +91,7 @@ __all__ = [
     "LawnmowerPolicy",
     "Policy",
     "RandomPolicy",
+    "check_policy",
     "make_policy",
     "policy_env",
 ]

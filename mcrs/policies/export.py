@@ -19,6 +19,7 @@ unpickled, every member of the archive named in advance) into the same ``GreedyA
 
 from __future__ import annotations
 
+import glob
 import json
 import math
 import os
@@ -159,7 +160,7 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
             step, _example_inputs(2, *shape, seed=0), dynamic_shapes=tuple({0: envs} for _ in range(4))
         )
     text = json.dumps(description(trained.env, trained.config, trained.path, trained.env_steps), indent=1)
-    folder = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", suffix=".tmp", dir=out.parent))
+    folder = _temporary_folder(out)
     try:
         tmp = folder / out.name  # the archive's top folder is named after the file
         torch.export.save(program, tmp, extra_files={DESCRIPTION: text})
@@ -168,6 +169,33 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return out
+
+
+def _temporary_folder(out: Path) -> Path:
+    """A hidden folder beside ``out`` for the archive being written, named with this process's id. The
+    folders an export killed outright (SIGKILL: its ``finally`` never ran) left for ``out`` go first: those
+    whose process is gone and that hold nothing but ``out``'s archive (anything else is left alone)."""
+    for stale in out.parent.glob(f".{glob.escape(out.stem)}.*.tmp"):
+        pid = stale.name[len(out.stem) + 2 :].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
+            continue
+        try:
+            if stale.is_dir() and not stale.is_symlink() and set(os.listdir(stale)) <= {out.name}:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:  # unreadable: not ours to judge
+            continue
+    return Path(tempfile.mkdtemp(prefix=f".{out.stem}.{os.getpid()}.", suffix=".tmp", dir=out.parent))
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (another user's counts: it is not ours to clean up after)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 @torch.no_grad()
@@ -422,11 +450,17 @@ def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> T
     return TrainedPolicy(env_config, GreedyAgentStep(agent), agent.hidden_dim, seed)
 
 
+def trained_env(path: str | Path) -> EnvConfig | None:
+    """The env config the exported agent's description says it was trained on; None when it has no usable
+    one (loading the policy then names the problem)."""
+    try:
+        return _trained_env(Path(path).expanduser(), read_description(path))
+    except ValueError:  # ExportError is one: loading the policy names the problem
+        return None
+
+
 def observation_settings(path: str | Path) -> dict[str, Any]:
     """The exported agent's values of the observation fields (``mcrs.policies.policy_env``); none when its
-    description has no usable env (loading the policy then names the problem)."""
-    try:
-        trained = _trained_env(Path(path).expanduser(), read_description(path))
-    except ValueError:  # ExportError is one: loading the policy names the problem
-        return {}
-    return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
+    description has no usable env."""
+    trained = trained_env(path)
+    return {} if trained is None else {name: getattr(trained, name) for name in OBSERVATION_FIELDS}

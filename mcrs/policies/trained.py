@@ -43,16 +43,21 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return weights[-1] if weights else ckpt.checkpoint_path(path)
 
 
-def observation_settings(path: str | Path) -> dict[str, Any]:
-    """The checkpoint's values of :data:`OBSERVATION_FIELDS` (a config saved before one existed: its default,
-    the paper's). A checkpoint without a usable config gives none: loading its policy then names the problem.
-    The tensors are mapped, not read: only the config is needed here, and the policy loads the file next."""
+def trained_env(path: str | Path) -> EnvConfig | None:
+    """The env config the checkpoint's agent was trained on (a field saved before it existed: its default,
+    the paper's); None without a usable config: loading its policy then names the problem. The tensors are
+    mapped, not read: only the config is needed here, and the policy loads the file next."""
     state = ckpt.load(resolve_checkpoint(path), mmap=True)
     try:
-        trained = from_mapping(with_legacy_values(state["config"]["env"])[0])
+        return from_mapping(with_legacy_values(state["config"]["env"])[0])
     except (KeyError, TypeError, ValueError, OverflowError):
-        return {}
-    return {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
+        return None
+
+
+def observation_settings(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's values of :data:`OBSERVATION_FIELDS` (none without a usable config)."""
+    trained = trained_env(path)
+    return {} if trained is None else {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
 
 
 def looks_like_checkpoint(name: str) -> bool:
