@@ -203,7 +203,23 @@ def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     except ConfigError as error:
         return [str(error).removeprefix("invalid config: ")]
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
-    return problems + budget_errors(cfg, explicit)
+    return problems + budget_errors(cfg, explicit) + option_errors(cfg)
+
+
+def option_errors(cfg: DictConfig) -> list[str]:
+    """What the run's algorithm says of ``algo.options`` (its own settings), when any are given: a sweep is
+    checked before its first job. Loads the algorithm's module (torch) only then."""
+    if not cfg.algo.get("options"):
+        return []
+    from mcrs.experiment.algorithms import algorithm_class
+    from mcrs.experiment.config import as_typed
+
+    algo = as_typed(cfg).algo
+    try:
+        algorithm_class(algo).read_options(algo)
+    except ConfigError as error:
+        return [str(error)]
+    return []
 
 
 def _remove_session_files(run_dir: Path, output_subdir: str | None) -> None:

@@ -5,6 +5,7 @@ algorithm of one's own registers and trains, and the memory and the curiosity re
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,7 @@ from mcrs.experiment.trainer import Experiment
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
-from mcrs.train import CONFIG_DIR
+from mcrs.train import CONFIG_DIR, option_errors
 from tests.train_helpers import TINY, TINY_MEMORY
 
 CPU = torch.device("cpu")
@@ -240,15 +241,26 @@ class ClippedTargets(ValueFactorisationLoss):
 
     calls = 0
 
+    def __init__(self, *args, clip: float, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.clip = clip
+
     def targets(self, reward, next_value, done, terminated):
         ClippedTargets.calls += 1
-        return super().targets(reward, next_value, done, terminated).clamp(-1.0, 1.0)
+        return super().targets(reward, next_value, done, terminated).clamp(-self.clip, self.clip)
 
 
 class ClippedQMIX(Algorithm):
+    @dataclass
+    class Options:  # its own settings: algo.options.clip
+        clip: float = 1.0
+        note: str = "clipped"
+
     def loss(self, agent, mixer):
         base = super().loss(agent, mixer)
-        return ClippedTargets(agent, mixer, gamma=base.gamma, incentive=self.incentive)
+        return ClippedTargets(
+            agent, mixer, gamma=base.gamma, incentive=self.incentive, clip=self.options.clip
+        )
 
 
 def test_an_algorithms_loss_is_its_own_and_the_learner_is_built_around_it(tmp_path: Path) -> None:
@@ -259,6 +271,7 @@ def test_an_algorithms_loss_is_its_own_and_the_learner_is_built_around_it(tmp_pa
         learner = experiment.learner
         assert type(learner.loss) is ClippedTargets and learner.target_updater.loss_module is learner.loss
         assert learner.loss.tensor_keys.state == "state"  # the task's keys are set on it
+        assert learner.loss.clip == 1.0  # its Options' default
         experiment.run()
     finally:
         ALGORITHMS.pop("clipped_qmix")
@@ -272,3 +285,49 @@ def test_an_algorithms_loss_is_its_own_and_the_learner_is_built_around_it(tmp_pa
             CPU,
             loss=lambda a, m: nn.MSELoss(),
         )
+
+
+def test_an_algorithms_own_settings_are_checked_recorded_and_fingerprinted(tmp_path: Path) -> None:
+    register_algorithm("clipped_qmix", ClippedQMIX)
+    base = ("algo=qmix", *TINY, "algo.name=clipped_qmix", "train.total_env_steps=40")
+    try:
+        config = compose(*base, "+algo.options.clip=0.5")
+        experiment = Experiment(config, tmp_path)
+        assert experiment.algorithm.options == ClippedQMIX.Options(clip=0.5)
+        assert experiment.learner.loss.clip == 0.5
+        assert config.algo.options == {"clip": 0.5}  # the caller's config is not changed
+        experiment.run()
+        # The run's config holds every setting, the defaults filled in.
+        saved = OmegaConf.load(tmp_path / "config.yaml").algo.options
+        assert OmegaConf.to_container(saved) == {"clip": 0.5, "note": "clipped"}
+        longer = ("train.total_env_steps=80", "+algo.options.clip=0.25")
+        with pytest.raises(
+            CheckpointError, match=r"algo.options.clip: 0.5 in the checkpoint, 0.25 in this run"
+        ):
+            Experiment(compose(*base, *longer), tmp_path, resume=True)
+        problems = [
+            ("+algo.options.clp=2", "algo.options.clp: not a setting of ClippedQMIX (algo.name=clipped_qmix); "
+             "its settings (closest first): clip, note"),
+            ("+algo.options.clip=wide", "algo.options.clip='wide': Value 'wide' of type 'str' could not be "
+             "converted to Float"),
+        ]  # fmt: skip
+        for override, message in problems:
+            with pytest.raises(ConfigError) as refused:
+                Experiment(compose(*base, override), tmp_path / "refused")
+            assert str(refused.value) == message
+            # mcrs-train and a sweep's up-front check say the same before a job starts
+            assert option_errors(OmegaConf.structured(compose(*base, override))) == [message]
+        assert not (tmp_path / "refused").exists()  # refused before anything is written
+    finally:
+        ALGORITHMS.pop("clipped_qmix")
+    with pytest.raises(
+        ConfigError, match=r"^algo.options.clip: Algorithm \(algo.name=qmix\) takes no options$"
+    ):
+        algorithm_for(compose("algo=qmix", "+algo.options.clip=2").algo)
+    with pytest.raises(ConfigError, match=r"takes no options \(algo.name=qmxi is not a registered algorithm"):
+        algorithm_for(compose("algo=qmix", "algo.name=qmxi", "+algo.options.clip=2").algo)
+    # Without the '+', Hydra's own refusal says how to add one.
+    with pytest.raises(ConfigError, match=r"with a '\+': \+algo.options.clip=<value>"):
+        compose("algo=qmix", "algo.options.clip=2")
+    with pytest.raises(TypeError, match=r"Options must be a dataclass class"):
+        register_algorithm("bad_options", type("BadOptions", (Algorithm,), {"Options": dict}))

@@ -35,4 +35,6 @@ def test_the_api_pages_python_blocks_run_top_to_bottom(tmp_path: Path) -> None:
     before, after = (ast.literal_eval(line) for line in histories)
     assert [step for step, _ in before] == [0, 1600, 3200]  # as the page's comment says
     assert after[:3] == before and [step for step, _ in after[3:]] == [4800, 6400]  # kept, then grown
+    options = (tmp_path / "outputs/bonus_scaled/config.yaml").read_text()
+    assert "options:\n    bonus: 0.1\n" in options  # the algorithm's own setting, recorded with the run
     assert (tmp_path / "learning_curve.png").is_file() and (tmp_path / "outputs/my_run/agent.pt2").is_file()

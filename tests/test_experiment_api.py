@@ -60,12 +60,18 @@ def test_compose_gives_typed_nodes_and_the_experiment_runs_them(tmp_path: Path) 
     config = tiny("train.total_env_steps=40")
     assert isinstance(config, Config) and isinstance(config.algo, AlgoConfig)
     assert str(config.algo.mixer) == "qmix" and config.env.name == "map10"
-    experiment = mcrs.Experiment(config, tmp_path / "run")  # the package's lazy name is the class
+    recorder = Recorder()
+    experiment = mcrs.Experiment(config, tmp_path / "run", callbacks=[recorder])  # the package's lazy name
     assert isinstance(experiment, Experiment) and mcrs.compose is compose
     assert experiment.env_config.num_envs == config.train.num_envs  # runtime fields from train/device
     result = experiment.run()
     assert set(result) >= {"episode_reward", "uncertainty"} and experiment.counters.env_steps >= 40
-    assert experiment.evaluate()["episode_reward"] == pytest.approx(result["episode_reward"])
+    evaluations = recorder.calls.count("evaluated")
+    # Evaluating right after run() is its last evaluation: no second row at that step, no second hook call.
+    assert experiment.evaluate() == result
+    assert recorder.calls.count("evaluated") == evaluations
+    steps = [line.split(",")[0] for line in (tmp_path / "run/logs/scalars/eval/episode_reward.csv").open()]
+    assert len(steps) == len(set(steps)) == evaluations
 
 
 def test_user_callback_hooks_run_and_its_state_is_checkpointed(tmp_path: Path) -> None:
@@ -88,6 +94,36 @@ def test_user_callback_hooks_run_and_its_state_is_checkpointed(tmp_path: Path) -
 
 class Stateless(Callback):
     name = "stateless"
+
+
+class Unnamed(Recorder):
+    """A callback of one's own that names itself after nothing: its class names it."""
+
+    name = Callback.name
+
+
+class FirstUnnamed(Callback):
+    def state_dict(self) -> dict[str, Any]:
+        return {"first": 1}
+
+
+class SecondUnnamed(Callback):
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        raise AssertionError("another callback's state")
+
+
+def test_a_callback_without_a_name_is_named_after_its_class(tmp_path: Path) -> None:
+    assert (FirstUnnamed.name, SecondUnnamed.name, Stateless.name) == (
+        "FirstUnnamed",
+        "SecondUnnamed",
+        "stateless",
+    )
+    assert Unnamed.name == "callback"  # set in the class body: kept (check_names refuses two such)
+    Experiment(tiny("train.total_env_steps=40"), tmp_path / "run", callbacks=[FirstUnnamed()]).run()
+    # Another unnamed callback does not take over the first one's saved state: the resume is refused.
+    longer = tiny("train.total_env_steps=80")
+    with pytest.raises(ckpt.CheckpointError, match="holds the state of the callback 'FirstUnnamed'"):
+        Experiment(longer, tmp_path / "run", resume=True, callbacks=[SecondUnnamed()])
 
 
 def test_a_resume_keeps_every_callback_with_state_and_admits_stateless_ones(tmp_path: Path) -> None:

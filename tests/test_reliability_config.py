@@ -225,6 +225,7 @@ BAD_CHOICES: list[tuple[str, str]] = [
 
 #: Overrides Hydra refuses while composing: wrong types for the typed schema.
 WRONG_TYPES = [
+    "algo.options=5",  # an algorithm's own settings are a mapping (each key is the algorithm's to check)
     "env.width=abc",
     "env.height=2.5",
     "env.max_steps=ten",
@@ -273,6 +274,7 @@ UNKNOWN_KEYS = [
     "env.num_envs=4",  # runtime fields are train.num_envs and device, not the scenario's
     "env.device=cpu",
     "algo.lrr=1",
+    "algo.options.clip=1",  # an algorithm's own setting is added with '+' (tests/test_algorithms.py)
     "algo.memory.capcity=1",
     "model.hiden_dim=3",
     "logger.proj=x",

@@ -25,6 +25,19 @@ subclasses :class:`Algorithm`, overrides the parts it changes and is registered 
 
     Experiment(compose("algo=qmix", "algo.name=my_algo"), "outputs/run").run()
 
+An algorithm's own settings are a dataclass, its :attr:`Algorithm.Options`, set from the config's
+``algo.options`` node (``+algo.options.clip=5`` on the command line, or ``options:`` in a preset), so they
+are checked, written to the run's ``config.yaml``, fingerprinted for resumes and swept like any knob::
+
+    @register_algorithm("clipped_qmix")
+    class ClippedQMIX(Algorithm):
+        @dataclass
+        class Options:
+            clip: float = 10.0
+
+        def loss(self, agent, mixer):
+            return ClippedLoss(..., clip=self.options.clip)
+
 An installed package can name its algorithms in the entry-point group ``mcrs.algorithms`` (its
 ``pyproject.toml``: ``[project.entry-points."mcrs.algorithms"]`` ``my_algo = "my_pkg.algos:MyAlgorithm"``):
 ``algo.name=my_algo`` then finds it from ``mcrs-train``, a sweep's launcher or a resume, without an import.
@@ -36,12 +49,17 @@ label of one's own) gets the built-in :class:`Algorithm`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import fields, is_dataclass, replace
+from typing import Any, ClassVar
 
 import torch
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 from torch import nn
 
 from mcrs.env.config import EnvConfig
 from mcrs.experiment.callbacks import Callback, CuriosityCallback
+from mcrs.experiment.cli import listing
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.learner import Learner, build_loss, build_mixer
 from mcrs.experiment.schema import AlgoConfig, Config, ConfigError, ModelConfig, TrainConfig
@@ -54,9 +72,12 @@ __all__ = [
     "BUILT_IN",
     "ENTRY_POINT_GROUP",
     "Algorithm",
+    "algorithm_class",
     "algorithm_for",
     "register_algorithm",
     "register_installed",
+    "unregistered",
+    "with_options",
 ]
 
 
@@ -68,9 +89,43 @@ class Algorithm:
     :meth:`callbacks`.
     """
 
+    #: The algorithm's own settings: a dataclass whose fields ``algo.options`` sets, read into
+    #: :attr:`options` (None: the algorithm takes none, and ``algo.options`` must be empty).
+    Options: ClassVar[type | None] = None
+
     def __init__(self, algo: AlgoConfig) -> None:
         self.algo = algo
+        self.options = self.read_options(algo)
         self.incentive = self.make_incentive()
+
+    @classmethod
+    def read_options(cls, algo: AlgoConfig) -> Any:
+        """``algo.options`` as an :attr:`Options` instance, its defaults where a field is not given (None
+        without :attr:`Options`). A key that is not a field, a value of the wrong type, or a setting given
+        to an algorithm that takes none is a :class:`ConfigError` naming ``algo.options.<key>``."""
+        given = dict(algo.options or {})
+        if cls.Options is None:
+            if given:
+                key = next(iter(given))
+                raise ConfigError(
+                    f"algo.options.{key}: {cls.__name__} (algo.name={algo.name}) takes no options"
+                    + ("" if str(algo.name) in ALGORITHMS else f" ({unregistered(str(algo.name))})")
+                )
+            return None
+        known = [f.name for f in fields(cls.Options)]
+        unknown = [key for key in given if key not in known]
+        if unknown:
+            raise ConfigError(
+                f"algo.options.{unknown[0]}: not a setting of {cls.__name__} (algo.name={algo.name}); "
+                f"its settings{listing(str(unknown[0]), known)}"
+            )
+        try:
+            return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(cls.Options), given))
+        except OmegaConfBaseException as error:
+            key = str(getattr(error, "full_key", None) or "?")
+            value = f"={given[key]!r}" if key in given else ""
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise ConfigError(f"algo.options.{key}{value}: {first}") from None
 
     def make_incentive(self) -> Incentive:
         """EMU's incentive strategy (``algo.incentive``, ``algo.incentive_threshold``)."""
@@ -131,6 +186,8 @@ def register_algorithm(
     def add(cls: type[Algorithm]) -> type[Algorithm]:
         if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
             raise TypeError(f"register_algorithm({name!r}): expected an Algorithm subclass, got {cls!r}")
+        if cls.Options is not None and not (isinstance(cls.Options, type) and is_dataclass(cls.Options)):
+            raise TypeError(f"register_algorithm({name!r}): {cls.__name__}.Options must be a dataclass class")
         if name in ALGORITHMS and not replace:
             raise ValueError(
                 f"algorithm {name!r} is already registered ({ALGORITHMS[name].__name__}); pass replace=True "
@@ -146,14 +203,33 @@ def register_algorithm(
 ENTRY_POINT_GROUP = "mcrs.algorithms"
 
 
-def algorithm_for(algo: AlgoConfig) -> Algorithm:
-    """The algorithm of an ``algo`` config node: the class registered under ``algo.name`` (or installed
-    under it, :data:`ENTRY_POINT_GROUP`), else the built-in :class:`Algorithm` (its parts follow the
-    node's knobs)."""
+def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
+    """The class registered under ``algo.name`` (or installed under it, :data:`ENTRY_POINT_GROUP`), else
+    the built-in :class:`Algorithm` (its parts follow the node's knobs)."""
     name = str(algo.name)
     if name not in ALGORITHMS:
         register_installed(name)
-    return ALGORITHMS.get(name, Algorithm)(algo)
+    return ALGORITHMS.get(name, Algorithm)
+
+
+def with_options(algo: AlgoConfig) -> AlgoConfig:
+    """``algo`` with its algorithm's every setting in ``algo.options`` (defaults filled in, checked by
+    :meth:`Algorithm.read_options`): what a run's ``config.yaml``, loggers and fingerprint hold."""
+    options = algorithm_class(algo).read_options(algo)
+    values = (
+        {} if options is None else OmegaConf.to_container(OmegaConf.structured(options), enum_to_str=True)
+    )
+    return replace(algo, options=values)
+
+
+def algorithm_for(algo: AlgoConfig) -> Algorithm:
+    """The algorithm of an ``algo`` config node (:func:`algorithm_class`), built from it."""
+    return algorithm_class(algo)(algo)
+
+
+def unregistered(name: str, what: str = "the built-in Algorithm") -> str:
+    """What an ``algo.name`` nobody registered or installed gets, and the names that are registered."""
+    return f"algo.name={name} is not a registered algorithm: {what} (registered: {', '.join(ALGORITHMS)})"
 
 
 def register_installed(name: str) -> bool:

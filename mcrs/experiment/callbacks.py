@@ -59,9 +59,17 @@ class ExperimentView(Protocol):
 
 
 class Callback:
-    """A no-op callback; subclasses override the hooks they need."""
+    """A no-op callback; subclasses override the hooks they need.
+
+    ``name`` keys the callback's checkpoint state and timer: a subclass that sets none is named after its
+    class, so two callbacks of one's own never share (or take over) each other's saved state."""
 
     name: str = "callback"
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__ and cls.name == Callback.name:
+            cls.name = cls.__name__
 
     def on_setup(self, experiment: ExperimentView) -> None:
         """Called once the experiment is built; keep a reference if a hook needs it."""

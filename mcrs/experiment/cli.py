@@ -58,7 +58,7 @@ def ranked(name: str, allowed: Sequence[str]) -> list[str]:
     return close + [a for a in allowed if a not in close]
 
 
-def _listing(name: str, allowed: Sequence[str]) -> str:
+def listing(name: str, allowed: Sequence[str]) -> str:
     """``" (closest first): comm_range, comm_budget, ..."`` (every allowed name), or ``": a, b"`` when none is close."""
     order = ranked(name, allowed)
     close = difflib.SequenceMatcher(None, name, order[0]).ratio() >= CLOSE if order else False
@@ -73,9 +73,7 @@ def describe(error: BaseException) -> str:
         return f"cannot read the override {error.override!r}: {reason} (the syntax: {GRAMMAR})"
     if isinstance(error, MissingConfigException) and error.missing_cfg_file and error.options:
         group, _, option = str(error.missing_cfg_file).rpartition("/")
-        return (
-            f"{group}={option}: no such option of {group}; allowed{_listing(option, sorted(error.options))}"
-        )
+        return f"{group}={option}: no such option of {group}; allowed{listing(option, sorted(error.options))}"
     if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and getattr(cause, "full_key", None):
         return _unknown_key(str(cause.full_key), cause)
     if isinstance(cause, ValidationError) and getattr(cause, "full_key", None):
@@ -101,10 +99,13 @@ def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
     parent, _, key = full_key.rpartition(".")
     node = getattr(error, "parent_node", None)
     keys = [str(k) for k in node if str(k) != "hydra"] if isinstance(node, DictConfig) else []
+    if full_key.startswith("algo.options."):  # an algorithm's own settings: no schema lists them
+        given = f"; the keys given: {', '.join(keys)}" if keys else ""
+        return f"{full_key}: not in the config; add an algorithm's own setting with a '+': +{full_key}=<value>{given}"
     if not keys:
         return f"{full_key}: unknown key"
     where = f"the keys of {parent}" if parent else "the top-level keys"
-    return f"{full_key}: unknown key; {where}{_listing(key, keys)}"
+    return f"{full_key}: unknown key; {where}{listing(key, keys)}"
 
 
 def _bad_value(message: str, cause: ValidationError) -> str:
@@ -115,7 +116,7 @@ def _bad_value(message: str, cause: ValidationError) -> str:
     if "expected one of [" in reason:
         allowed = reason.split("expected one of [", 1)[1].rstrip("]").split(", ")
         value = override.split("=", 1)[-1]
-        return f"{override}: allowed values{_listing(value, allowed)}"
+        return f"{override}: allowed values{listing(value, allowed)}"
     for kind, wanted in TYPE_NAMES.items():
         if reason.endswith(f"could not be converted to {kind}") or f"is not a valid {kind.lower()}" in reason:
             return f"{override}: must be {wanted}"

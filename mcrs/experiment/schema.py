@@ -141,6 +141,9 @@ class AlgoConfig(FieldsOnly):
     curiosity_decay_rate: float = 0.9  # the scale is multiplied by this ...
     curiosity_decay_cycle: int = 100_000  # ... every this many env steps
     curiosity_tau: float = 0.005  # soft target update of the curiosity's VDN learner
+    # a registered or installed algorithm's own settings, checked against its Algorithm.Options dataclass
+    # (mcrs.experiment.algorithms): +algo.options.<key>=<value>; a run's config.yaml holds all of them
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -229,7 +232,8 @@ def as_typed(cfg: Config | DictConfig) -> Config:
     if isinstance(cfg, Config):
         return cfg
     given = _keys(OmegaConf.to_container(cfg, resolve=False))
-    unknown = sorted(given - _keys(OmegaConf.to_container(OmegaConf.structured(Config), resolve=False)))
+    schema = _keys(OmegaConf.to_container(OmegaConf.structured(Config), resolve=False))
+    unknown = sorted(k for k in given - schema if not k.startswith(FREE_FORM))
     if unknown:  # a key forced past the schema (``+env.widht=3``): no field would ever read it
         raise ConfigError(f"invalid config: unknown field(s) {', '.join(unknown)}: no schema has them")
     try:
@@ -238,6 +242,11 @@ def as_typed(cfg: Config | DictConfig) -> Config:
         key = getattr(error, "full_key", None)
         first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise ConfigError(f"invalid config: {key + ': ' if key else ''}{first}") from None
+
+
+#: The nodes whose keys no schema lists: an algorithm's own settings, checked by the algorithm
+#: (:meth:`mcrs.experiment.algorithms.Algorithm.read_options`).
+FREE_FORM = ("algo.options.",)
 
 
 def _keys(tree: Any, prefix: str = "") -> set[str]:

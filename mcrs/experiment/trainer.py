@@ -24,6 +24,7 @@ checkpoint. So a run resumed from a checkpoint repeats the straight run exactly 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -31,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mcrs.env.config import EnvConfig
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import ALGORITHMS, algorithm_for
+from mcrs.experiment.algorithms import ALGORITHMS, algorithm_for, unregistered, with_options
 from mcrs.experiment.budget import rounding_notes
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
@@ -99,6 +100,9 @@ class Experiment(RunState):
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
         self.task = MCRSTask(self.env_config) if task is None else task
         check_supported(self.config, self.task)  # ConfigError: what the task cannot run (logger.video, ...)
+        # the algorithm's own settings, checked and completed with their defaults (the caller's config is
+        # not changed): config.yaml, the loggers and the fingerprint hold every one
+        self.config = replace(self.config, algo=with_options(self.config.algo))
         self.run_dir = Path(run_dir)
         # One writer per run directory: a second run there, or a resume of a live run, stops here.
         self._lock: RunLock | None = RunLock(self.run_dir)
@@ -154,6 +158,7 @@ class Experiment(RunState):
             next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes
         )
         self.last_eval: dict[str, float] = {}
+        self._evaluated_at: int | None = None  # the env step of this process's last evaluation
         self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
         for callback in self.callbacks:
             callback.on_setup(self)
@@ -196,8 +201,7 @@ class Experiment(RunState):
         name = str(self.config.algo.name)
         if name in ALGORITHMS:
             return None
-        registered = ", ".join(ALGORITHMS)
-        return f"algo.name={name} is not a registered algorithm: trained as the built-in {self.algorithm!r} (registered: {registered})"
+        return unregistered(name, f"trained as the built-in {self.algorithm!r}")
 
     def callback(self, name: str) -> Callback:
         """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
@@ -357,7 +361,13 @@ class Experiment(RunState):
 
     # ------------------------------------------------------------------ evaluation and logging
     def evaluate(self) -> dict[str, float]:
-        """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step."""
+        """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step.
+
+        Called again at the step of this process's last evaluation (after :meth:`run`, which ends with one),
+        it returns that evaluation: the weights only change with new env steps, and a second row at one step
+        would be a duplicate in the logs (and a second threshold update for EMU-change)."""
+        if self._evaluated_at == self.counters.env_steps and self.last_eval:
+            return dict(self.last_eval)
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task)
         if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
@@ -367,6 +377,7 @@ class Experiment(RunState):
         log_event(f"evaluation at env step {self.counters.env_steps}: {metrics_line(self.last_eval)}")
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
+        self._evaluated_at = self.counters.env_steps
         return dict(self.last_eval)
 
     def _log_train(self, stats: dict[str, list[torch.Tensor]]) -> None:
