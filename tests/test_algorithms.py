@@ -331,3 +331,24 @@ def test_an_algorithms_own_settings_are_checked_recorded_and_fingerprinted(tmp_p
         compose("algo=qmix", "algo.options.clip=2")
     with pytest.raises(TypeError, match=r"Options must be a dataclass class"):
         register_algorithm("bad_options", type("BadOptions", (Algorithm,), {"Options": dict}))
+
+
+def test_a_package_ships_its_algorithms_preset_with_its_settings(tmp_path: Path) -> None:
+    """Hydra's search path finds a package's ``algo/`` preset (``hydra.searchpath=[pkg://...]`` or a
+    SearchPathPlugin): the preset holds the settings' keys, so the command line sets them without '+'."""
+    (tmp_path / "algo").mkdir()
+    (tmp_path / "algo" / "clipped.yaml").write_text(
+        "defaults:\n  - qmix\n  - _self_\nname: clipped_qmix\noptions:\n  clip: 0.5\n"
+    )
+    register_algorithm("clipped_qmix", ClippedQMIX)
+    try:
+        search = f"hydra.searchpath=[file://{tmp_path}]"
+        config = compose(search, "algo=clipped", *TINY, "train.total_env_steps=40", "algo.options.clip=0.25")
+        assert str(config.algo.mixer) == "qmix" and config.algo.options == {"clip": 0.25}
+        experiment = Experiment(config, tmp_path / "run")
+        assert experiment.learner.loss.clip == 0.25 and experiment.algorithm.options.note == "clipped"
+        experiment.close()
+        with pytest.raises(ConfigError, match=r"algo.options.clp: not a setting of ClippedQMIX"):
+            Experiment(compose(search, "algo=clipped", *TINY, "+algo.options.clp=1"), tmp_path / "bad")
+    finally:
+        ALGORITHMS.pop("clipped_qmix")
