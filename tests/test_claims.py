@@ -13,6 +13,7 @@ from scipy import stats
 from mcrs.policies import POLICIES
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import (
+    CLAIM_Q_TOT,
     Claim,
     ClaimsError,
     Samples,
@@ -193,6 +194,33 @@ def test_report_writes_the_claims_table(tmp_path: Path) -> None:
     )
     assert verdicts["emc beats qmix"] == "**not run**: no runs of emc"
     assert "qmix 52.00 ± 1.00 (3)" in rows[0][3]  # (50 + 52) / 2 + seed, averaged over the seeds
+
+
+def test_a_claim_on_the_mean_q_tot_reads_the_training_scalar(tmp_path: Path) -> None:
+    """Figure 8b's claim is on Q_tot, which runs log while training (train/q_taken_mean), not evaluate."""
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        high = [100.0 + seed] * len(STEPS)
+        make_run(runs, f"emu_change_{seed}", algo="emu_change", seed=seed, steps=STEPS, q_tot=high)
+        make_run(runs, f"qmix_{seed}", seed=seed, steps=STEPS, q_tot=[10.0 + seed] * len(STEPS))
+    claims = tmp_path / "claims.yaml"
+    entry = {
+        "source": "fig. 8b",
+        "paper": "-",
+        "metric": CLAIM_Q_TOT,
+        "claim": "Q_tot",
+        "above": ["emu_change"],
+    }
+    claims.write_text(yaml.safe_dump({"map10": [{**entry, "below": ["qmix"]}]}))
+    out = tmp_path / "report"
+    assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
+    row = (out / "claims.md").read_text().splitlines()[2].split("|")[1:-1]
+    assert (
+        row[3]
+        .strip()
+        .startswith("mean Q_tot of replayed transitions, last tenth: emu_change 101.00 ± 1.00 (3)")
+    )
+    assert row[4].strip().startswith("**reproduced**")
 
 
 def test_a_bad_claims_file_is_one_line(tmp_path: Path) -> None:

@@ -32,6 +32,7 @@ def make_run(
     reward: list[float] | None = None,
     metrics: tuple[str, ...] = METRICS,
     steps: list[int] = STEPS,
+    q_tot: list[float] | None = None,
     **settings: object,
 ) -> Path:
     """A run directory as mcrs-train writes it: the full config, CSV scalars, a checkpoints folder."""
@@ -58,7 +59,10 @@ def make_run(
         )
     q_folder = run / "logs" / "scalars" / "train"
     q_folder.mkdir(parents=True, exist_ok=True)
-    (q_folder / "q_taken_mean.csv").write_text("".join(f"{s},{s / 1000}\n" for s in steps))
+    q_tot = q_tot or [s / 1000 for s in steps]
+    (q_folder / "q_taken_mean.csv").write_text(
+        "".join(f"{s},{q}\n" for s, q in zip(steps, q_tot, strict=True))
+    )
     return run
 
 

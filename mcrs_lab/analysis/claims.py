@@ -31,6 +31,10 @@ WINDOWS = ("end", "start")
 QUANTIFIERS = ("all", "any")
 BETTER = ("higher", "lower")
 FIELDS = ("claim", "source", "paper", "metric", "better", "window", "above", "below", "quantifier", "ours")
+#: The metric a claim names for the mean Q_tot of replayed transitions (figure 8b; a training scalar, not
+#: an evaluation metric), and how the table names each metric that is not its own words.
+CLAIM_Q_TOT = "q_tot"
+METRIC_TEXT = {CLAIM_Q_TOT: "mean Q_tot of replayed transitions"}
 
 
 class ClaimsError(ValueError):
@@ -308,6 +312,7 @@ def claims_table(
         result = verdict(claim, samples)
         word = OUR_WORDS.get(result.word, result.word) if claim.ours else result.word
         ours = "; ".join(s.text() for s in result.compared) or "-"
-        what = f"{claim.metric.replace('_', ' ')}, {window_text or WINDOW_TEXT[claim.window]}"
+        metric = METRIC_TEXT.get(claim.metric, claim.metric.replace("_", " "))
+        what = f"{metric}, {window_text or WINDOW_TEXT[claim.window]}"
         rows.append([claim.source, claim.claim, claim.paper, f"{what}: {ours}", f"**{word}**: {result.why}"])
     return markdown(["source", "claim", "paper", "ours (mean ± std (seeds))", "verdict"], rows, left=5)
