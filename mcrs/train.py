@@ -100,7 +100,9 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
     conflicts = []
     for line in _differences(saved, current):
         name = line.split(":", 1)[0]
-        overridden = any(name == e or name.startswith(e + ".") for e in explicit)
+        # a key the command sets, inside it (env set, env.width differs) or under it (algo.options.bonus set,
+        # algo.options missing from a run saved before the node existed)
+        overridden = any(name == e or name.startswith(e + ".") or e.startswith(name + ".") for e in explicit)
         if overridden and not _is_mutable(name):
             conflicts.append(line)
     if conflicts:
@@ -207,9 +209,15 @@ def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
 
 
 def option_errors(cfg: DictConfig) -> list[str]:
-    """What the run's algorithm says of ``algo.options`` (its own settings), when any are given: a sweep is
-    checked before its first job. Loads the algorithm's module (torch) only then."""
-    if not cfg.algo.get("options"):
+    """What the run's algorithm says of ``algo.options`` (its own settings) when any are given or the
+    algorithm is installed (its settings may have no default): a sweep is checked before its first job.
+    Loads the algorithm's module (torch) only then."""
+    from importlib.metadata import entry_points
+
+    from mcrs.experiment.schema import ENTRY_POINT_GROUP
+
+    installed = entry_points(group=ENTRY_POINT_GROUP, name=str(cfg.algo.name))
+    if not cfg.algo.get("options") and not installed:
         return []
     from mcrs.experiment.algorithms import algorithm_class
     from mcrs.experiment.config import as_typed

@@ -184,6 +184,11 @@ def test_the_memory_writes_its_keys_in_on_train_batch(tmp_path: Path) -> None:
 
 
 PLUGIN = """
+from dataclasses import dataclass
+from typing import Literal
+
+from omegaconf import MISSING
+
 from mcrs.experiment.algorithms import Algorithm
 from mcrs.models.mixers import make_mixer
 
@@ -191,6 +196,18 @@ from mcrs.models.mixers import make_mixer
 class PluginVDN(Algorithm):
     def mixer(self, task):
         return make_mixer("vdn", task.n_agents, task.state_shape, task.n_actions)
+
+
+class PluginNeeds(Algorithm):
+    @dataclass
+    class Options:
+        clip: float = MISSING  # no default: every run must set it
+
+
+class PluginLiteral(Algorithm):
+    @dataclass
+    class Options:
+        mode: Literal["a", "b"] = "a"  # a type OmegaConf cannot check
 
 
 NOT_AN_ALGORITHM = 3
@@ -212,7 +229,8 @@ def test_an_installed_algorithm_is_found_by_its_name_in_any_process(
     _install_plugin(
         tmp_path,
         "plugin_vdn = mcrs_test_plugin:PluginVDN\nplugin_int = mcrs_test_plugin:NOT_AN_ALGORITHM\n"
-        "plugin_gone = mcrs_test_plugin_gone:Algo\n",
+        "plugin_gone = mcrs_test_plugin_gone:Algo\nplugin_needs = mcrs_test_plugin:PluginNeeds\n"
+        "plugin_literal = mcrs_test_plugin:PluginLiteral\n",
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     run = tmp_path / "run"
@@ -234,6 +252,22 @@ def test_an_installed_algorithm_is_found_by_its_name_in_any_process(
     ):
         algorithm_for(compose("algo=qmix", "algo.name=plugin_gone").algo)
     assert "plugin_int" not in ALGORITHMS and "plugin_gone" not in ALGORITHMS
+    # An installed algorithm's settings are checked up front even when the command sets none (a sweep's
+    # jobs would each fail on a setting without a default), and an Options class OmegaConf cannot check
+    # is the plugin's problem, named once.
+    try:
+        needs = OmegaConf.structured(compose("algo=qmix", "algo.name=plugin_needs"))
+        assert option_errors(needs) == [
+            "algo.options.clip: Structured config of type `Options` has missing mandatory value: clip"
+        ]
+        literal = OmegaConf.structured(compose("algo=qmix", "algo.name=plugin_literal"))
+        (problem,) = option_errors(literal)
+        assert problem.startswith(
+            "algo.name=plugin_literal: the entry point 'mcrs_test_plugin:PluginLiteral'"
+        )
+        assert "PluginLiteral.Options: Unexpected type annotation: Literal" in problem
+    finally:
+        ALGORITHMS.pop("plugin_needs", None)
 
 
 class ClippedTargets(ValueFactorisationLoss):
@@ -331,6 +365,52 @@ def test_an_algorithms_own_settings_are_checked_recorded_and_fingerprinted(tmp_p
         compose("algo=qmix", "algo.options.clip=2")
     with pytest.raises(TypeError, match=r"Options must be a dataclass class"):
         register_algorithm("bad_options", type("BadOptions", (Algorithm,), {"Options": dict}))
+    with_path = type(
+        "WithPath",
+        (Algorithm,),
+        {"Options": dataclass(type("Options", (), {"__annotations__": {"out": Path}, "out": Path("x")}))},
+    )
+    with pytest.raises(TypeError, match=r"WithPath.Options.out: a PosixPath is not a plain config value"):
+        register_algorithm("with_path", with_path)
+    assert "bad_options" not in ALGORITHMS and "with_path" not in ALGORITHMS
+
+
+def test_a_resume_that_sets_a_setting_the_runs_config_predates_is_refused(tmp_path: Path) -> None:
+    """A run saved before ``algo.options`` existed: the command's ``+algo.options.<key>`` is a contradiction
+    of the run's config, not an override silently dropped."""
+    from mcrs.train import resume_config
+
+    Experiment(compose("algo=qmix", *TINY, "train.total_env_steps=40"), tmp_path).run()
+    saved = OmegaConf.load(tmp_path / "config.yaml")
+    del saved.algo["options"]  # as runs before this field wrote it
+    OmegaConf.save(saved, tmp_path / "config.yaml")
+    overrides = [f"resume={tmp_path}", "+algo.options.bonus=0.9"]
+    with pytest.raises(
+        ConfigError, match=r"contradicts the run's config:\n  - algo.options: the run has '<missing>'"
+    ):
+        resume_config(OmegaConf.structured(compose(*overrides)), overrides)
+
+
+def test_a_setting_added_to_an_algorithm_after_its_checkpoint_is_said_on_resume(
+    tmp_path: Path, caplog
+) -> None:
+    register_algorithm("clipped_qmix", ClippedQMIX)
+    try:
+        config = compose("algo=qmix", *TINY, "algo.name=clipped_qmix", "train.total_env_steps=40")
+        Experiment(config, tmp_path).run()
+        path = tmp_path / "checkpoints" / "last.pt"
+        state = torch.load(path, weights_only=False)
+        del state["fingerprint"]["algo.options.note"]  # as the class was when the checkpoint was written
+        torch.save(state, path)
+        longer = compose("algo=qmix", *TINY, "algo.name=clipped_qmix", "train.total_env_steps=80")
+        with caplog.at_level("INFO", logger="mcrs.run"):
+            Experiment(longer, tmp_path, resume=True).close()
+        assert (
+            "the checkpoint predates these settings of its algorithm: resumed with algo.options.note='clipped'"
+            in caplog.text
+        )
+    finally:
+        ALGORITHMS.pop("clipped_qmix")
 
 
 def test_a_package_ships_its_algorithms_preset_with_its_settings(tmp_path: Path) -> None:

@@ -67,11 +67,16 @@ def test_compose_gives_typed_nodes_and_the_experiment_runs_them(tmp_path: Path) 
     result = experiment.run()
     assert set(result) >= {"episode_reward", "uncertainty"} and experiment.counters.env_steps >= 40
     evaluations = recorder.calls.count("evaluated")
-    # Evaluating right after run() is its last evaluation: no second row at that step, no second hook call.
+    # Evaluating right after run() gives its last evaluation: no second row at that step, no second hook call.
     assert experiment.evaluate() == result
     assert recorder.calls.count("evaluated") == evaluations
-    steps = [line.split(",")[0] for line in (tmp_path / "run/logs/scalars/eval/episode_reward.csv").open()]
+    log = tmp_path / "run/logs/scalars/eval/episode_reward.csv"
+    steps = [line.split(",")[0] for line in log.open()]
     assert len(steps) == len(set(steps)) == evaluations
+    # A finished run resumed: its last evaluation is logged already, at this step.
+    finished = mcrs.Experiment(config, tmp_path / "run", resume=True, callbacks=[Recorder()])
+    assert finished.run() == result and finished.evaluate() == result
+    assert [line.split(",")[0] for line in log.open()] == steps
 
 
 def test_user_callback_hooks_run_and_its_state_is_checkpointed(tmp_path: Path) -> None:
@@ -112,18 +117,29 @@ class SecondUnnamed(Callback):
         raise AssertionError("another callback's state")
 
 
+class ThirdUnnamed(FirstUnnamed):
+    """An unnamed subclass of an unnamed callback: its own class names it too."""
+
+
+class MyRecorder(Recorder):
+    """A subclass of a named callback stands in for it: the name is kept."""
+
+
 def test_a_callback_without_a_name_is_named_after_its_class(tmp_path: Path) -> None:
     assert (FirstUnnamed.name, SecondUnnamed.name, Stateless.name) == (
         "FirstUnnamed",
         "SecondUnnamed",
         "stateless",
     )
+    assert (ThirdUnnamed.name, MyRecorder.name) == ("ThirdUnnamed", "recorder")
     assert Unnamed.name == "callback"  # set in the class body: kept (check_names refuses two such)
     Experiment(tiny("train.total_env_steps=40"), tmp_path / "run", callbacks=[FirstUnnamed()]).run()
     # Another unnamed callback does not take over the first one's saved state: the resume is refused.
     longer = tiny("train.total_env_steps=80")
     with pytest.raises(ckpt.CheckpointError, match="holds the state of the callback 'FirstUnnamed'"):
         Experiment(longer, tmp_path / "run", resume=True, callbacks=[SecondUnnamed()])
+    with pytest.raises(ckpt.CheckpointError, match="holds the state of the callback 'FirstUnnamed'"):
+        Experiment(longer, tmp_path / "run", resume=True, callbacks=[ThirdUnnamed()])
 
 
 def test_a_resume_keeps_every_callback_with_state_and_admits_stateless_ones(tmp_path: Path) -> None:

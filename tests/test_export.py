@@ -148,21 +148,22 @@ def test_a_killed_exports_temporary_folder_goes_with_the_next_export(run_dir: Pa
     gone = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
     )
-    dead = int(gone.stdout)
-    left = tmp_path / f".agent.{dead}.k2j4.tmp"  # as a killed export leaves it: the half-written archive
+    dead, host = int(gone.stdout), export.host_tag()
+    left = tmp_path / f".agent.{host}-{dead}.k2j4.tmp"  # as a killed export leaves it: a half-written archive
     left.mkdir()
     (left / "agent.pt2").write_bytes(b"PK half")
-    live = tmp_path / f".agent.{os.getppid()}.x9z1.tmp"  # another export still writing
-    live.mkdir()
-    foreign = tmp_path / f".agent.{dead}.mine.tmp"  # the pattern, but someone's own files
-    foreign.mkdir()
-    (foreign / "notes.txt").write_text("keep")
-    other = tmp_path / f".other.{dead}.a1.tmp"  # another file's
-    other.mkdir()
+    kept = [
+        f".agent.{host}-{os.getppid()}.x9z1.tmp",  # another export still writing
+        f".agent.{host}-{dead}.mine.tmp",  # the pattern, but someone's own files (below)
+        f".agent.other_host-{dead}.b2.tmp",  # another host's, on a shared disk: its process is not ours
+        f".agent.7.{host}-{dead}.c3.tmp",  # a live export to agent.7.pt2 (the pid is not 7)
+        f".other.{host}-{dead}.a1.tmp",  # another file's
+    ]
+    for name in kept:
+        (tmp_path / name).mkdir()
+    (tmp_path / kept[1] / "notes.txt").write_text("keep")
     assert export_main([str(run_dir), str(tmp_path / "agent.pt2")]) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["agent.pt2", live.name, foreign.name, other.name]
-    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["agent.pt2", *kept])
 
 
 def _rewritten(exported: Path, path: Path, description: bytes | None) -> Path:

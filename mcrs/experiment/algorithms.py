@@ -62,7 +62,14 @@ from mcrs.experiment.callbacks import Callback, CuriosityCallback
 from mcrs.experiment.cli import listing
 from mcrs.experiment.episodic import EpisodicMemoryCallback
 from mcrs.experiment.learner import Learner, build_loss, build_mixer
-from mcrs.experiment.schema import AlgoConfig, Config, ConfigError, ModelConfig, TrainConfig
+from mcrs.experiment.schema import (
+    ENTRY_POINT_GROUP,
+    AlgoConfig,
+    Config,
+    ConfigError,
+    ModelConfig,
+    TrainConfig,
+)
 from mcrs.experiment.task import Task
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import Incentive, make_incentive
@@ -186,8 +193,8 @@ def register_algorithm(
     def add(cls: type[Algorithm]) -> type[Algorithm]:
         if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
             raise TypeError(f"register_algorithm({name!r}): expected an Algorithm subclass, got {cls!r}")
-        if cls.Options is not None and not (isinstance(cls.Options, type) and is_dataclass(cls.Options)):
-            raise TypeError(f"register_algorithm({name!r}): {cls.__name__}.Options must be a dataclass class")
+        if cls.Options is not None:
+            check_options_class(name, cls)
         if name in ALGORITHMS and not replace:
             raise ValueError(
                 f"algorithm {name!r} is already registered ({ALGORITHMS[name].__name__}); pass replace=True "
@@ -199,8 +206,36 @@ def register_algorithm(
     return add if algorithm is None else add(algorithm)
 
 
-#: The entry-point group in which installed packages name their algorithms (``algo.name`` -> class).
-ENTRY_POINT_GROUP = "mcrs.algorithms"
+#: The types an :attr:`Algorithm.Options` field may have: what a run's ``config.yaml`` holds as it is.
+PLAIN = (str, int, float, bool, type(None), list, dict)
+
+
+def check_options_class(name: str, cls: type[Algorithm]) -> None:
+    """``cls.Options`` is a dataclass whose fields OmegaConf can check and whose values are plain (or
+    enums, written as their names): anything else (``Literal``, ``Path``, ``bytes``) is a TypeError naming
+    the class, where each run would otherwise fail on it, or write a ``config.yaml`` no resume reads."""
+    where = f"register_algorithm({name!r}): {cls.__name__}.Options"
+    if not (isinstance(cls.Options, type) and is_dataclass(cls.Options)):
+        raise TypeError(f"{where} must be a dataclass class")
+    try:
+        defaults = OmegaConf.to_container(OmegaConf.structured(cls.Options), enum_to_str=True)
+    except OmegaConfBaseException as error:
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise TypeError(f"{where}: {first}") from None
+    for key, value in _leaves(defaults):
+        if not isinstance(value, PLAIN):
+            raise TypeError(
+                f"{where}.{key}: a {type(value).__name__} is not a plain config value (str, int, float, bool, "
+                "an Enum, or lists and dicts of them): a run's config.yaml could not hold it"
+            )
+
+
+def _leaves(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    if isinstance(tree, dict):
+        return [leaf for k, v in tree.items() for leaf in _leaves(v, f"{prefix}{k}.")]
+    if isinstance(tree, list):
+        return [leaf for k, v in enumerate(tree) for leaf in _leaves(v, f"{prefix}{k}.")]
+    return [(prefix[:-1], tree)]
 
 
 def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
@@ -247,6 +282,9 @@ def register_installed(name: str) -> bool:
             raise ConfigError(f"{where} cannot be loaded: {type(error).__name__}: {first}") from None
         if not (isinstance(algorithm, type) and issubclass(algorithm, Algorithm)):
             raise ConfigError(f"{where} is {algorithm!r}, not an Algorithm subclass")
-        register_algorithm(name, algorithm)
+        try:
+            register_algorithm(name, algorithm)
+        except TypeError as error:  # its Options class: said as the plugin's problem, in one line
+            raise ConfigError(f"{where}: {error}") from None
         return True
     return False

@@ -61,15 +61,19 @@ class ExperimentView(Protocol):
 class Callback:
     """A no-op callback; subclasses override the hooks they need.
 
-    ``name`` keys the callback's checkpoint state and timer: a subclass that sets none is named after its
-    class, so two callbacks of one's own never share (or take over) each other's saved state."""
+    ``name`` keys the callback's checkpoint state and timer. A subclass that sets none is named after its
+    class (one of a named callback keeps that name: it stands in for it), so two callbacks of one's own
+    never share (or take over) each other's saved state."""
 
     name: str = "callback"
+    _named_after_class = False  # the name was given by __init_subclass__, not by the class
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if "name" not in cls.__dict__ and cls.name == Callback.name:
-            cls.name = cls.__name__
+        if "name" in cls.__dict__:
+            cls._named_after_class = False
+        elif cls.name == Callback.name or cls._named_after_class:
+            cls.name, cls._named_after_class = cls.__name__, True
 
     def on_setup(self, experiment: ExperimentView) -> None:
         """Called once the experiment is built; keep a reference if a hook needs it."""

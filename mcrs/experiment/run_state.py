@@ -146,6 +146,12 @@ class RunState:
             raise ckpt.CheckpointError(
                 f"the checkpoint holds the state of the callback {lost[0]!r}, which this run does not have: "
                 "build the run with it (Experiment(..., callbacks=[...]), or its algorithm)"
+                + (  # saved before a Callback subclass without a name was named after its class
+                    f"; a callback class without its own name saved its state as {lost[0]!r}: set "
+                    f"name = {lost[0]!r} on that class"
+                    if lost[0] == "callback"
+                    else ""
+                )
             )
         for callback in self.callbacks:
             if callback.name not in saved and callback.state_dict():
@@ -159,6 +165,11 @@ class RunState:
             path, self.fingerprint(), self.fingerprint, self.device, advice=RESUME_ADVICE
         )
         self._resume_rng = state["rng"]  # restored last (_restore_rng), once everything is built
+        saved, ours = state.get("fingerprint") or {}, self.fingerprint()
+        added = [k for k in ours if k.startswith("algo.options.") and saved and k not in saved]
+        if added:  # settings the algorithm gained after the checkpoint: their defaults, said (not compared)
+            values = ", ".join(f"{k}={ours[k]!r}" for k in added)
+            log_event(f"the checkpoint predates these settings of its algorithm: resumed with {values}")
         try:
             self.load_state_dict(state)
         except ckpt.CheckpointError as error:

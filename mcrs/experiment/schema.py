@@ -244,6 +244,11 @@ def as_typed(cfg: Config | DictConfig) -> Config:
         raise ConfigError(f"invalid config: {key + ': ' if key else ''}{first}") from None
 
 
+#: The entry-point group in which installed packages name their algorithms (``algo.name`` -> class;
+#: :mod:`mcrs.experiment.algorithms` loads them): here, so that a command can tell one is installed before
+#: torch loads.
+ENTRY_POINT_GROUP = "mcrs.algorithms"
+
 #: The nodes whose keys no schema lists: an algorithm's own settings, checked by the algorithm
 #: (:meth:`mcrs.experiment.algorithms.Algorithm.read_options`).
 FREE_FORM = ("algo.options.",)

@@ -217,6 +217,7 @@ class Experiment(RunState):
         self._session_start_steps = c.env_steps
         if c.env_steps >= t.total_env_steps and self.last_eval:  # a resumed run that had finished
             log_event(f"the run is finished at env step {c.env_steps}: nothing to train, evaluate or save")
+            self._evaluated_at = c.env_steps  # its final evaluation is logged at this step
             self.collector.shutdown()
             self.close()
             return dict(self.last_eval)  # its final evaluation is logged once, by the session that ended it
@@ -363,13 +364,15 @@ class Experiment(RunState):
     def evaluate(self) -> dict[str, float]:
         """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step.
 
-        Called again at the step of this process's last evaluation (after :meth:`run`, which ends with one),
-        it returns that evaluation: the weights only change with new env steps, and a second row at one step
-        would be a duplicate in the logs (and a second threshold update for EMU-change)."""
-        if self._evaluated_at == self.counters.env_steps and self.last_eval:
-            return dict(self.last_eval)
+        Logged, and told to the callbacks, once per env step: called again at a step already logged (right
+        after :meth:`run`, which ends with an evaluation, or on a finished run resumed), it evaluates and
+        returns the metrics without a second row at that step or a second ``on_evaluation_end`` (EMU-change
+        would move its threshold twice)."""
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task)
+        if self._evaluated_at == self.counters.env_steps:
+            self._timer["eval"] += time.perf_counter() - start
+            return dict(self.last_eval)
         if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
             self.video.log(self.logger, self.run_dir, self.greedy, self.counters.env_steps)
         self._timer["eval"] += time.perf_counter() - start

@@ -25,6 +25,7 @@ import math
 import os
 import re
 import shutil
+import socket
 import tempfile
 import warnings
 import zipfile
@@ -172,19 +173,27 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
 
 
 def _temporary_folder(out: Path) -> Path:
-    """A hidden folder beside ``out`` for the archive being written, named with this process's id. The
-    folders an export killed outright (SIGKILL: its ``finally`` never ran) left for ``out`` go first: those
-    whose process is gone and that hold nothing but ``out``'s archive (anything else is left alone)."""
+    """A hidden folder beside ``out`` for the archive being written, named with this host and process id.
+    The folders an export killed outright (SIGKILL: its ``finally`` never ran) left for ``out`` go first:
+    those of this host whose process is gone and that hold nothing but ``out``'s archive (anything else,
+    another host's on a shared disk, or another file's, is left alone)."""
+    host = host_tag()
+    mine = re.compile(rf"\.{re.escape(out.stem)}\.{re.escape(host)}-(\d+)\.[A-Za-z0-9_]+\.tmp")
     for stale in out.parent.glob(f".{glob.escape(out.stem)}.*.tmp"):
-        pid = stale.name[len(out.stem) + 2 :].split(".", 1)[0]
-        if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
+        found = mine.fullmatch(stale.name)
+        if found is None or int(found[1]) == os.getpid() or _alive(int(found[1])):
             continue
         try:
             if stale.is_dir() and not stale.is_symlink() and set(os.listdir(stale)) <= {out.name}:
                 shutil.rmtree(stale, ignore_errors=True)
         except OSError:  # unreadable: not ours to judge
             continue
-    return Path(tempfile.mkdtemp(prefix=f".{out.stem}.{os.getpid()}.", suffix=".tmp", dir=out.parent))
+    return Path(tempfile.mkdtemp(prefix=f".{out.stem}.{host}-{os.getpid()}.", suffix=".tmp", dir=out.parent))
+
+
+def host_tag() -> str:
+    """This machine's name as a file-name part (a temporary folder's owner on a disk hosts may share)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
 
 
 def _alive(pid: int) -> bool:
