@@ -10,6 +10,7 @@ import torch
 
 import mcrs
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.algorithms import ALGORITHMS
 from mcrs.experiment.callbacks import Callback, ExperimentView
 from mcrs.experiment.config import AlgoConfig, Config, compose
 from mcrs.experiment.learner import Learner
@@ -164,6 +165,7 @@ def test_algorithm_callbacks_come_from_the_algo_config(tmp_path: Path) -> None:
     plain.close()
     emc = Experiment(compose("algo=emc", *TINY, *TINY_MEMORY), tmp_path / "emc")
     assert [cb.name for cb in emc.callbacks] == ["curiosity", "memory"]
+    assert emc.algorithm_class is ALGORITHMS["emc"] and type(emc.algorithm) is emc.algorithm_class
     with pytest.raises(KeyError, match="no callback 'nope'; this experiment has"):
         emc.callback("nope")
     emc.close()

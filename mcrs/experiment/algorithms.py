@@ -42,8 +42,8 @@ An installed package can name its algorithms in the entry-point group ``mcrs.alg
 ``pyproject.toml``: ``[project.entry-points."mcrs.algorithms"]`` ``my_algo = "my_pkg.algos:MyAlgorithm"``):
 ``algo.name=my_algo`` then finds it from ``mcrs-train``, a sweep's launcher or a resume, without an import.
 
-:func:`algorithm_for` is the one place that reads ``algo.name``; a name nobody registered or installed (a
-label of one's own) gets the built-in :class:`Algorithm`.
+:func:`algorithm_class` is the one place that reads ``algo.name`` (an :class:`~mcrs.experiment.trainer.Experiment`
+calls it once); a name nobody registered or installed (a label of one's own) gets the built-in :class:`Algorithm`.
 """
 
 from __future__ import annotations
@@ -247,10 +247,11 @@ def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
     return ALGORITHMS.get(name, Algorithm)
 
 
-def with_options(algo: AlgoConfig) -> AlgoConfig:
+def with_options(algo: AlgoConfig, cls: type[Algorithm] | None = None) -> AlgoConfig:
     """``algo`` with its algorithm's every setting in ``algo.options`` (defaults filled in, checked by
-    :meth:`Algorithm.read_options`): what a run's ``config.yaml``, loggers and fingerprint hold."""
-    options = algorithm_class(algo).read_options(algo)
+    :meth:`Algorithm.read_options`): what a run's ``config.yaml``, loggers and fingerprint hold.
+    ``cls``: the algorithm's class where the caller has it (default: :func:`algorithm_class`)."""
+    options = (algorithm_class(algo) if cls is None else cls).read_options(algo)
     values = (
         {} if options is None else OmegaConf.to_container(OmegaConf.structured(options), enum_to_str=True)
     )

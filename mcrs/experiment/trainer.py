@@ -30,9 +30,8 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mcrs.env.config import EnvConfig
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import ALGORITHMS, algorithm_for, unregistered, with_options
+from mcrs.experiment.algorithms import ALGORITHMS, Algorithm, algorithm_class, unregistered, with_options
 from mcrs.experiment.budget import rounding_notes
 from mcrs.experiment.callbacks import Callback, append_scalar, check_names
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
@@ -40,7 +39,6 @@ from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container
 from mcrs.experiment.counters import Counters, batch_seed
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
-from mcrs.experiment.learner import Learner
 from mcrs.experiment.logging import (
     log_event,
     log_scalars,
@@ -58,19 +56,7 @@ from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
-__all__ = ["Counters", "Experiment", "TrainingDiverged", "algorithm_callbacks", "batch_seed"]
-
-
-def algorithm_callbacks(
-    config: Config, env_config: EnvConfig, learner: Learner, device: torch.device
-) -> list[Callback]:
-    """The callbacks ``config.algo``'s algorithm adds (:meth:`mcrs.experiment.algorithms.Algorithm.callbacks`:
-    EMC's curiosity, the episodic memory, in that order).
-
-    Built right after the learner: EMC's networks draw their initial weights from torch's generator, so a
-    run's random stream does not depend on what else the experiment builds.
-    """
-    return algorithm_for(config.algo).callbacks(config, env_config, learner, device)
+__all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
 
 
 class Experiment(RunState):
@@ -100,9 +86,11 @@ class Experiment(RunState):
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
         self.task = MCRSTask(self.env_config) if task is None else task
         check_supported(self.config, self.task)  # ConfigError: what the task cannot run (logger.video, ...)
-        # the algorithm's own settings, checked and completed with their defaults (the caller's config is
-        # not changed): config.yaml, the loggers and the fingerprint hold every one
-        self.config = replace(self.config, algo=with_options(self.config.algo))
+        # the one reading of algo.name (its class is built in _build, after torch's seed); its own
+        # settings, checked and completed with their defaults (the caller's config is not changed):
+        # config.yaml, the loggers and the fingerprint hold every one
+        self.algorithm_class: type[Algorithm] = algorithm_class(self.config.algo)
+        self.config = replace(self.config, algo=with_options(self.config.algo, self.algorithm_class))
         self.run_dir = Path(run_dir)
         # One writer per run directory: a second run there, or a resume of a live run, stops here.
         self._lock: RunLock | None = RunLock(self.run_dir)
@@ -133,7 +121,7 @@ class Experiment(RunState):
         self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
         self.T = self.task.max_steps
-        self.algorithm = algorithm_for(cfg.algo)  # the one choice of the algorithm's parts
+        self.algorithm = self.algorithm_class(cfg.algo)  # its parts: mixer, loss, learner, callbacks
         self.learner = self.algorithm.learner(cfg.model, t, self.task, self.device)
         self.callbacks = self.algorithm.callbacks(cfg, self.env_config, self.learner, self.device)
         self.callbacks += extra_callbacks
