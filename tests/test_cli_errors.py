@@ -162,6 +162,39 @@ def test_refused_command_in_process_is_one_line_and_leaves_no_directory(
     _check_refusal(key, refused.value.code + "\n", tmp_path)
 
 
+#: A refusal whose output folder is one the user already had: ``out=`` for mcrs-render, the run directory
+#: for the others.
+INTO_OWN_FOLDER = [
+    ("mcrs.render_episode", "out={folder}", "uav=9"),
+    ("mcrs.evaluate", "hydra.run.dir={folder}", "episodes=0"),
+    ("mcrs.evaluate", "hydra.run.dir={folder}", "policy=gredy"),
+    ("mcrs.train", "hydra.run.dir={folder}", "train.lr=-1"),
+]
+
+
+@pytest.mark.parametrize("key", INTO_OWN_FOLDER, ids=" ".join)
+@pytest.mark.parametrize("holds", ["nothing", "a log of one's own"])
+def test_a_refused_command_leaves_a_folder_that_was_there_before_it(
+    key: tuple[str, ...], holds: str, tmp_path: Path, monkeypatch
+) -> None:
+    """Only what the refused command made is removed: a folder of one's own (empty, or holding only files
+    that look like Hydra's, a ``*.log``) stays, with every file that was in it."""
+    module, *args = key
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    if holds != "nothing":
+        (folder / "server.log").write_text("precious\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")
+    monkeypatch.setattr(sys, "argv", [COMMANDS[module], *(a.format(folder=folder) for a in args)])
+    with pytest.raises(SystemExit) as refused:
+        importlib.import_module(module).main()
+    assert isinstance(refused.value.code, str) and "error" in refused.value.code, refused.value.code
+    assert folder.is_dir()
+    if holds != "nothing":
+        assert (folder / "server.log").read_text() == "precious\n"
+
+
 @pytest.mark.slow
 def test_hydra_full_error_still_gives_hydras_trace(tmp_path: Path) -> None:
     """A user who asks Hydra for its full trace (``HYDRA_FULL_ERROR=1``) still gets it."""

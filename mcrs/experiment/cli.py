@@ -287,12 +287,17 @@ def make_run_dir(directory: Path) -> None:
 
 
 def remove_refused_dirs(run_dir: Path | None = None) -> None:
-    """Remove what a refused command made: ``run_dir`` and each directory :class:`RunDirCheck` made, when
-    it holds nothing but Hydra's own files, then the empty parents this process created for it.
+    """Remove what a refused command made: each directory :class:`RunDirCheck` made, and ``run_dir`` where
+    it lies in one of them (a sweep's job directory), when it holds nothing but Hydra's own files, then the
+    empty parents this process created for it.
 
-    A directory with a run's lock or any other file is kept (a run may be starting in it)."""
+    Only what this process created goes: a directory that was there before the command (``out=`` or
+    ``hydra.run.dir=`` naming a folder of one's own) is left as it is, Hydra's files in it included; a
+    directory with a run's lock or any other file is kept (a run may be starting in it)."""
     if run_dir is not None:
-        _remove_if_unused(Path(os.path.abspath(run_dir)))
+        run_dir = Path(os.path.abspath(run_dir))
+        if any(run_dir.is_relative_to(root) for _, root in _CREATED):
+            _remove_if_unused(run_dir)
     for directory, root in reversed(_CREATED):
         _remove_if_unused(directory)
         for parent in (directory, *directory.parents):
