@@ -31,7 +31,7 @@ from mcrs.experiment import evaluation
 from mcrs.experiment.cli import one_line_errors, ranked, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
-from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
 
@@ -62,6 +62,11 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
     errors = []
     if cfg.episodes < 1:
         errors.append(f"episodes={cfg.episodes}: must be >= 1")
+    elif cfg.episodes > MAX_EVAL_EPISODES:
+        errors.append(
+            f"episodes={cfg.episodes}: at most {MAX_EVAL_EPISODES} (every episode's metrics are kept): "
+            "evaluate more as several runs with other seeds"
+        )
     if not 0 <= cfg.seed <= 2**63 - 1:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
     problem = device_problem(cfg.device)
@@ -70,6 +75,22 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
     problem = threads_problem(cfg.threads, cpu_count())
     if problem:
         errors.append(f"threads={cfg.threads}: {problem}")
+    return errors
+
+
+def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
+    """What an evaluation will be refused for, told before it runs: its values, its scenario and its
+    policy. ``conf/eval.yaml`` names it as :class:`~mcrs.experiment.cli.RunDirCheck`'s ``validate``, so a
+    sweep (``-m``) checks every job before the first one starts (``overrides``: the job's, unused)."""
+    errors = eval_errors(cfg)
+    try:
+        EnvConfig.from_scenario(cfg.env, num_envs=1, device="cpu")
+    except (ValueError, TypeError) as error:
+        errors.append(str(error))
+    try:
+        policy_names(str(cfg.policy))
+    except ValueError as error:
+        errors.append(str(error))
     return errors
 
 

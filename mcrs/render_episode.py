@@ -21,7 +21,7 @@ from omegaconf import MISSING, DictConfig
 from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.rundir import register_resolvers
-from mcrs.experiment.schema import CONFIG_DIR
+from mcrs.experiment.schema import CONFIG_DIR, MAX_SEED
 
 SCHEMA_NAME = "mcrs_render"
 
@@ -54,6 +54,8 @@ def checked(cfg: DictConfig) -> tuple[EnvConfig, str]:
     policy = str(cfg.policy)
     if policy not in POLICIES:
         make_policy(policy, policy_env(policy, env_config))  # a checkpoint: fails early, naming the problem
+    if not 0 <= cfg.seed <= MAX_SEED:
+        raise ValueError(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
     if not 0 <= cfg.uav < env_config.n_uavs:
         raise ValueError(
             f"uav={cfg.uav}: must be in 0..{env_config.n_uavs - 1} ({env_config.name} has {env_config.n_uavs} UAVs)"

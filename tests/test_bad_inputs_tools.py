@@ -687,6 +687,69 @@ def test_a_document_block_cannot_make_mcrs_results_write_elsewhere(
     ]
 
 
+# ------------------------------------------------------------------------------ mcrs-report outputs
+DEEP = "map10: " + "[" * 40 + "]" * 40 + "\n"
+DEEPER = "map10: " + "[" * 100_000 + "\n"  # the stack of a recursive loader, not the size limit
+#: (how the case's files are made, the command line's tail, the error's text): mcrs-report's own files and
+#: arguments; every case's files are left as they were, and nothing else is written.
+BAD_REPORT_ARGS: list[tuple[dict[str, bytes | None], list[str], str]] = [
+    ({"a_file": b"mine"}, ["--out", "{a_file}"], "--out {a_file}: a file, not a folder"),
+    ({"config.yaml": b"seed: 0\n"}, ["--out", "{out}", "--marl-eval", "{config}"], "the file exists; pass --force"),
+    ({"folder": None}, ["--out", "{out}", "--marl-eval", "{folder}"], "--marl-eval {folder}: a folder: name the JSON file"),
+    ({}, ["--out", "{out}", "--marl-eval", "{tmp}/new.json", "--env", "map99"], "no readable runs of map map99"),
+    ({"claims.bin": bytes(range(256))}, ["--out", "{out}", "--claims", "{claims}"], "not UTF-8"),
+    ({"deep.yaml": DEEP.encode()}, ["--out", "{out}", "--claims", "{deep}"], "nested deeper than"),
+    ({"deeper.yaml": DEEPER.encode()}, ["--out", "{out}", "--claims", "{deeper}"], "is not a valid config (bad YAML"),
+    ({"alias.yaml": b"a: &x [1]\nmap20: *x\n"}, ["--out", "{out}", "--claims", "{alias}"], "anchors or aliases"),
+    ({"a_file": b"mine"}, ["--out", "{a_file}/report"], "Not a directory"),
+    ({}, ["--out", "{out}", "--seed", "-5"], "--seed=-5: must be in [0, 2**32 - 1]"),
+]  # fmt: skip
+
+
+@pytest.mark.bad_tool_input
+@pytest.mark.parametrize(("files", "tail", "expected"), BAD_REPORT_ARGS, ids=range(len(BAD_REPORT_ARGS)))
+def test_a_bad_report_output_or_claims_file_is_one_line_and_replaces_nothing(
+    files: dict[str, bytes | None], tail: list[str], expected: str, tmp_path: Path
+) -> None:
+    names = {"tmp": str(tmp_path), "out": str(tmp_path / "out")}
+    for name, content in files.items():
+        names[name.split(".")[0]] = str(tmp_path / name)
+        if content is None:
+            (tmp_path / name).mkdir()
+        else:
+            (tmp_path / name).write_bytes(content)
+    records = str(Path(__file__).resolve().parents[1] / "results" / "records" / "heuristics" / "map20")
+    with pytest.raises(SystemExit) as info:
+        report_main([records, *(t.format(**names) for t in tail)])
+    message = str(info.value.code)
+    assert message.startswith("mcrs-report: error: ") and "\n" not in message, message
+    assert expected.format(**names) in message, message
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(files)  # no --out, no marl-eval file
+    for name, content in files.items():
+        if content is not None:
+            assert (tmp_path / name).read_bytes() == content
+
+
+def test_a_campaign_file_that_is_a_folder_is_one_line(tmp_path: Path) -> None:
+    with pytest.raises(
+        SystemExit, match=r"^mcrs-campaign: error: --matrix=.*: a folder: name the campaign file"
+    ):
+        campaign_main(["status", "--matrix", str(tmp_path)])
+
+
+def test_campaign_record_into_a_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--records`` naming a file: each run is refused in one line (exit 1), the file is left as it was."""
+    from tests.test_report import make_evaluation
+
+    records = tmp_path / "records"
+    records.write_text("mine")
+    evaluation = make_evaluation(tmp_path, "greedy_0", "greedy", 5.0, 0, found=3)
+    assert campaign_main(["record", str(evaluation), "--records", str(records)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mcrs-campaign: error: cannot write the record of ") and err.count("\n") == 1, err
+    assert "Not a directory" in err and records.read_text() == "mine"
+
+
 # -------------------------------------------------------------------------------------- env.name
 BAD_LABELS = ["env.name=..", "env.name=.", "env.name=../x", "env.name=.hidden", "algo.name=..",
               "algo.name=.", "env.name=a\\b", "experiment=..", "budget=.."]  # fmt: skip

@@ -109,6 +109,12 @@ REFUSED = {
     ("mcrs.evaluate", "episodes=0"): "mcrs-eval: error: invalid config: episodes=0: must be >= 1",
     ("mcrs.render_episode", "env.comm_rage=3"): "mcrs-render: error: env.comm_rage: unknown key; the keys of env (closest first): comm_range,",
     ("mcrs.render_episode", "uav=9"): "mcrs-render: error: uav=9: must be in 0..3",
+    ("mcrs.render_episode", "seed=-1"): "mcrs-render: error: seed=-1: must be in [0, 2**63 - 1]",
+    ("mcrs.render_episode", "seed=99999999999999999999"): "mcrs-render: error: seed=99999999999999999999: must be in [0, 2**63 - 1]",
+    ("mcrs.evaluate", "episodes=100001"): "mcrs-eval: error: invalid config: episodes=100001: at most 100000",
+    # mcrs-eval's sweeps too are checked job by job before the first starts
+    ("mcrs.evaluate", "-m", "episodes=1,0"): "mcrs-eval: error: invalid config of sweep job 1 of 2 (episodes=0): episodes=0: must be >= 1; no job was started",
+    ("mcrs.evaluate", "-m", "policy=greedy,gredy"): "mcrs-eval: error: invalid config of sweep job 1 of 2 (policy=gredy): unknown policy 'gredy'; allowed: greedy,",
 }  # fmt: skip
 
 

@@ -443,6 +443,16 @@ def test_marl_eval_export_has_marl_evals_structure(tmp_path: Path) -> None:
     assert set(run1["step_1"]) == {"step_count", *METRICS}
     assert all(isinstance(v, list) and len(v) == 1 for k, v in run1["step_3"].items() if k != "step_count")
     assert run1["absolute_metrics"]["episode_reward"] == [31.0]
+    # the file is never replaced by mistake: a second report refuses it without --force, and writes nothing
+    (out / "me.json").write_text("mine")
+    with pytest.raises(SystemExit, match=r"me\.json: the file exists; pass --force to replace it"):
+        report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "me.json")])
+    assert (out / "me.json").read_text() == "mine"
+    assert (
+        report_main([str(tmp_path), "--out", str(out), "--marl-eval", str(out / "me.json"), "--force"]) == 0
+    )
+    assert json.loads((out / "me.json").read_text()) == data
+    assert [p.name for p in out.iterdir() if p.name.endswith(".tmp")] == []
     assert "step_count" not in run1["absolute_metrics"]
     assert list(data["mcrs"]["map10"]["vdn"]["run_0"]) == ["step_0", "step_1", "absolute_metrics"]
 

@@ -62,6 +62,7 @@ TimeLimit = _choices("TimeLimit", TIME_LIMITS)
 MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator takes 64-bit seeds
 MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
 MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
+MAX_EVAL_EPISODES = 100_000  # mcrs-eval keeps every episode's metrics; more is several runs with other seeds
 # The Hydra configs, the one CONFIG_DIR of every command and tool: mcrs/conf links to the repo's conf/ (and is
 # copied into wheels as package data). An absolute directory, because Hydra's pkg:// lookup of "mcrs.conf"
 # needs an __init__.py that conf/ lacks.

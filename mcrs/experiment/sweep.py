@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from mcrs.experiment.atomic import write_text_atomic
 from mcrs.experiment.tables import markdown
 
 #: Where the rows live inside the sweep directory, and the table's file.
@@ -48,7 +48,7 @@ class SweepProgress(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         state = _state_dir(config)
         state.mkdir(parents=True, exist_ok=True)
-        _write_atomic(state / START, json.dumps({"start": time.time(), "jobs": sweep_size(config)}))
+        write_text_atomic(state / START, json.dumps({"start": time.time(), "jobs": sweep_size(config)}))
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._job_start = time.monotonic()
@@ -73,7 +73,7 @@ class SweepProgress(Callback):
             "output_dir": str(output_dir),
         }
         state.mkdir(parents=True, exist_ok=True)
-        _write_atomic(state / f"job_{num:05d}.json", json.dumps(row))
+        write_text_atomic(state / f"job_{num:05d}.json", json.dumps(row))
         rows, start = read_rows(state), read_start(state)
         write_summary(state.parent, rows)
         print(f"{self.command} sweep: {progress_line(rows, start)}; {_row_line(row)}", flush=True)
@@ -205,7 +205,7 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
 
 def write_summary(sweep_dir: Path, rows: list[dict[str, Any]]) -> Path:
     path = sweep_dir / SUMMARY
-    _write_atomic(path, f"# Sweep summary\n\n{summary_table(rows)}\n")
+    write_text_atomic(path, f"# Sweep summary\n\n{summary_table(rows)}\n")
     return path
 
 
@@ -255,11 +255,3 @@ def _number(value: Any) -> str:
 def _one_line(error: Any) -> str:
     text = str(error).strip().splitlines()
     return (text[0] if text else type(error).__name__)[:200]
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` by a rename: a parallel job reading it sees the old or the new file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

@@ -20,6 +20,7 @@ import yaml
 from scipy import stats
 
 from mcrs.experiment.tables import markdown
+from mcrs.experiment.untrusted import UntrustedInput, check_yaml_text, read_yaml_text
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
 from mcrs_lab.analysis.runs import EvaluationRow
@@ -94,10 +95,15 @@ def default_claims_path() -> Path:
 
 def load_claims(path: Path, env_name: str) -> list[Claim]:
     """The claims of one map; none when the file has no entry for it. Errors name the field."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as error:
-        raise ClaimsError(f"{path}: cannot read the claims file: {error}") from None
+    try:  # a document block names the file (--claims): read within the bounds of any file from outside
+        text = read_yaml_text(path)
+        check_yaml_text(text, str(path))
+        data = yaml.safe_load(text)
+    except UntrustedInput as error:
+        raise ClaimsError(f"cannot read the claims file: {error}") from None
+    except yaml.YAMLError as error:
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise ClaimsError(f"{path}: cannot read the claims file: {first}") from None
     if not isinstance(data, dict):
         raise ClaimsError(f"{path}: expected a mapping of map name -> list of claims")
     entries = data.get(env_name) or []

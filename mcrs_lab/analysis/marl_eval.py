@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from mcrs.env.core import METRICS
+from mcrs.experiment.atomic import write_text_atomic
 from mcrs_lab.analysis.runs import TrainingRun, run_labels
 
 ENVIRONMENT = "mcrs"
@@ -76,6 +77,5 @@ def _evaluations(run: TrainingRun) -> dict[int, dict[str, float]]:
 def write_marl_eval(path: Path, training: list[TrainingRun]) -> dict[str, Any]:
     """Write :func:`marl_eval_data` as JSON to ``path``; returns it."""
     data = marl_eval_data(training)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1) + "\n")
+    write_text_atomic(path, json.dumps(data, indent=1) + "\n")
     return data

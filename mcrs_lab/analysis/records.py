@@ -18,13 +18,13 @@ import json
 import os
 import platform
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.atomic import write_text_atomic
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
 from mcrs_lab.analysis.curves import Q_TOT
@@ -378,16 +378,5 @@ def write_record(path: Path, record: dict[str, Any], replace: bool = False) -> s
                 f"{record['run_dir']} there instead"
             )
         outcome = "updated"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(dumps(record))
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide a committed file from the machine's other users
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, dumps(record))
     return outcome

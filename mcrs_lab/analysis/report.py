@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.experiment.rundir import describe_os_error
 from mcrs.experiment.tables import markdown, write_csv
 from mcrs_lab.analysis import comm_range as cr
 from mcrs_lab.analysis import tsne
@@ -206,21 +207,47 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="JSON",
         help="also write the training runs' evaluations (every map) as marl-eval's raw-data JSON",
     )
+    parser.add_argument("--force", action="store_true", help="replace the --marl-eval file if it exists")
     return parser
+
+
+def output_problem(out: Path, marl_eval: Path | None, force: bool) -> str | None:
+    """Where the report may not write, said before anything is read or written: ``--out`` must be a
+    folder, and ``--marl-eval`` a file that is not there yet (or ``--force``): it may name any path, so a
+    run's ``config.yaml`` or a record is never replaced by mistake."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: a file, not a folder: name the folder the report goes into"
+    if marl_eval is None:
+        return None
+    if marl_eval.is_dir():
+        return f"--marl-eval {marl_eval}: a folder: name the JSON file to write (e.g. {marl_eval / 'marl_eval.json'})"
+    if marl_eval.exists() and not force:
+        return f"--marl-eval {marl_eval}: the file exists; pass --force to replace it"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.tsne_samples < 2:
         raise SystemExit(f"mcrs-report: error: --tsne-samples={args.tsne_samples}: must be >= 2")
+    if not 0 <= args.seed < 2**32:  # numpy's and scikit-learn's seeds
+        raise SystemExit(f"mcrs-report: error: --seed={args.seed}: must be in [0, 2**32 - 1]")
+    problem = output_problem(args.out, args.marl_eval, args.force)
+    if problem:
+        raise SystemExit(f"mcrs-report: error: {problem}")
+    try:
+        return make_report(args)
+    except OSError as error:  # an unwritable --out, a full disk: one line; every file written is whole
+        raise SystemExit(f"mcrs-report: error: {describe_os_error(error)}") from None
+
+
+def make_report(args: argparse.Namespace) -> int:
+    """The report of ``mcrs-report``'s parsed arguments (:func:`main`)."""
     try:
         runs = find_runs(args.paths)
     except RecordError as error:  # a record or log that fails the schema: named, nothing reported
         raise SystemExit(f"mcrs-report: error: {error}") from None
-    if args.marl_eval is not None:  # every map (a task each), before the report keeps one
-        data = write_marl_eval(args.marl_eval, runs.training)
-        tasks = {task: len(algos) for env in data.values() for task, algos in env.items()}
-        print(f"marl-eval JSON: {args.marl_eval} (methods per map: {tasks or 'none'})", flush=True)
+    training_of_every_map = list(runs.training)  # --marl-eval: every map (a task each); the report keeps one
     env_name = select_map(runs, args.env)
     if env_name is None or (not runs.training and not runs.evaluations):
         reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
@@ -232,6 +259,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"mcrs-report: error: --claims: {error}") from None
     if args.claims is None and not _section6(runs):  # a plain sweep is not the paper's figure: no table of
         claims = []  # "not run" rows; --claims asks for one anyway
+    if args.marl_eval is not None:  # once every input has been read and checked
+        data = write_marl_eval(args.marl_eval, training_of_every_map)
+        tasks = {task: len(algos) for env in data.values() for task, algos in env.items()}
+        print(f"marl-eval JSON: {args.marl_eval} (methods per map: {tasks or 'none'})", flush=True)
     report = Report(args.out, env_name, runs, claims, args.milestones)
     legacy = Counter(value for run in runs.training for value in run.legacy)
     for value, count in sorted(legacy.items()):  # nothing recorded is reinterpreted: say how it is read

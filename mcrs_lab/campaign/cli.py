@@ -22,6 +22,7 @@ from collections import Counter
 from pathlib import Path
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.rundir import describe_os_error
 from mcrs.experiment.tables import markdown
 from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
@@ -203,6 +204,15 @@ def cmd_record(args: argparse.Namespace) -> int:
             outcome = write_record(path, record, replace=args.replace)
         except (RecordError, ckpt.CheckpointError) as error:
             print(f"mcrs-campaign: error: {error}", file=sys.stderr)
+            failed += 1
+            continue
+        except (
+            OSError
+        ) as error:  # --records a file, an unwritable folder, a full disk: the record is whole or absent
+            print(
+                f"mcrs-campaign: error: cannot write the record of {run_dir}: {describe_os_error(error)}",
+                file=sys.stderr,
+            )
             failed += 1
             continue
         steps = record.get("checkpoint_env_steps")

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.schema import MAX_EVAL_EPISODES
 from mcrs.experiment.untrusted import UntrustedInput, confined
 from mcrs_lab.analysis.records import (
     RecordError,
@@ -36,8 +37,6 @@ from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
 from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
 
 EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
-#: More evaluation episodes than this per seed is a typo (the paper uses 32).
-MAX_EPISODES = 100_000
 
 
 @dataclass(frozen=True)
@@ -150,8 +149,8 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
         episodes, seeds = entry.get("episodes", 32), _as_tuple(entry.get("seeds", (0,)))
         if not isinstance(episodes, int) or episodes < 1:
             raise MatrixError(f"{where}: episodes={episodes!r}: a whole number >= 1")
-        if isinstance(episodes, bool) or episodes > MAX_EPISODES:
-            raise MatrixError(f"{where}: episodes={episodes!r}: a whole number in [1, {MAX_EPISODES}]")
+        if isinstance(episodes, bool) or episodes > MAX_EVAL_EPISODES:
+            raise MatrixError(f"{where}: episodes={episodes!r}: a whole number in [1, {MAX_EVAL_EPISODES}]")
         if not seeds or not all(
             isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_SEED for s in seeds
         ):

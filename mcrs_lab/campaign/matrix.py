@@ -162,6 +162,8 @@ def _as_list(value: Any) -> list[Any]:
 def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str]]:
     """Every point of the campaign file (each once, in the file's order, seed by seed within a
     figure), and each figure's title."""
+    if path.is_dir():
+        raise MatrixError(f"--matrix={path}: a folder: name the campaign file (a .yaml) in it")
     if not path.is_file():
         raise MatrixError(f"--matrix={path}: no such file")
     spec = load_campaign_file(path)
