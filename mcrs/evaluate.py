@@ -84,11 +84,14 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     sweep (``-m``) checks every job before the first one starts (``overrides``: the job's, unused)."""
     errors = eval_errors(cfg)
     try:
-        EnvConfig.from_scenario(cfg.env, num_envs=1, device="cpu")
+        env_config = EnvConfig.from_scenario(cfg.env, num_envs=1, device="cpu")
     except (ValueError, TypeError) as error:
         errors.append(str(error))
+        env_config = None
     try:
-        policy_names(str(cfg.policy))
+        for name in policy_names(str(cfg.policy)):
+            if env_config is not None:
+                check_policy(name, env_config)  # a checkpoint of another map or team: its config only
     except ValueError as error:
         errors.append(str(error))
     return errors

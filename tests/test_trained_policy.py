@@ -11,7 +11,7 @@ from mcrs.env import MCRSEnv, scenario
 from mcrs.evaluate import evaluate_episodes, evaluate_policy
 from mcrs.experiment.trainer import Experiment
 from mcrs.models.acting import recurrent_primer
-from mcrs.policies import make_policy
+from mcrs.policies import check_policy, make_policy
 from mcrs.policies.trained import TrainedPolicy
 from mcrs.viz import write_episode_pictures
 from tests.train_helpers import compose_config
@@ -60,6 +60,8 @@ def test_a_replay_block_is_named_for_what_it_is(run_dir: Path) -> None:
         CheckpointError, match=r"is a block of its run's replay buffer .* pass the run directory"
     ):
         make_policy(str(block), scenario("map10"))
+    with pytest.raises(CheckpointError, match=r"is a block of its run's replay buffer"):  # before the bar
+        check_policy(str(block), scenario("map10"))
 
 
 def test_checkpoint_from_another_map_is_refused(run_dir: Path) -> None:

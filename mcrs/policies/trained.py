@@ -47,11 +47,22 @@ def trained_env(path: str | Path) -> EnvConfig | None:
     """The env config the checkpoint's agent was trained on (a field saved before it existed: its default,
     the paper's); None without a usable config: loading its policy then names the problem. The tensors are
     mapped, not read: only the config is needed here, and the policy loads the file next."""
-    state = ckpt.load(resolve_checkpoint(path), mmap=True)
+    path = resolve_checkpoint(path)
+    state = ckpt.load(path, mmap=True)
+    refuse_replay_block(state, path)
     try:
         return from_mapping(with_legacy_values(state["config"]["env"])[0])
     except (KeyError, TypeError, ValueError, OverflowError):
         return None
+
+
+def refuse_replay_block(state: Any, path: Path) -> None:
+    """A ``checkpoints/replay_*.pt`` file holds episodes, no agent: refused naming what to pass instead."""
+    if isinstance(state, dict) and "replay_block" in state:
+        raise ckpt.CheckpointError(
+            f"{path} is a block of its run's replay buffer (episodes), not a checkpoint: pass the run "
+            "directory or a checkpoints/model_<steps>.pt file"
+        )
 
 
 def observation_settings(path: str | Path) -> dict[str, Any]:
@@ -113,11 +124,7 @@ def load_trained_agent(path: str | Path) -> TrainedAgent:
     file lacks a usable config or agent or holds NaN or inf weights."""
     path = resolve_checkpoint(path)
     state = ckpt.load(path)
-    if isinstance(state, dict) and "replay_block" in state:  # checkpoints/replay_*.pt: episodes, no agent
-        raise ckpt.CheckpointError(
-            f"{path} is a block of its run's replay buffer (episodes), not a checkpoint: pass the run "
-            "directory or a checkpoints/model_<steps>.pt file"
-        )
+    refuse_replay_block(state, path)
     try:
         saved_env, legacy = with_legacy_values(state["config"]["env"])
         trained = from_mapping(saved_env)
