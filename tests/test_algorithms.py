@@ -92,10 +92,26 @@ def test_incentive_strategies() -> None:
 
 def test_register_refuses_a_taken_name_and_a_non_algorithm() -> None:
     with pytest.raises(ValueError, match="'qmix' is already registered"):
-        register_algorithm("qmix", Algorithm)
+        register_algorithm("qmix", type("Other", (Algorithm,), {}))
+    register_algorithm("qmix", Algorithm)  # the class it has: nothing changes
+    assert ALGORITHMS["qmix"] is Algorithm
     with pytest.raises(TypeError, match="expected an Algorithm subclass"):
         register_algorithm("not_one", object)  # type: ignore[arg-type]
     assert "not_one" not in ALGORITHMS
+    with pytest.raises(
+        TypeError, match=r'the first argument is the algo.name .* @register_algorithm\("my_algo"\)'
+    ):
+        register_algorithm(type("NoName", (Algorithm,), {}))  # type: ignore[arg-type]  # @register_algorithm
+
+
+def test_a_class_defined_again_replaces_its_registration() -> None:
+    """A notebook cell run twice defines a new class of the same module and name: it replaces the old one."""
+    try:
+        first = register_algorithm("cell_algo")(type("CellAlgo", (Algorithm,), {}))
+        again = register_algorithm("cell_algo")(type("CellAlgo", (Algorithm,), {}))
+        assert first is not again and ALGORITHMS["cell_algo"] is again
+    finally:
+        ALGORITHMS.pop("cell_algo", None)
 
 
 class HalfBonus(Callback):
@@ -221,6 +237,36 @@ def _install_plugin(root: Path, entries: str) -> None:
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mcrs-test-plugin\nVersion: 0.1\n")
     (info / "entry_points.txt").write_text(f"[mcrs.algorithms]\n{entries}")
+
+
+DECORATED_PLUGIN = """
+from mcrs.experiment.algorithms import Algorithm, register_algorithm
+
+
+@register_algorithm("plugin_decorated")  # registered on import too, as docs/API.md's example is
+class PluginDecorated(Algorithm):
+    pass
+"""
+
+
+def test_an_installed_algorithm_that_registers_itself_is_found(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Loading the entry point imports the module, whose decorator registers the class; the registry then
+    gets the same class again, which is not a clash."""
+    (tmp_path / "mcrs_test_decorated.py").write_text(DECORATED_PLUGIN)
+    info = tmp_path / "mcrs_test_decorated-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mcrs-test-decorated\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(
+        "[mcrs.algorithms]\nplugin_decorated = mcrs_test_decorated:PluginDecorated\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        algorithm = algorithm_for(compose("algo=qmix", "algo.name=plugin_decorated").algo)
+        assert type(algorithm).__name__ == "PluginDecorated"
+    finally:
+        ALGORITHMS.pop("plugin_decorated", None)
 
 
 def test_an_installed_algorithm_is_found_by_its_name_in_any_process(

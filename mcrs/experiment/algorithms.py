@@ -188,14 +188,26 @@ def register_algorithm(
     name: str, algorithm: type[Algorithm] | None = None, *, replace: bool = False
 ) -> Callable[[type[Algorithm]], type[Algorithm]] | type[Algorithm]:
     """Register ``algorithm`` (an :class:`Algorithm` subclass) under ``algo.name`` ``name``; without
-    ``algorithm``, a class decorator. A taken name is refused unless ``replace=True``."""
+    ``algorithm``, a class decorator (``@register_algorithm("my_algo")``). A name taken by another class is
+    refused unless ``replace=True``; the same class again (a module imported by its entry point after its
+    decorator ran) or its new definition (a notebook cell run again: same module and name) replaces it."""
+    if not isinstance(name, str):  # @register_algorithm without its name
+        raise TypeError(
+            f"register_algorithm: the first argument is the algo.name (a str), got {name!r}: write "
+            '@register_algorithm("my_algo")'
+        )
 
     def add(cls: type[Algorithm]) -> type[Algorithm]:
         if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
             raise TypeError(f"register_algorithm({name!r}): expected an Algorithm subclass, got {cls!r}")
         if cls.Options is not None:
             check_options_class(name, cls)
-        if name in ALGORITHMS and not replace:
+        taken = ALGORITHMS.get(name)
+        redefined = taken is not None and (taken.__module__, taken.__qualname__) == (
+            cls.__module__,
+            cls.__qualname__,
+        )
+        if taken is not None and not (replace or redefined):
             raise ValueError(
                 f"algorithm {name!r} is already registered ({ALGORITHMS[name].__name__}); pass replace=True "
                 "to replace it"

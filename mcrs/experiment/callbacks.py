@@ -11,7 +11,7 @@ The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in
     statistics()                         at each log row: scalars to log (``memory/...``)
     state_dict() / load_state_dict()     in every checkpoint, under ``callbacks/<name>``
 
-Hooks return scalars to log (averaged over the log interval); ``name`` keys the checkpoint state and the
+Hooks return scalars to log (averaged over the log interval), or nothing; ``name`` keys the checkpoint state and the
 ``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
 :class:`~mcrs.experiment.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
 the run's :class:`~mcrs.experiment.algorithms.Algorithm` builds the ones its ``algo`` config asks for. A
@@ -20,12 +20,15 @@ user's own callback (a scheduler, an extra logger) is passed as ``Experiment(...
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 from tensordict import TensorDictBase
 
+from mcrs.experiment.cli import ranked
 from mcrs.experiment.learner import make_optimizer
 from mcrs.experiment.schema import Config
 from mcrs.objectives.curiosity import EMCCuriosity
@@ -58,6 +61,31 @@ class ExperimentView(Protocol):
     def evaluate(self) -> dict[str, float]: ...
 
 
+#: The hooks the experiment calls (module docstring); a subclass's other ``on_*`` method is refused.
+HOOKS = ("on_setup", "on_batch_collected", "on_train_batch", "on_evaluation_end")
+
+
+def hook_scalars(callback: Callback, hook: str, returned: Any) -> Scalars:
+    """What a hook returned, as scalars to log: nothing (None) is none; anything but a mapping of names to
+    numbers or one-element tensors is a TypeError naming the callback, the hook and the key."""
+    if returned is None:
+        return {}
+    where = f"callback {callback.name!r} ({type(callback).__name__}.{hook})"
+    if not isinstance(returned, Mapping):
+        raise TypeError(
+            f"{where} returned a {type(returned).__name__}: return a dict of scalars to log "
+            "(name -> number or one-element tensor), or nothing"
+        )
+    for key, value in returned.items():
+        scalar = value.numel() == 1 if isinstance(value, torch.Tensor) else isinstance(value, numbers.Real)
+        if not isinstance(key, str) or not scalar:
+            raise TypeError(
+                f"{where} returned {key!r}: {type(value).__name__} {value!r:.60}: a logged value is a "
+                "number or a one-element tensor, under a string name"
+            )
+    return returned
+
+
 class Callback:
     """A no-op callback; subclasses override the hooks they need.
 
@@ -70,6 +98,12 @@ class Callback:
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
+        for attr in cls.__dict__:  # a misspelt hook would never be called: refused where it is defined
+            if attr.startswith("on_") and attr not in HOOKS:
+                raise TypeError(
+                    f"{cls.__name__}.{attr}: not a Callback hook (a method named on_* is one); the hooks "
+                    f"(closest first): {', '.join(ranked(attr, list(HOOKS)))}"
+                )
         if "name" in cls.__dict__:
             cls._named_after_class = False
         elif cls.name == Callback.name or cls._named_after_class:

@@ -33,7 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.algorithms import ALGORITHMS, Algorithm, algorithm_class, unregistered, with_options
 from mcrs.experiment.budget import rounding_notes
-from mcrs.experiment.callbacks import Callback, append_scalar, check_names
+from mcrs.experiment.callbacks import Callback, append_scalar, check_names, hook_scalars
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.counters import Counters, batch_seed
@@ -283,7 +283,8 @@ class Experiment(RunState):
         self._timer["collect"] += time.perf_counter() - start
         for callback in self.callbacks:
             start = time.perf_counter()
-            for key, value in callback.on_batch_collected(batch, episode_ids).items():
+            returned = callback.on_batch_collected(batch, episode_ids)
+            for key, value in hook_scalars(callback, "on_batch_collected", returned).items():
                 append_scalar(stats, key, value)
             self._timer[callback.name] += time.perf_counter() - start
         return batch
@@ -313,7 +314,9 @@ class Experiment(RunState):
             out: dict[str, torch.Tensor] = {}
             for callback in self.callbacks:
                 start = time.perf_counter()
-                out.update(callback.on_train_batch(batch, c.env_steps))
+                out.update(
+                    hook_scalars(callback, "on_train_batch", callback.on_train_batch(batch, c.env_steps))
+                )
                 spent = time.perf_counter() - start
                 self._timer[callback.name] += spent
                 self._timer["update"] -= spent  # _learn's clock runs around this: count it once
@@ -379,7 +382,8 @@ class Experiment(RunState):
         values["train/updates"] = c.updates
         values["train/replay_episodes"] = len(self.replay)
         for callback in self.callbacks:
-            values.update({k: float(v) for k, v in callback.statistics().items()})
+            returned = hook_scalars(callback, "statistics", callback.statistics())
+            values.update({k: float(v) for k, v in returned.items()})
         elapsed = sum(self._timer.values())
         values.update({f"time/{k}_s": v for k, v in self._timer.items()})
         if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
