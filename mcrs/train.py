@@ -39,6 +39,7 @@ if _LOADING:
 
 import logging
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -141,12 +142,14 @@ def _read_run_config(path: Path) -> dict[str, Any]:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.trainer import Experiment, UnregisteredAlgorithm
 
     resume = cfg.resume is not None
     if resume:
         cfg, run_dir = resume_config(cfg, overrides or [])
-    experiment = Experiment(cfg, run_dir, resume=resume)
+    with warnings.catch_warnings():  # said below as a note: line
+        warnings.simplefilter("ignore", UnregisteredAlgorithm)
+        experiment = Experiment(cfg, run_dir, resume=resume)
     print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
     if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: {experiment.algorithm_note}")

@@ -5,6 +5,7 @@ algorithm of one's own registers and trains, and the memory and the curiosity re
 from __future__ import annotations
 
 import csv
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.config import ConfigError, compose, validate
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.trainer import Experiment, UnregisteredAlgorithm
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
@@ -178,11 +179,14 @@ def test_a_registered_algorithm_resumes_only_where_it_is_registered(tmp_path: Pa
 
 
 def test_an_unregistered_name_is_said_to_be_the_built_in_algorithm(tmp_path: Path, caplog) -> None:
-    with caplog.at_level("INFO", logger="mcrs.run"):
+    """In the run's log, and to a Python user as a warning (mcrs-train says it as a note: line)."""
+    said = "algo.name=qmxi is not a registered algorithm: trained as the built-in Algorithm(qmxi"
+    with (
+        caplog.at_level("INFO", logger="mcrs.run"),
+        pytest.warns(UnregisteredAlgorithm, match=re.escape(said)),
+    ):
         Experiment(compose("algo=qmix", *TINY, "algo.name=qmxi"), tmp_path).close()
-    assert (
-        "algo.name=qmxi is not a registered algorithm: trained as the built-in Algorithm(qmxi" in caplog.text
-    )
+    assert said in caplog.text
 
 
 @pytest.mark.slow

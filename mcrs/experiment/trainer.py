@@ -24,6 +24,7 @@ checkpoint. So a run resumed from a checkpoint repeats the straight run exactly 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -56,7 +57,12 @@ from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
-__all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
+__all__ = ["Counters", "Experiment", "TrainingDiverged", "UnregisteredAlgorithm", "batch_seed"]
+
+
+class UnregisteredAlgorithm(UserWarning):
+    """``algo.name`` names no registered algorithm: the run trains the built-in one its knobs describe
+    (a label of one's own, or a misspelt name). ``mcrs-train`` says it as a ``note:`` line instead."""
 
 
 class Experiment(RunState):
@@ -173,8 +179,9 @@ class Experiment(RunState):
         if resume:  # last: building the collector may draw random numbers
             self._restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
-        if self.algorithm_note:
+        if self.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
             log_event(self.algorithm_note)
+            warnings.warn(UnregisteredAlgorithm(self.algorithm_note), stacklevel=3)
         for note in rounding_notes(t.num_envs * self.T, t.total_env_steps, t.eval_interval):
             log_event(note)
         if t.updates_per_episode == 0:  # allowed (a collection-only run), never silent
