@@ -128,3 +128,32 @@ def test_the_task_describes_its_env() -> None:
     assert env.observation_spec[task.observation_key].shape == (4, task.n_agents, task.obs_dim)
     assert env.observation_spec[task.state_key].shape == (4, *task.state_shape)
     assert env.action_spec[task.action_key].space.n == task.n_actions
+
+
+class _WrongSizes(MatrixGameTask):
+    """Declares sizes its env does not have: the networks would be built to them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.n_actions, self.obs_dim = 4, 5
+
+
+class _WrongState(MatrixGameTask):
+    def __init__(self) -> None:
+        super().__init__()
+        self.state_key = "state"
+
+
+@pytest.mark.parametrize(
+    ("task", "expected"),
+    [
+        (_WrongSizes(), r"n_agents, obs_dim = \(2, 5\), but its env's \('players', 'observation'\) is \(2, 2\) per env; "
+         r"n_agents, n_actions = \(2, 4\), but its env's \('players', 'action_mask'\) is \(2, 3\)"),
+        (_WrongState(), r"its env has no observation key 'state'"),
+    ],
+)  # fmt: skip
+def test_a_task_whose_env_disagrees_with_its_sizes_is_refused_naming_them(
+    task: MatrixGameTask, expected: str, tmp_path: Path
+) -> None:
+    with pytest.raises(ConfigError, match=rf"^task 'matrix_game' \({type(task).__name__}\): .*{expected}"):
+        Experiment(compose(*GAME), tmp_path, task=task)

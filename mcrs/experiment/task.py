@@ -142,6 +142,29 @@ def with_agent_state(env: EnvBase, task: Task, num_envs: int, hidden_dim: int, d
     return TransformedEnv(env, Compose(StepCounter(), primer))
 
 
+def check_env(task: Task, env: EnvBase) -> None:
+    """Raise :class:`ConfigError` where ``env``'s specs disagree with the sizes and keys ``task`` declares
+    (``obs_dim``, ``n_agents``, ``n_actions``, ``state_shape``), naming the attribute and the env's value:
+    the networks are built from the declared sizes, so a mismatch would surface as a shape error deep in
+    torch."""
+    spec = env.observation_spec
+    problems = []
+    expected = {
+        task.observation_key: ("n_agents, obs_dim", (task.n_agents, task.obs_dim)),
+        task.action_mask_key: ("n_agents, n_actions", (task.n_agents, task.n_actions)),
+        task.state_key: ("state_shape", tuple(task.state_shape)),
+    }
+    for key, (attributes, sizes) in expected.items():
+        if key not in spec.keys(include_nested=True):
+            problems.append(f"its env has no observation key {key!r}, which the experiment reads every step")
+            continue
+        shape = tuple(spec[key].shape[len(env.batch_size) :])
+        if shape != sizes:
+            problems.append(f"{attributes} = {sizes}, but its env's {key!r} is {shape} per env")
+    if problems:
+        raise ConfigError(f"task {task.name!r} ({type(task).__name__}): " + "; ".join(problems))
+
+
 def check_supported(config: Config, task: Task) -> None:
     """Raise :class:`ConfigError` naming every setting of ``config`` that ``task`` cannot run."""
     problems = unsupported(config, task)

@@ -52,7 +52,7 @@ from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
 from mcrs.experiment.run_state import RunState
 from mcrs.experiment.rundir import RunDirError, RunLock, describe_os_error, io_errors, prepare_fresh
-from mcrs.experiment.task import MCRSTask, Task, check_supported, with_agent_state
+from mcrs.experiment.task import MCRSTask, Task, check_env, check_supported, with_agent_state
 from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
@@ -141,9 +141,9 @@ class Experiment(RunState):
             group=self.task.group,
         )
         hidden, task = cfg.model.hidden_dim, self.task
-        self.env = with_agent_state(
-            task.make_env(t.num_envs, self.device), task, t.num_envs, hidden, self.device
-        )
+        raw_env = task.make_env(t.num_envs, self.device)
+        check_env(task, raw_env)  # the networks above were built from the task's declared sizes
+        self.env = with_agent_state(raw_env, task, t.num_envs, hidden, self.device)
         self.eval_env = make_eval_env(task, t.eval_episodes, hidden, self.device)
         self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))  # MCRS only
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
