@@ -300,7 +300,9 @@ def test_a_fresh_run_refuses_a_non_empty_directory_unless_told_to_overwrite(tmp_
     run_dir = tmp_path / "run"
     Experiment(compose_config("train.total_env_steps=80", "train.checkpoint_interval=40"), run_dir).run()
     assert (run_dir / "checkpoints" / "model_000000040.pt").is_file()
-    with pytest.raises(RunDirError, match=r"is not empty \(checkpoints, config.yaml, logs\).*overwrite=true"):
+    with pytest.raises(
+        RunDirError, match=r"is not empty \(checkpoints, config.yaml, logs\).*overwrite=true.*resume=True"
+    ):
         Experiment(compose_config("train.total_env_steps=40"), run_dir)
     assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80  # untouched
 

@@ -199,7 +199,8 @@ def fresh_problem(run_dir: Path, overwrite: bool) -> str | None:
     if not overwrite:
         return (
             f"run directory {run_dir} is not empty ({shown}): resume it with resume={run_dir}, "
-            "choose another hydra.run.dir, or pass overwrite=true to replace the run in it"
+            "choose another hydra.run.dir, or pass overwrite=true to replace the run in it (in Python: "
+            "Experiment(config, run_dir, resume=True), another run_dir, or config.overwrite = True)"
         )
     foreign = [name for name in entries if name not in RUN_ARTEFACTS]
     if foreign:
