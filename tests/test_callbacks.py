@@ -3,16 +3,17 @@ that returns something other than scalars when it returns it; a hook that return
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from mcrs.experiment.callbacks import HOOKS, Callback, hook_scalars
+from mcrs.experiment.callbacks import HOOKS, Callback, UnreadBatchKey, hook_scalars
 from mcrs.experiment.config import compose
 from mcrs.experiment.trainer import Experiment
-from tests.train_helpers import TINY
+from tests.train_helpers import TINY, TINY_MEMORY
 
 
 def test_a_misspelt_hook_is_refused_when_the_class_is_defined() -> None:
@@ -84,3 +85,42 @@ def test_a_run_with_hooks_that_return_nothing_trains(tmp_path: Path) -> None:
     config = compose("algo=qmix", *TINY, "train.total_env_steps=40")
     Experiment(config, tmp_path / "run", callbacks=[quiet]).run()
     assert all(count > 0 for count in quiet.calls.values()), quiet.calls
+
+
+class Misspelt(Callback):
+    def on_train_batch(self, batch, env_steps):  # type: ignore[override]
+        batch.set(
+            "intrinsic_rewards", torch.zeros_like(batch.get("reward"))
+        )  # the loss reads intrinsic_reward
+
+
+class Spelt(Callback):
+    def on_train_batch(self, batch, env_steps):  # type: ignore[override]
+        batch.set("intrinsic_reward", torch.zeros_like(batch.get("reward")))
+
+
+def test_a_batch_key_the_loss_never_reads_is_said_once(tmp_path: Path) -> None:
+    config = compose("algo=qmix", *TINY, "train.total_env_steps=80")
+    with pytest.warns(UnreadBatchKey) as said:
+        Experiment(config, tmp_path / "misspelt", callbacks=[Misspelt()]).run()
+    notes = [str(w.message) for w in said if w.category is UnreadBatchKey]
+    assert len(notes) == 1, notes  # once: on the first update, not on every one
+    assert notes[0].startswith(
+        "callback 'Misspelt' (Misspelt.on_train_batch) set 'intrinsic_rewards' on the training batch, which the "
+        "loss does not read (closest it reads: intrinsic_reward, "
+    ), notes
+
+
+@pytest.mark.parametrize(
+    ("algo", "callbacks"),
+    [
+        ("qmix", [Spelt()]),
+        ("emu", []),
+        ("emc", []),
+    ],  # a key it reads; the memory's and the curiosity's own keys
+)
+def test_the_keys_the_loss_reads_are_not_said(algo: str, callbacks: list[Callback], tmp_path: Path) -> None:
+    config = compose(f"algo={algo}", *TINY, *TINY_MEMORY, "train.total_env_steps=80")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnreadBatchKey)
+        Experiment(config, tmp_path / algo, callbacks=callbacks).run()

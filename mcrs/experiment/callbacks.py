@@ -167,6 +167,31 @@ class CuriosityCallback(Callback):
         self.curiosity.load_state_dict_all(state)
 
 
+class UnreadBatchKey(UserWarning):
+    """A callback set a key on the training batch that the built-in loss does not read (a misspelt
+    ``intrinsic_rewards``): the run goes on, as if the callback had set nothing."""
+
+
+def unread_batch_keys(callback: Callback, added: set, loss: Any) -> str | None:
+    """What to say when ``callback``'s ``on_train_batch`` added ``added`` (nested keys) to the batch and the
+    loss, the built-in :class:`~mcrs.objectives.ValueFactorisationLoss`, reads none of some of them; None
+    otherwise (a loss of one's own may read any key: nothing is said)."""
+    from mcrs.objectives import ValueFactorisationLoss
+
+    if type(loss) is not ValueFactorisationLoss:
+        return None
+    read = {key if isinstance(key, str) else tuple(key) for key in vars(loss.tensor_keys).values()}
+    unread = sorted((key for key in added if key not in read), key=str)
+    if not unread:
+        return None
+    names = sorted(key for key in read if isinstance(key, str))
+    closest = ", ".join(ranked(str(unread[0]), names)[:3])
+    return (
+        f"callback {callback.name!r} ({type(callback).__name__}.on_train_batch) set {', '.join(map(repr, unread))} "
+        f"on the training batch, which the loss does not read (closest it reads: {closest})"
+    )
+
+
 def append_scalar(stats: dict[str, list[torch.Tensor]], key: str, value: float | torch.Tensor) -> None:
     """Collect a hook's scalar for the next log row (where it is averaged)."""
     stats.setdefault(key, []).append(value if isinstance(value, torch.Tensor) else torch.tensor(value))

@@ -34,7 +34,14 @@ from omegaconf import DictConfig, OmegaConf
 from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.algorithms import ALGORITHMS, Algorithm, algorithm_class, unregistered, with_options
 from mcrs.experiment.budget import rounding_notes
-from mcrs.experiment.callbacks import Callback, append_scalar, check_names, hook_scalars
+from mcrs.experiment.callbacks import (
+    Callback,
+    UnreadBatchKey,
+    append_scalar,
+    check_names,
+    hook_scalars,
+    unread_batch_keys,
+)
 from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
 from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
 from mcrs.experiment.counters import Counters, batch_seed
@@ -153,6 +160,7 @@ class Experiment(RunState):
         )
         self.last_eval: dict[str, float] = {}
         self._evaluated_at: int | None = None  # the env step of this process's last evaluation
+        self._batch_keys_checked = False  # the callbacks' batch keys are checked on the first update
         self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
         for callback in self.callbacks:
             callback.on_setup(self)
@@ -321,12 +329,20 @@ class Experiment(RunState):
             out: dict[str, torch.Tensor] = {}
             for callback in self.callbacks:
                 start = time.perf_counter()
-                out.update(
-                    hook_scalars(callback, "on_train_batch", callback.on_train_batch(batch, c.env_steps))
-                )
+                before = None if self._batch_keys_checked else set(batch.keys(True, True))
+                returned = callback.on_train_batch(batch, c.env_steps)
+                out.update(hook_scalars(callback, "on_train_batch", returned))
+                if before is not None:  # the session's first update: a key the loss never reads is said
+                    note = unread_batch_keys(
+                        callback, set(batch.keys(True, True)) - before, self.learner.loss
+                    )
+                    if note:
+                        log_event(note)
+                        warnings.warn(UnreadBatchKey(note), stacklevel=2)
                 spent = time.perf_counter() - start
                 self._timer[callback.name] += spent
                 self._timer["update"] -= spent  # _learn's clock runs around this: count it once
+            self._batch_keys_checked = True
             stats = self.learner.update(batch, c.env_steps)
         except TrainingDiverged as error:
             path = self.save(name="last_good.pt")
