@@ -31,7 +31,7 @@ from mcrs.experiment import evaluation
 from mcrs.experiment.cli import one_line_errors, ranked, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.rundir import register_resolvers
-from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES
+from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
 
@@ -67,7 +67,7 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
             f"episodes={cfg.episodes}: at most {MAX_EVAL_EPISODES} (every episode's metrics are kept): "
             "evaluate more as several runs with other seeds"
         )
-    if not 0 <= cfg.seed <= 2**63 - 1:
+    if not 0 <= cfg.seed <= MAX_SEED:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
     problem = device_problem(cfg.device)
     if problem:
@@ -85,8 +85,8 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     errors = eval_errors(cfg)
     try:
         env_config = EnvConfig.from_scenario(cfg.env, num_envs=1, device="cpu")
-    except (ValueError, TypeError) as error:
-        errors.append(str(error))
+    except (ValueError, TypeError) as error:  # one line per job: "invalid environment config: <field>: ..."
+        errors.append(" ".join(line.strip().removeprefix("- ") for line in str(error).splitlines()))
         env_config = None
     try:
         for name in policy_names(str(cfg.policy)):

@@ -142,7 +142,8 @@ def _read_run_config(path: Path) -> dict[str, Any]:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.trainer import Experiment, UnregisteredAlgorithm
+    from mcrs.experiment.algorithms import UnregisteredAlgorithm
+    from mcrs.experiment.trainer import Experiment
 
     resume = cfg.resume is not None
     if resume:

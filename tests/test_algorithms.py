@@ -16,12 +16,19 @@ from torch import nn
 from torchrl.modules.models.multiagent import VDNMixer
 
 from mcrs.env.config import scenario
-from mcrs.experiment.algorithms import ALGORITHMS, BUILT_IN, Algorithm, algorithm_for, register_algorithm
+from mcrs.experiment.algorithms import (
+    ALGORITHMS,
+    BUILT_IN,
+    Algorithm,
+    UnregisteredAlgorithm,
+    algorithm_for,
+    register_algorithm,
+)
 from mcrs.experiment.callbacks import Callback
 from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.config import ConfigError, compose, validate
 from mcrs.experiment.learner import Learner
-from mcrs.experiment.trainer import Experiment, UnregisteredAlgorithm
+from mcrs.experiment.trainer import Experiment
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive

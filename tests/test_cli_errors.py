@@ -114,6 +114,7 @@ REFUSED = {
     ("mcrs.evaluate", "episodes=100001"): "mcrs-eval: error: invalid config: episodes=100001: at most 100000",
     # mcrs-eval's sweeps too are checked job by job before the first starts
     ("mcrs.evaluate", "-m", "episodes=1,0"): "mcrs-eval: error: invalid config of sweep job 1 of 2 (episodes=0): episodes=0: must be >= 1; no job was started",
+    ("mcrs.evaluate", "-m", "env.comm_range=1,-1"): "mcrs-eval: error: invalid config of sweep job 1 of 2 (env.comm_range=-1): invalid environment config: comm_range=-1.0: must be a distance >= 0",
     ("mcrs.evaluate", "-m", "policy=greedy,gredy"): "mcrs-eval: error: invalid config of sweep job 1 of 2 (policy=gredy): unknown policy 'gredy'; allowed: greedy,",
 }  # fmt: skip
 

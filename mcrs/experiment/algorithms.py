@@ -79,12 +79,12 @@ __all__ = [
     "BUILT_IN",
     "ENTRY_POINT_GROUP",
     "Algorithm",
+    "UnregisteredAlgorithm",
     "algorithm_class",
     "algorithm_for",
     "register_algorithm",
     "register_installed",
     "unregistered",
-    "with_options",
 ]
 
 
@@ -133,6 +133,16 @@ class Algorithm:
             value = f"={given[key]!r}" if key in given else ""
             first = (str(error).strip().splitlines() or [type(error).__name__])[0]
             raise ConfigError(f"algo.options.{key}{value}: {first}") from None
+
+    @classmethod
+    def with_options(cls, algo: AlgoConfig) -> AlgoConfig:
+        """``algo`` with every setting of this algorithm in ``algo.options`` (defaults filled in, checked by
+        :meth:`read_options`): what a run's ``config.yaml``, loggers and fingerprint hold."""
+        options = cls.read_options(algo)
+        values = (
+            {} if options is None else OmegaConf.to_container(OmegaConf.structured(options), enum_to_str=True)
+        )
+        return replace(algo, options=values)
 
     def make_incentive(self) -> Incentive:
         """EMU's incentive strategy (``algo.incentive``, ``algo.incentive_threshold``)."""
@@ -259,20 +269,14 @@ def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
     return ALGORITHMS.get(name, Algorithm)
 
 
-def with_options(algo: AlgoConfig, cls: type[Algorithm] | None = None) -> AlgoConfig:
-    """``algo`` with its algorithm's every setting in ``algo.options`` (defaults filled in, checked by
-    :meth:`Algorithm.read_options`): what a run's ``config.yaml``, loggers and fingerprint hold.
-    ``cls``: the algorithm's class where the caller has it (default: :func:`algorithm_class`)."""
-    options = (algorithm_class(algo) if cls is None else cls).read_options(algo)
-    values = (
-        {} if options is None else OmegaConf.to_container(OmegaConf.structured(options), enum_to_str=True)
-    )
-    return replace(algo, options=values)
-
-
 def algorithm_for(algo: AlgoConfig) -> Algorithm:
     """The algorithm of an ``algo`` config node (:func:`algorithm_class`), built from it."""
     return algorithm_class(algo)(algo)
+
+
+class UnregisteredAlgorithm(UserWarning):
+    """``algo.name`` names no registered algorithm: the run trains the built-in one its knobs describe
+    (a label of one's own, or a misspelt name). ``mcrs-train`` says it as a ``note:`` line instead."""
 
 
 def unregistered(name: str, what: str = "the built-in Algorithm") -> str:

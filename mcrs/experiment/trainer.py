@@ -32,7 +32,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import ALGORITHMS, Algorithm, algorithm_class, unregistered, with_options
+from mcrs.experiment.algorithms import (
+    ALGORITHMS,
+    Algorithm,
+    UnregisteredAlgorithm,
+    algorithm_class,
+    unregistered,
+)
 from mcrs.experiment.budget import rounding_notes
 from mcrs.experiment.callbacks import (
     Callback,
@@ -64,12 +70,7 @@ from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
-__all__ = ["Counters", "Experiment", "TrainingDiverged", "UnregisteredAlgorithm", "batch_seed"]
-
-
-class UnregisteredAlgorithm(UserWarning):
-    """``algo.name`` names no registered algorithm: the run trains the built-in one its knobs describe
-    (a label of one's own, or a misspelt name). ``mcrs-train`` says it as a ``note:`` line instead."""
+__all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
 
 
 class Experiment(RunState):
@@ -103,7 +104,7 @@ class Experiment(RunState):
         # settings, checked and completed with their defaults (the caller's config is not changed):
         # config.yaml, the loggers and the fingerprint hold every one
         self.algorithm_class: type[Algorithm] = algorithm_class(self.config.algo)
-        self.config = replace(self.config, algo=with_options(self.config.algo, self.algorithm_class))
+        self.config = replace(self.config, algo=self.algorithm_class.with_options(self.config.algo))
         self.run_dir = Path(run_dir)
         # One writer per run directory: a second run there, or a resume of a live run, stops here.
         self._lock: RunLock | None = RunLock(self.run_dir)
