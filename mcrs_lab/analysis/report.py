@@ -237,7 +237,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"mcrs-report: error: {problem}")
     try:
         return make_report(args)
-    except OSError as error:  # an unwritable --out, a full disk: one line; every file written is whole
+    except OSError as error:
+        # an unwritable --out, a full disk: one line (the marl-eval JSON is whole or absent)
         raise SystemExit(f"mcrs-report: error: {describe_os_error(error)}") from None
 
 

@@ -206,9 +206,8 @@ def cmd_record(args: argparse.Namespace) -> int:
             print(f"mcrs-campaign: error: {error}", file=sys.stderr)
             failed += 1
             continue
-        except (
-            OSError
-        ) as error:  # --records a file, an unwritable folder, a full disk: the record is whole or absent
+        except OSError as error:
+            # --records a file, an unwritable folder, a full disk: the record is whole or absent
             print(
                 f"mcrs-campaign: error: cannot write the record of {run_dir}: {describe_os_error(error)}",
                 file=sys.stderr,
