@@ -120,7 +120,8 @@ def test_state_layout_on_hand_built_scene():
     unknown, full = state[:cells], state[cells : 2 * cells]
     assert unknown[0].item() == pytest.approx(0.2) and full[0].item() == pytest.approx(0.8)  # target read F
     assert unknown[2 * 10 + 2].item() == pytest.approx(0.2) and full[22].item() == 0.0  # x-major: x*L2 + y
-    assert unknown.sum().item() == pytest.approx(98 + 0.4)
+    assert unknown.sum().item() == pytest.approx(97 + 0.4)  # the no-fly cell (5, 5) is known: m(U) = 0
+    assert unknown[5 * 10 + 5].item() == 0.0 and full[55].item() == 0.0
     scale = 9.0
     positions = state[2 * cells :].view(-1, 2) * scale
     assert positions.round().tolist() == [[0, 0], [2, 2], [5, 5], [0, 0], [7, 3]]
@@ -142,20 +143,25 @@ def test_uncertainty_reward_counts_each_cell_once():
     assert result.reward.item() == pytest.approx(r1 + r2 + r3 + r4, abs=1e-6)
 
 
-def test_discovery_reward_once_per_target_and_false_discoveries_unrewarded():
+@pytest.mark.parametrize("rule", ["belief", "target"])
+def test_discovery_reward_once_per_cell_and_false_discoveries_by_rule(rule):
     # UAV 0 oscillates over the target at (1, 1); UAV 1 oscillates over an empty cell with a sensor that
     # always reports "F" there (p_false_alarm = 1).
-    core, result = scene_core([[1, 1], [8, 8]], [], [[1, 1]], p_false_alarm=1.0, comm_range=0.0)
+    core, result = scene_core(
+        [[1, 1], [8, 8]], [], [[1, 1]], p_false_alarm=1.0, comm_range=0.0, discovery_rule=rule
+    )
     assert result.metrics["targets_found"].item() == 0  # one reading gives m(F) = 0.8 < 0.95
     moves = [[1, 1], [0, 0], [1, 1], [0, 0]]  # away, back, away, back
     r2 = []
     for move in moves:
         result = core.step(torch.tensor([move]))
         r2.append(result.reward_terms[0, 1].item())
-    # Back on the target after step 2: two readings, m(F) = 0.96 >= tau: rewarded once, not again at step 4.
-    assert r2 == [0.0, 1.0, 0.0, 0.0]
+    # Every reading is "F", so each cell read twice reaches m(F) = 0.96 >= tau: at step 2 the target (1, 1)
+    # and UAV 1's empty (8, 8), at step 3 the empty (2, 1) and (9, 8). eq. 24 (belief) pays each cell once,
+    # an empty one "is considered to contain a target"; the target rule pays (1, 1) only.
+    assert r2 == ([0.0, 2.0, 2.0, 0.0] if rule == "belief" else [0.0, 1.0, 0.0, 0.0])
     assert result.metrics["targets_found"].item() == 1
-    assert result.metrics["false_discoveries"].item() >= 1  # the cells UAV 1 read twice as "F"
+    assert result.metrics["false_discoveries"].item() == 3
 
 
 def test_discovery_weight_scales_the_reward():
@@ -232,7 +238,7 @@ def test_episode_is_truncated_after_exactly_T_steps_and_metrics_add_up():
     generator = torch.Generator().manual_seed(1)
     td = env.reset()
     initial_uncertainty = td["metrics", "uncertainty"].clone()
-    rewards, r1 = [], []
+    rewards, r1, steps = [], [], []
     for t in range(env.config.max_steps):
         td["agents", "action"] = random_allowed(td["agents", "action_mask"], generator)
         td = env.step(td)
@@ -241,16 +247,18 @@ def test_episode_is_truncated_after_exactly_T_steps_and_metrics_add_up():
         assert not nxt["terminated"].any() and torch.equal(nxt["done"], nxt["truncated"])
         rewards.append(nxt["reward"].squeeze(-1))
         r1.append(nxt["reward_terms"][:, 0])
+        steps.append(nxt)
         td = td["next"]
     metrics = td["metrics"]
     assert torch.allclose(metrics["episode_reward"], torch.stack(rewards).sum(0), atol=1e-3)
     assert torch.allclose(torch.stack(r1).sum(0), initial_uncertainty - metrics["uncertainty"], atol=1e-3)
     cells = env.config.n_cells
     assert torch.allclose(metrics["uncertainty"], td["state"][:, :cells].sum(-1), atol=1e-3)
-    sensed = (td["state"][:, :cells] < 1.0).float().mean(-1)
+    sensed = (td["state_counts"].sum(-1) > 0).float().mean(-1)  # coverage: cells read, zones unread
     assert torch.allclose(metrics["coverage"], sensed)
-    total_r2 = td["metrics", "targets_found"]
-    assert (total_r2 <= env.config.n_targets).all()
+    total_r2 = torch.stack([step["reward_terms"][:, 1] for step in steps]).sum(0)
+    # eq. 24: r2 pays every cell reaching tau once, target or not.
+    assert torch.equal(total_r2, metrics["targets_found"] + metrics["false_discoveries"])
 
 
 def test_partial_reset_changes_only_the_masked_environments():

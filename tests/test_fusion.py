@@ -86,6 +86,8 @@ def replay_with_oracle(core: MCRSCore, steps: int, rounds: int, seed: int) -> No
         assert torch.equal(got, expected)
         # The published belief maps are the belief of exactly these counts.
         _, full, unknown = belief_masses(expected[..., 0], expected[..., 1], cfg.m_f, cfg.m_e)
+        zones = core.is_no_fly.unsqueeze(1)  # known no-fly cells read m(U) = m(F) = 0 (no_fly_prior=known)
+        unknown, full = unknown.masked_fill(zones, 0.0), full.masked_fill(zones, 0.0)
         published = result.belief_map.view(cfg.num_envs, cfg.n_uavs, 2, cfg.n_cells)
         assert torch.allclose(published[:, :, 0], unknown) and torch.allclose(published[:, :, 1], full)
 

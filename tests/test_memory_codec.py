@@ -39,7 +39,8 @@ def test_round_trip_is_bit_exact_on_real_rollouts(name: str) -> None:
     assert codes.shape == (flat_state.shape[0], codec.n_cells, 2)
     assert positions.shape == (flat_state.shape[0], codec.n_positions, 2)
     assert torch.equal(codec.decode(codes, positions), flat_state)
-    assert torch.equal(codec.decode_map(codes), flat_state[:, : codec.map_dim])
+    maps = codec.clear_zones(codec.decode_map(codes), positions)  # known zones: 0 whatever their counts
+    assert torch.equal(maps, flat_state[:, : codec.map_dim])
     # The promoted storage decodes to the same bits.
     assert torch.equal(codec.decode(codes.to(torch.int16), positions), flat_state)
     # Into a reused buffer too.
@@ -84,7 +85,7 @@ def test_decode_table_equals_belief_masses_for_every_uint8_pair() -> None:
 @pytest.mark.parametrize("high", [300, 5000])
 def test_int16_codes_decode_like_belief_masses(high: int) -> None:
     """Tables sized to the largest counts (300), and the direct computation beyond the table limit (5000)."""
-    codec = StateCodec(scenario("map10"))
+    codec = StateCodec(scenario("map10", no_fly_prior="unknown"))  # maps of counts alone
     generator = torch.Generator().manual_seed(1)
     counts = torch.randint(0, high + 1, (6, codec.n_cells, 2), generator=generator)
     counts[0, 0] = torch.tensor([high, high])
@@ -134,5 +135,35 @@ def test_torchrl_env_publishes_the_counts_behind_the_state_maps() -> None:
     assert env.observation_spec["state_counts"].is_in(td[:, -1].get(("next", "state_counts")))
     cells = env.config.width * env.config.height
     _, full, unknown = belief_masses(counts[..., 0], counts[..., 1], env.config.m_f, env.config.m_e)
+    zones = env.core.is_no_fly.unsqueeze(1)  # one episode: the same zones at every step; known, so 0
+    unknown, full = unknown.masked_fill(zones, 0.0), full.masked_fill(zones, 0.0)
     assert torch.equal(unknown, state[..., :cells]) and torch.equal(full, state[..., cells : 2 * cells])
     assert int(counts.sum(-1).sum(-1)[0, -1]) == env.config.n_uavs * 7  # one reading per UAV per step
+
+
+def test_known_zones_decode_as_zero_and_unread_zones_as_their_counts() -> None:
+    """A zone cell entered (counts > 0) reads m(U) = m(F) = 0 in the state under known zones, its belief
+    under unknown; both round trip, and a codec of the other reading refuses the maps."""
+    scene = (torch.tensor([[4, 5], [0, 0], [9, 9], [0, 9]]), torch.tensor([[5, 5], [2, 7], [7, 2]]),
+             torch.tensor([[1, 1], [2, 2], [3, 3], [6, 6], [8, 8], [1, 8]]))  # fmt: skip
+    for prior in ("known", "unknown"):
+        cfg = scenario("map10", no_fly_prior=prior)
+        core = MCRSCore(cfg)
+        core.reset_to(*scene)
+        result = core.step(torch.tensor([[1, 1, 4, 5]]))  # UAV 0 into the zone (5, 5)
+        state, counts = result.state, result.state_counts
+        assert int(counts[0, 55].sum()) == 1
+        assert (state[0, 55].item() == 0.0) == (prior == "known")
+        codec = StateCodec(cfg)
+        codes, positions = codec.encode(counts, state)
+        assert torch.equal(codec.decode(codes, positions), state)
+        other = StateCodec(scenario("map10", no_fly_prior="unknown" if prior == "known" else "known"))
+        with pytest.raises(ValueError, match="state maps are not the beliefs of counts"):
+            other.encode(counts, state)
+
+
+def test_a_memory_saved_before_no_fly_prior_reads_as_unknown_zones() -> None:
+    old = StateCodec(scenario("map10", no_fly_prior="unknown")).identity()
+    del old["no_fly_prior"]
+    assert StateCodec(scenario("map10", no_fly_prior="unknown")).identity_mismatch(old) is None
+    assert "no_fly_prior" in StateCodec(scenario("map10")).identity_mismatch(old)

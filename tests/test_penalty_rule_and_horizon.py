@@ -68,7 +68,26 @@ def test_an_old_config_reads_as_near_and_bootstrap_and_says_so():
         "algo": {**old["algo"], "time_limit": "terminal"},
     }
     assert ckpt.legacy_values(new) == [] and ckpt.current_config(new)["env"]["safety_rule"] == "enter"
-    assert with_legacy_values({"safety_rule": "enter"}) == ({"safety_rule": "enter"}, [])
+    paper = {"safety_rule": "enter", "no_fly_view": "blocked", "no_fly_prior": "known", "discovery_rule": "belief"}
+    assert with_legacy_values(paper) == (paper, [])
+
+
+def test_a_config_saved_before_the_no_fly_and_discovery_fields_reads_as_the_lured_task():
+    """A run of the first campaign on the paper's reward (safety_rule saved, the zones shown as unread beliefs,
+    r2 for real targets) loads as it was made and says so; nothing saved is rewritten."""
+    config = OmegaConf.to_container(compose_config(), resolve=True, enum_to_str=True)
+    for name in ("no_fly_view", "no_fly_prior", "discovery_rule"):
+        del config["env"][name]
+    assert ckpt.legacy_values(config) == [
+        "env.no_fly_view=belief", "env.no_fly_prior=unknown", "env.discovery_rule=target"
+    ]  # fmt: skip
+    current = ckpt.current_config(config)["env"]
+    assert (current["safety_rule"], current["no_fly_view"], current["no_fly_prior"], current["discovery_rule"]) == (
+        "enter", "belief", "unknown", "target"
+    )
+    assert "no_fly_view" not in config["env"]
+    run = TrainingRun(path=None, config=config)  # type: ignore[arg-type]
+    assert run.setting("env.discovery_rule") == "target" and run.setting("env.no_fly_prior") == "unknown"
 
 
 def test_a_record_made_before_the_field_is_read_as_near():

@@ -28,11 +28,30 @@ TARGET_MOTIONS = ("static", "random_walk")
 #: reading of constraints (16)-(17) this project used before the field existed) charges distances <= d,
 #: i.e. a zone's four neighbours and side-by-side UAVs too on the unit grid.
 SAFETY_RULES = ("enter", "near")
+#: What a UAV's surround shows in a direction that is not movable (docs/ENVIRONMENT.md, "Observation"):
+#: ``blocked`` (the paper, section 4.2: "If a direction is not movable, the corresponding observation vector
+#: is set to zero") zeroes m(U) and m(F) off the grid and on no-fly cells; ``belief`` zeroes them off the grid
+#: only and shows a no-fly cell's belief.
+NO_FLY_VIEWS = ("blocked", "belief")
+#: What every belief map holds for a no-fly cell: ``known`` (the paper, section 3.1: no target is in a
+#: zone; figure 4 shows zones as low uncertainty) holds it as known and empty from reset, m(U) = m(F) = 0;
+#: ``unknown`` starts it at m(U) = 1 like any cell, so that entering it pays r1.
+NO_FLY_PRIORS = ("known", "unknown")
+#: Which cells r2 pays (docs/ENVIRONMENT.md, "Discoveries"): ``belief`` (eq. 24) every cell whose global
+#: m(F) reaches tau for the first time, target or not; ``target`` only cells that hold a target.
+DISCOVERY_RULES = ("belief", "target")
 #: Values the observation gains with ``far_view`` > 0: one window mean of own m(U) per move.
 N_FAR_VIEW = 8
 #: Fields added to the scenario after records and checkpoints were made, with the value that such a saved
 #: config meant: a config saved before ``safety_rule`` existed was trained and judged under ``near``.
-LEGACY_SCENARIO_VALUES = {"safety_rule": "near"}
+#: The no-fly and discovery fields came later still: a config saved without them was run with no-fly cells
+#: shown as unread beliefs and r2 paid for real targets only.
+LEGACY_SCENARIO_VALUES = {
+    "safety_rule": "near",
+    "no_fly_view": "belief",
+    "no_fly_prior": "unknown",
+    "discovery_rule": "target",
+}
 #: evidence_decay's bound on max_steps * -ln(1 - decay): (1 - decay)^max_steps stays a normal float32.
 MAX_DECAY_EXPONENT = 80.0
 
@@ -70,6 +89,9 @@ class EnvConfig:
     no_fly_safety: float = 1.0
     uav_safety: float = 1.0
     safety_rule: str = "enter"  # enter (< d: the paper's reward text) | near (<= d: the old reading)
+    no_fly_view: str = "blocked"  # blocked (the paper: zero in no-fly directions) | belief
+    no_fly_prior: str = "known"  # known (the paper: zones known empty from reset) | unknown
+    discovery_rule: str = "belief"  # belief (eq. 24: any cell reaching tau) | target (real targets only)
     m_f: float = 0.8
     m_e: float = 0.8
     p_detect: float = 0.8
@@ -249,6 +271,14 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
             f"safety_rule={cfg.safety_rule!r}: must be one of {list(SAFETY_RULES)} (enter: distances < d are "
             "penalised, the paper's reward; near: distances <= d, the stricter old reading)"
         )
+    choices = (
+        ("no_fly_view", NO_FLY_VIEWS, "blocked: zero in no-fly directions, the paper; belief: the zone's belief"),
+        ("no_fly_prior", NO_FLY_PRIORS, "known: zones known and empty from reset, the paper; unknown: unread"),
+        ("discovery_rule", DISCOVERY_RULES, "belief: r2 for any cell reaching tau, eq. 24; target: real targets"),
+    )
+    for name, allowed, meaning in choices:
+        if getattr(cfg, name) not in allowed:
+            errors.append(f"{name}={getattr(cfg, name)!r}: must be one of {list(allowed)} ({meaning})")
     if cfg.invalid_action not in INVALID_ACTION_MODES:
         errors.append(f"invalid_action={cfg.invalid_action!r}: must be one of {list(INVALID_ACTION_MODES)}")
     for name in ("expose_beliefs", "no_fly_shield", "uav_shield"):

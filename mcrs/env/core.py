@@ -70,6 +70,7 @@ class MCRSCore(CoreOutputs):
         self._around_on_grid = ((around >= 0) & (around <= self._grid_max)).all(-1).to(torch.float32)
         around = torch.minimum(around.clamp(min=0), self._grid_max)
         around_cell = around[..., 0] * c.height + around[..., 1]
+        self._around_cell = around_cell  # [C, 8] flat cells in D_s order (clamped: read with _around_on_grid)
         # Flat count indices of the 8 surrounding cells: 8 positive, then 8 negative (contiguous planes).
         self._around_counts = torch.cat([around_cell * 2, around_cell * 2 + 1], dim=-1)  # [C, 16]
         # Flat (i, j) indices of the ordered pairs j != i, row by row: "every other UAV in index order".
@@ -86,6 +87,11 @@ class MCRSCore(CoreOutputs):
         self.no_fly_pos = torch.zeros(E, c.n_no_fly, 2, dtype=torch.int64, device=dev)
         self.target_pos = torch.zeros(E, c.n_targets, 2, dtype=torch.int64, device=dev)
         self.is_target = torch.zeros(E, C, dtype=torch.bool, device=dev)
+        self.is_no_fly = torch.zeros(E, C, dtype=torch.bool, device=dev)
+        # The paper's reading (config.py): zones known and empty in every map; zones hidden in the surround.
+        self.known_zones = c.no_fly_prior == "known"
+        self.hide_zones = c.no_fly_view == "blocked" or self.known_zones
+        self.pay_beliefs = c.discovery_rule == "belief"
         self.step_count = torch.zeros(E, dtype=torch.int64, device=dev)
         self.reading = torch.zeros(E, N, dtype=torch.bool, device=dev)  # last reading, True = "F"
         # Detection log: log[e, s, q] = cell * 2 + channel of UAV q's reading at step s (s = 0 at reset).
@@ -98,7 +104,7 @@ class MCRSCore(CoreOutputs):
         self.global_counts = torch.zeros(E, 2 * C, dtype=count_dtype, device=dev)
         # The global belief, kept current incrementally: only the cells sensed in a step change.
         self.global_belief = torch.zeros(E, 2, C, dtype=torch.float32, device=dev)  # m(U), m(F)
-        self.discovered = torch.zeros(E, C, dtype=torch.bool, device=dev)  # global m(F) ever >= tau
+        self.discovered = torch.zeros(E, C, dtype=torch.bool, device=dev)  # D_find: global m(F) ever >= tau
         self.total_uncertainty = torch.zeros(E, dtype=torch.float32, device=dev)
         self.cells_sensed = torch.zeros(E, dtype=torch.float32, device=dev)
         self.targets_found = torch.zeros(E, dtype=torch.float32, device=dev)
@@ -201,11 +207,11 @@ class MCRSCore(CoreOutputs):
 
         # 4. Global belief, rewards and metrics.
         if self.dynamic:
-            uncertainty_drop, new_targets = self._update_global_belief_dynamic(cell, flat)
+            uncertainty_drop, discoveries = self._update_global_belief_dynamic(cell, flat)
         else:
-            uncertainty_drop, new_targets = self._update_global_belief(cell, flat)
+            uncertainty_drop, discoveries = self._update_global_belief(cell, flat)
         r_uncertainty = c.w_uncertainty * uncertainty_drop
-        r_discovery = c.w_discovery * new_targets
+        r_discovery = c.w_discovery * discoveries
         no_fly_events, collision_events = self._safety_events(geometry)
         r_no_fly = -c.w_no_fly * no_fly_events
         r_collision = -c.w_collision * collision_events
@@ -225,7 +231,7 @@ class MCRSCore(CoreOutputs):
         variants += [] if self.walk is None else self.walk.tensors()
         variants += [] if self.found_once is None else [self.found_once]
         return [
-            self.uav_pos, self.no_fly_pos, self.target_pos, self.is_target, self.step_count, self.reading,
+            self.uav_pos, self.no_fly_pos, self.target_pos, self.is_target, self.is_no_fly, self.step_count, self.reading,
             self.log, self.known, self.counts, self.global_counts, self.global_belief, self.discovered,
             self.total_uncertainty, self.cells_sensed, self.targets_found, self.false_discoveries,
             self.episode_reward, self.collisions, self.no_fly_violations, *variants,
@@ -234,13 +240,15 @@ class MCRSCore(CoreOutputs):
     def _update_global_belief_dynamic(
         self, cell: torch.Tensor, flat: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Moving targets or fading evidence; returns (drop of sum m(U), targets found for the first time).
+        """Moving targets or fading evidence; returns (drop of sum m(U), discoveries r2 pays).
 
-        A target is *found* while the global m(F) of its current cell is >= tau; r2 pays each target once
-        per episode. Without decay only the sensed cells change (the paper's incremental update); with it
-        every cell fades, so the whole map is recomputed.
+        A target is *found* while the global m(F) of its current cell is >= tau. Under ``discovery_rule``
+        ``target`` r2 pays each target once per episode; under ``belief`` it pays each cell the first time
+        its m(F) reaches tau (D_find). Without decay only the sensed cells change (the paper's incremental
+        update); with it every cell fades, so the whole map is recomputed.
         """
         c = self.config
+        discovered_before = self.discovered.clone()
         if self.decay is None:
             drop, _ = self._update_global_belief(cell, flat)
         else:
@@ -250,6 +258,8 @@ class MCRSCore(CoreOutputs):
             # Config validation keeps keep^max_steps a normal float32: a sensed cell's count stays > 0.
             self.cells_sensed = ((counts[:, 0::2] + counts[:, 1::2]) > 0).sum(-1).to(torch.float32)
             _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
+            if self.known_zones:
+                unknown, full = unknown.masked_fill(self.is_no_fly, 0.0), full.masked_fill(self.is_no_fly, 0.0)
             self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
             total = unknown.sum(-1)
             drop, self.total_uncertainty = self.total_uncertainty - total, total
@@ -259,6 +269,9 @@ class MCRSCore(CoreOutputs):
         self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
         new_targets = (found & ~self.found_once).sum(-1).to(torch.float32)
         self.found_once |= found
+        self.discovered = discovered_before | reached
+        if self.pay_beliefs:
+            return drop, (reached & ~discovered_before).sum(-1).to(torch.float32)
         return drop, new_targets
 
     def _sense(self, cell: torch.Tensor) -> torch.Tensor:
@@ -300,6 +313,9 @@ class MCRSCore(CoreOutputs):
         is_target = torch.zeros(M, C, dtype=torch.bool, device=dev)
         is_target.scatter_(1, targets, True)
         self.is_target[envs] = is_target
+        is_no_fly = torch.zeros(M, C, dtype=torch.bool, device=dev)
+        is_no_fly.scatter_(1, no_fly, True)
+        self.is_no_fly[envs] = is_no_fly
         self.step_count[envs] = 0
         self.episode_reward[envs] = 0.0
         self.collisions[envs] = 0.0
@@ -322,6 +338,8 @@ class MCRSCore(CoreOutputs):
         global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=global_counts.dtype))
         self.global_counts[envs] = global_counts
         _, full, unknown = belief_masses(global_counts[:, 0::2], global_counts[:, 1::2], c.m_f, c.m_e)
+        if self.known_zones:  # known and empty from reset: no uncertainty, never a discovery
+            unknown, full = unknown.masked_fill(is_no_fly, 0.0), full.masked_fill(is_no_fly, 0.0)
         self.global_belief[envs] = torch.stack([unknown, full], dim=1)
         self.total_uncertainty[envs] = unknown.sum(-1)
         discovered = full >= c.target_threshold  # only when tau <= m_f: counted, never rewarded
@@ -341,10 +359,11 @@ class MCRSCore(CoreOutputs):
     def _update_global_belief(
         self, cell: torch.Tensor, flat: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Add this step's readings to the global map; return (drop of sum m(U), new targets found).
+        """Add this step's readings to the global map; return (drop of sum m(U), discoveries r2 pays).
 
         Only the sensed cells change, so the work is O(E N), not O(E L1 L2). When several UAVs share a
-        cell, the first of them (lowest index) stands for the cell, so nothing is counted twice.
+        cell, the first of them (lowest index) stands for the cell, so nothing is counted twice. A known
+        no-fly cell keeps m(U) = m(F) = 0 when entered: no r1, no discovery.
         """
         c = self.config
         same_cell = cell.unsqueeze(-1) == cell.unsqueeze(-2)  # [E, i, j]
@@ -354,6 +373,9 @@ class MCRSCore(CoreOutputs):
         self.global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype))
         after = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
         _, full, unknown = belief_masses(after[..., 0], after[..., 1], c.m_f, c.m_e)
+        if self.known_zones:
+            in_zone = self.is_no_fly.gather(1, cell)
+            unknown, full = unknown.masked_fill(in_zone, 0.0), full.masked_fill(in_zone, 0.0)
         old_unknown = self.global_belief[:, 0].gather(1, cell)
         self.global_belief[:, 0].scatter_(1, cell, unknown)
         self.global_belief[:, 1].scatter_(1, cell, full)
@@ -369,6 +391,8 @@ class MCRSCore(CoreOutputs):
         new_targets = (newly & on_target).sum(-1).to(torch.float32)
         self.targets_found += new_targets
         self.false_discoveries += (newly & ~on_target).sum(-1)
+        if self.pay_beliefs:  # eq. 24: every cell reaching tau is taken for a target
+            return drop, newly.sum(-1).to(torch.float32)
         return drop, new_targets
 
     def _geometry(self) -> Geometry:

@@ -46,14 +46,18 @@ class FarView:
             _, _, unknown = belief_masses(counts.view(-1, 1), counts.view(1, -1), config.m_f, config.m_e)
             self.table = unknown.reshape(-1).contiguous()
 
-    def unknown_maps(self, counts: torch.Tensor) -> torch.Tensor:
-        """``[E, N, W, H]`` own m(U) from each UAV's fused counts ``[E, N, 2 C]`` (positive, negative per cell)."""
+    def unknown_maps(self, counts: torch.Tensor, zones: torch.Tensor | None = None) -> torch.Tensor:
+        """``[E, N, W, H]`` own m(U) from each UAV's fused counts ``[E, N, 2 C]`` (positive, negative per cell);
+        cells where ``zones`` ``[E, C]`` is True (known no-fly cells) hold 0."""
         positive, negative = counts[..., 0::2], counts[..., 1::2]
         if self.table is not None and not counts.is_floating_point():
             index = positive.to(torch.int32) * self.stride + negative  # < 2**22: exact in int32
             unknown = self.table.index_select(0, index.view(-1))  # a flat lookup: faster than table[index]
         else:
             unknown = belief_masses(positive, negative, self.m_f, self.m_e)[2]
+        unknown = unknown.view(counts.shape[:2] + (-1,))
+        if zones is not None:
+            unknown = unknown.masked_fill(zones.unsqueeze(1), 0.0)
         return unknown.view(*counts.shape[:2], *self.grid)
 
     def means(self, unknown: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
@@ -75,6 +79,9 @@ class FarView:
         total = at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0)
         return (total / (2 * self.k + 1) ** 2).view(E, N, 8)
 
-    def observe(self, counts: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
-        """``[E, N, 8]``: the far view of every UAV, from its fused counts (as read now) and its cell."""
-        return self.means(self.unknown_maps(counts), position)
+    def observe(
+        self, counts: torch.Tensor, position: torch.Tensor, zones: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``[E, N, 8]``: the far view of every UAV, from its fused counts (as read now), its cell and the
+        known no-fly cells ``zones`` ``[E, C]`` (None: zones read as their counts say)."""
+        return self.means(self.unknown_maps(counts, zones), position)

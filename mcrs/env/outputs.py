@@ -51,7 +51,10 @@ class CoreOutputs:
         around = self.counts.gather(2, self._around_counts[cell]).view(E, N, 2, 8)
         if self.decay is not None:
             around = self.decay.now(around, self.step_count)
-        on_grid = self._around_on_grid[cell]
+        movable = self._around_on_grid[cell]
+        if self.hide_zones:  # a no-fly direction shows 0, as off the grid (config.NO_FLY_VIEWS)
+            zone = self.is_no_fly.gather(1, self._around_cell[cell].view(E, N * 8)).view(E, N, 8)
+            movable = movable.masked_fill(zone, 0.0)
         _, full, unknown = belief_masses(around[:, :, 0], around[:, :, 1], c.m_f, c.m_e)
 
         # Relative positions: every other UAV in index order, then every no-fly zone ([E, N, K]).
@@ -71,12 +74,13 @@ class CoreOutputs:
         )  # (d, dx, dy) / R_sight
         parts = [
             self.uav_pos.to(torch.float32) / self._pos_scale,
-            unknown * on_grid,
-            full * on_grid,
+            unknown * movable,
+            full * movable,
             relative.view(E, N, -1),
         ]
         if self.far_view is not None:  # beyond the paper: 8 window means of own m(U) (mcrs/env/far_view.py)
-            parts.append(self.far_view.observe(self.counts_now(), self.uav_pos))
+            zones = self.is_no_fly if self.known_zones else None
+            parts.append(self.far_view.observe(self.counts_now(), self.uav_pos, zones))
         return torch.cat(parts, dim=-1)
 
     def _result(
@@ -128,4 +132,7 @@ class CoreOutputs:
         c = self.config
         counts = self.counts_now()
         _, full, unknown = belief_masses(counts[..., 0::2], counts[..., 1::2], c.m_f, c.m_e)
+        if self.known_zones:
+            zone = self.is_no_fly.unsqueeze(1)
+            unknown, full = unknown.masked_fill(zone, 0.0), full.masked_fill(zone, 0.0)
         return torch.stack([unknown, full], dim=2).view(self.num_envs, self.n_uavs, 2, c.width, c.height)

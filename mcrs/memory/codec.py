@@ -6,6 +6,8 @@ is a function of small integers (see ``mcrs/env/core.py``, ``MCRSCore._result``;
 
 - the maps m(U), m(F) (``StateLayout.unknown``, ``.full``: cells x-major) are ``belief_masses`` of the
   global detection counts ``state_counts [cells, 2]`` (positive, negative) of each cell;
+- with ``no_fly_prior=known`` the no-fly cells, whose positions the state holds, read m(U) = m(F) = 0
+  whatever their counts (:meth:`StateCodec.clear_zones`);
 - the positions (``StateLayout.positions``: UAVs, no-fly zones, targets, ``P = N + Z + K`` cells) are
   ``p.to(float32) / pos_scale`` with ``StateLayout.pos_scale = (width - 1, height - 1)`` clamped to >= 1.
 
@@ -58,6 +60,9 @@ class StateCodec:
         # The env's float32 scale, so that decode repeats its division exactly.
         self._pos_scale = torch.tensor(layout.pos_scale, dtype=torch.float32)
         self._grid_max = torch.tensor(self.grid_max, dtype=torch.float32)
+        self.known_zones = config.no_fly_prior == "known"
+        # The no-fly slots among the positions: UAVs come first, then the zones.
+        self._zone_slots = slice(config.n_uavs, config.n_uavs + config.n_no_fly)
         self._tables: dict[tuple, torch.Tensor] = {}
         self._index: torch.Tensor | None = None
 
@@ -76,11 +81,13 @@ class StateCodec:
             "max_steps": c.max_steps,
             "m_f": float(c.m_f),
             "m_e": float(c.m_e),
+            "no_fly_prior": c.no_fly_prior,
         }
 
     def identity_mismatch(self, other: dict[str, Any]) -> str | None:
         """Why states encoded under ``other`` (an :meth:`identity`) cannot be decoded here; None if they can."""
         mine = self.identity()
+        other = {"no_fly_prior": "unknown", **other}  # a memory saved before the field held unread zones
         diffs = [f"{k}: saved {other.get(k)!r}, here {v!r}" for k, v in mine.items() if other.get(k) != v]
         return "; ".join(diffs) if diffs else None
 
@@ -125,7 +132,8 @@ class StateCodec:
             )
         if check_maps:
             rows = torch.linspace(0, B - 1, min(B, MAP_CHECKS), device=state.device).round().long()
-            if not torch.equal(self.decode_map(codes[rows]), state[rows, : self.map_dim]):  # the maps
+            maps = self.clear_zones(self.decode_map(codes[rows]), cells[rows].long())
+            if not torch.equal(maps, state[rows, : self.map_dim]):  # the maps
                 raise ValueError(
                     "state maps are not the beliefs of counts (m(U), m(F) of each cell): are counts "
                     "and state from the same step and this map's sensor model (m_f, m_e)?"
@@ -155,7 +163,7 @@ class StateCodec:
                 scale,
                 out=out[:, self.layout.positions].view(B, self.n_positions, 2),
             )
-            return out
+            return self.clear_zones(out, positions)
         if B == 0:
             return out
         table, offsets = self._state_table(codes.device)
@@ -166,6 +174,17 @@ class StateCodec:
         torch.add(index[:, unknown], (U8_MAX + 1) ** 2, out=index[:, full])  # the m(F) half of the table
         torch.add(positions.view(B, -1), offsets, out=index[:, where])
         torch.index_select(table, 0, index.view(-1), out=out.view(-1))
+        return self.clear_zones(out, positions)
+
+    def clear_zones(self, out: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Set m(U) and m(F) of each state's no-fly cells to 0 in ``out`` ``[B, >= 2 cells]`` (in place) when
+        zones are known (``no_fly_prior=known``); ``positions`` ``[B, P, 2]`` are the states' cells."""
+        if not self.known_zones or positions.shape[0] == 0 or self._zone_slots.start == self._zone_slots.stop:
+            return out
+        zones = positions[:, self._zone_slots].long()
+        cell = zones[..., 0] * self.layout.height + zones[..., 1]  # [B, Z]
+        out.scatter_(1, cell + self.layout.unknown.start, 0.0)
+        out.scatter_(1, cell + self.layout.full.start, 0.0)
         return out
 
     def _state_table(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:

@@ -25,7 +25,9 @@ log = logging.getLogger(__name__)
 
 #: Env fields that shape what a trained agent observes but not the task it plays (beyond the paper):
 #: evaluations play a checkpoint with its own values of these (mcrs.policies.policy_env).
-OBSERVATION_FIELDS = ("far_view",)
+OBSERVATION_FIELDS = ("far_view", "no_fly_view", "no_fly_prior")
+#: Reward fields: a policy may be judged under either value (said, not refused).
+REWARD_RULES = ("safety_rule", "discovery_rule")
 #: The file suffix of an exported agent (``mcrs-export``, mcrs.policies.export).
 EXPORTED_SUFFIX = ".pt2"
 
@@ -170,14 +172,16 @@ def check_playable(
     trained: EnvConfig, env_config: EnvConfig, source: str | Path, legacy: bool = False
 ) -> None:
     """Refuse (ValueError, naming the override) an agent trained on ``trained`` playing ``env_config``:
-    another map or team, or other observation fields; warn when only the safety rule differs."""
-    if trained.safety_rule != env_config.safety_rule:  # allowed (a policy judged under either rule): said
-        made = " (saved before the field existed)" if legacy else ""
-        log.warning(
-            "%s was trained under safety_rule=%s%s; this environment uses safety_rule=%s "
-            "(pass env.safety_rule=%s to evaluate it under its own rule)",
-            source, trained.safety_rule, made, env_config.safety_rule, trained.safety_rule,
-        )  # fmt: skip
+    another map or team, or other observation fields; warn when only a reward rule differs."""
+    for rule in REWARD_RULES:  # allowed (a policy judged under either rule): said
+        if getattr(trained, rule) != getattr(env_config, rule):
+            made = " (saved before the field existed)" if legacy else ""
+            value = getattr(trained, rule)
+            log.warning(
+                "%s was trained under %s=%s%s; this environment uses %s=%s (pass env.%s=%s to evaluate it "
+                "under its own rule)",
+                source, rule, value, made, rule, getattr(env_config, rule), rule, value,
+            )  # fmt: skip
     for field in OBSERVATION_FIELDS:
         if getattr(trained, field) != getattr(env_config, field):
             value = getattr(trained, field)
