@@ -93,9 +93,12 @@ def test_the_weights_files_of_such_a_run_still_load(pre_release_run: Path) -> No
 
 def test_a_saved_config_loses_the_env_runtime_fields_only() -> None:
     saved = {"env": {"name": "map10", "width": 10, "num_envs": 32, "device": "cpu"}, "seed": 3}
-    # ... and gains the fields it predates, at the value it was made under (safety_rule: near).
-    assert ckpt.current_config(saved) == {
-        "env": {"name": "map10", "width": 10, "safety_rule": "near"},
-        "seed": 3,
+    # ... and gains the fields it predates, at the values it was made under (mcrs.env.config).
+    old = {
+        "safety_rule": "near",
+        "no_fly_view": "belief",
+        "no_fly_prior": "unknown",
+        "discovery_rule": "target",
     }
+    assert ckpt.current_config(saved) == {"env": {"name": "map10", "width": 10, **old}, "seed": 3}
     assert ckpt.current_config({"seed": 3}) == {"seed": 3}

@@ -24,6 +24,7 @@ OVERRIDES = {
     "no_fly_view": ("belief", "belief"),
     "no_fly_prior": ("unknown", "unknown"),
     "discovery_rule": ("target", "target"),
+    "relative_order": ("nearest", "nearest"),
     "comm_range": ("inf", math.inf),
     "comm_rounds": ("flood", "flood"),
     "sight_range": ("3.5", 3.5),

@@ -85,7 +85,8 @@ def test_a_zone_is_charged_as_unread_once_then_as_read(monkeypatch: pytest.Monke
 def test_the_command_prints_one_row_per_policy(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--env", "map10", "--episodes", "2", "--policy", "greedy", "--policy", "coverage"]) == 0
     out = capsys.readouterr().out
-    assert "safety_rule=enter, no_fly_shield=false, uav_shield=false" in out
+    assert "safety_rule=enter, discovery_rule=belief, no_fly_view=blocked, no_fly_prior=known, " in out
+    assert "no_fly_shield=false, uav_shield=false" in out
     rows = [line for line in out.splitlines() if line.startswith("| greedy") or line.startswith("| coverage")]
     assert len(rows) == 2
 

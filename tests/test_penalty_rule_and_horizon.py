@@ -68,7 +68,12 @@ def test_an_old_config_reads_as_near_and_bootstrap_and_says_so():
         "algo": {**old["algo"], "time_limit": "terminal"},
     }
     assert ckpt.legacy_values(new) == [] and ckpt.current_config(new)["env"]["safety_rule"] == "enter"
-    paper = {"safety_rule": "enter", "no_fly_view": "blocked", "no_fly_prior": "known", "discovery_rule": "belief"}
+    paper = {
+        "safety_rule": "enter",
+        "no_fly_view": "blocked",
+        "no_fly_prior": "known",
+        "discovery_rule": "belief",
+    }
     assert with_legacy_values(paper) == (paper, [])
 
 
@@ -82,9 +87,12 @@ def test_a_config_saved_before_the_no_fly_and_discovery_fields_reads_as_the_lure
         "env.no_fly_view=belief", "env.no_fly_prior=unknown", "env.discovery_rule=target"
     ]  # fmt: skip
     current = ckpt.current_config(config)["env"]
-    assert (current["safety_rule"], current["no_fly_view"], current["no_fly_prior"], current["discovery_rule"]) == (
-        "enter", "belief", "unknown", "target"
-    )
+    assert (
+        current["safety_rule"],
+        current["no_fly_view"],
+        current["no_fly_prior"],
+        current["discovery_rule"],
+    ) == ("enter", "belief", "unknown", "target")
     assert "no_fly_view" not in config["env"]
     run = TrainingRun(path=None, config=config)  # type: ignore[arg-type]
     assert run.setting("env.discovery_rule") == "target" and run.setting("env.no_fly_prior") == "unknown"
@@ -147,9 +155,42 @@ def test_reading_gains_follow_the_belief_rule():
 
 
 def test_the_bound_takes_the_best_readings_and_is_lower_under_near():
-    enter = reward_bound(scenario("map10"), episodes=8, seed=0)
-    near = reward_bound(scenario("map10", safety_rule="near"), episodes=8, seed=0)
+    enter = reward_bound(scenario("map10", discovery_rule="target"), episodes=8, seed=0)
+    near = reward_bound(scenario("map10", discovery_rule="target", safety_rule="near"), episodes=8, seed=0)
     assert (near < enter).all()
     # map10's 200 readings: the first of each of the 97 free cells, the second of the 6 targets, the
     # second of the 91 other cells, then 6 third readings; no zone cell is worth its -1 under enter.
     assert enter[0].item() == pytest.approx(0.8 * 97 + 6 * 1.16 + 91 * 0.16 + 6 * 0.032, rel=1e-5)
+
+
+def test_under_eq_24_any_cell_read_f_twice_is_a_discovery_in_the_bound():
+    """An empty cell the sensor may read as F (p_false_alarm > 0) can pay w2: its best run is all F."""
+    paid = reward_bound(scenario("map10"), episodes=8, seed=0)
+    # 97 free cells (3 known zones gain nothing): each first reading 0.8, each second 1.16, then 6 third.
+    assert paid[0].item() == pytest.approx(97 * (0.8 + 1.16) + 6 * 0.032, rel=1e-5)
+    perfect = reward_bound(scenario("map10", p_detect=1.0, p_false_alarm=0.0), episodes=8, seed=0)
+    target_rule = reward_bound(scenario("map10", discovery_rule="target"), episodes=8, seed=0)
+    assert torch.allclose(perfect, target_rule)  # a perfect sensor makes no false discovery to pay
+
+
+def test_a_run_of_one_kind_is_each_cells_best_under_the_default_belief_masses():
+    """The bound's premise: over k readings, 1 - m(U) is largest for k readings of one kind."""
+    from mcrs.env.belief import belief_masses
+
+    cfg = scenario("map20")
+    for k in range(1, 8):
+        positive = torch.arange(k + 1)
+        _, _, unknown = belief_masses(positive, k - positive, cfg.m_f, cfg.m_e)
+        assert unknown.argmin().item() in (0, k)
+
+
+def test_the_bound_command_reads_fields_and_refuses_bad_ones(capsys):
+    from mcrs_lab.analysis.bound import main
+
+    assert main(["--env", "map10", "--episodes", "2", "--set", "p_false_alarm=0.1"]) == 0
+    out = capsys.readouterr().out
+    assert "p_false_alarm=0.1" in out and "discovery_rule=belief" in out
+    with pytest.raises(SystemExit, match="p_detect=2"):
+        main(["--env", "map10", "--set", "p_detect=2"])
+    with pytest.raises(SystemExit, match="must be FIELD=VALUE"):
+        main(["--env", "map10", "--set", "p_detect"])

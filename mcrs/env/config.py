@@ -40,6 +40,10 @@ NO_FLY_PRIORS = ("known", "unknown")
 #: Which cells r2 pays (docs/ENVIRONMENT.md, "Discoveries"): ``belief`` (eq. 24) every cell whose global
 #: m(F) reaches tau for the first time, target or not; ``target`` only cells that hold a target.
 DISCOVERY_RULES = ("belief", "target")
+#: The order of the relative-position slots (the paper is silent): ``index`` puts every other UAV in index
+#: order, then every zone in index order; ``nearest`` sorts each group by distance, nearest first, entities
+#: beyond sight last (ties by index), so the first slots are the ones a move is most likely to meet.
+RELATIVE_ORDERS = ("index", "nearest")
 #: Values the observation gains with ``far_view`` > 0: one window mean of own m(U) per move.
 N_FAR_VIEW = 8
 #: Fields added to the scenario after records and checkpoints were made, with the value that such a saved
@@ -92,6 +96,7 @@ class EnvConfig:
     no_fly_view: str = "blocked"  # blocked (the paper: zero in no-fly directions) | belief
     no_fly_prior: str = "known"  # known (the paper: zones known empty from reset) | unknown
     discovery_rule: str = "belief"  # belief (eq. 24: any cell reaching tau) | target (real targets only)
+    relative_order: str = "index"  # index | nearest: the order of the relative-position slots
     m_f: float = 0.8
     m_e: float = 0.8
     p_detect: float = 0.8
@@ -272,9 +277,26 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
             "penalised, the paper's reward; near: distances <= d, the stricter old reading)"
         )
     choices = (
-        ("no_fly_view", NO_FLY_VIEWS, "blocked: zero in no-fly directions, the paper; belief: the zone's belief"),
-        ("no_fly_prior", NO_FLY_PRIORS, "known: zones known and empty from reset, the paper; unknown: unread"),
-        ("discovery_rule", DISCOVERY_RULES, "belief: r2 for any cell reaching tau, eq. 24; target: real targets"),
+        (
+            "no_fly_view",
+            NO_FLY_VIEWS,
+            "blocked: zero in no-fly directions, the paper; belief: the zone's belief",
+        ),
+        (
+            "no_fly_prior",
+            NO_FLY_PRIORS,
+            "known: zones known and empty from reset, the paper; unknown: unread",
+        ),
+        (
+            "discovery_rule",
+            DISCOVERY_RULES,
+            "belief: r2 for any cell reaching tau, eq. 24; target: real targets",
+        ),
+        (
+            "relative_order",
+            RELATIVE_ORDERS,
+            "index: other UAVs and zones in index order; nearest: by distance",
+        ),
     )
     for name, allowed, meaning in choices:
         if getattr(cfg, name) not in allowed:

@@ -259,7 +259,10 @@ class MCRSCore(CoreOutputs):
             self.cells_sensed = ((counts[:, 0::2] + counts[:, 1::2]) > 0).sum(-1).to(torch.float32)
             _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
             if self.known_zones:
-                unknown, full = unknown.masked_fill(self.is_no_fly, 0.0), full.masked_fill(self.is_no_fly, 0.0)
+                unknown, full = (
+                    unknown.masked_fill(self.is_no_fly, 0.0),
+                    full.masked_fill(self.is_no_fly, 0.0),
+                )
             self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
             total = unknown.sum(-1)
             drop, self.total_uncertainty = self.total_uncertainty - total, total

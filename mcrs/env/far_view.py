@@ -55,7 +55,7 @@ class FarView:
             unknown = self.table.index_select(0, index.view(-1))  # a flat lookup: faster than table[index]
         else:
             unknown = belief_masses(positive, negative, self.m_f, self.m_e)[2]
-        unknown = unknown.view(counts.shape[:2] + (-1,))
+        unknown = unknown.view((*counts.shape[:2], -1))
         if zones is not None:
             unknown = unknown.masked_fill(zones.unsqueeze(1), 0.0)
         return unknown.view(*counts.shape[:2], *self.grid)

@@ -27,7 +27,9 @@ class ObservationLayout:
     """Where each feature group of one UAV's observation lies (length ``18 + 3(N-1) + 3 N_Z``, + 8 far view)."""
 
     position: slice  # x / (L1 - 1), y / (L2 - 1)
-    unknown_around: slice  # own fused m(U) at the 8 SURROUNDING cells (0 off the grid)
+    unknown_around: (
+        slice  # own fused m(U) at the 8 SURROUNDING cells (0 where not movable: off the grid, no-fly)
+    )
     full_around: slice  # own fused m(F) at the same cells
     uavs: slice  # (d, dx, dy) / R_sight for every other UAV in index order, zeros beyond sight
     no_fly: slice  # (d, dx, dy) / R_sight for every no-fly zone, zeros beyond sight

@@ -42,6 +42,19 @@ class StepResult:
     neighbours: torch.Tensor | None = None  # [E, N, N] bool communication graph of this step
 
 
+def nearest_first(relative: torch.Tensor, squared: torch.Tensor, n_others: int) -> torch.Tensor:
+    """``relative`` ``[E, N, K, 3]`` with the other UAVs' slots (the first ``n_others``) and the zones' slots
+    each sorted by ``squared`` distance ``[E, N, K]`` (inf beyond sight), ties in index order."""
+    order = torch.cat(
+        [
+            squared[..., :n_others].argsort(dim=-1, stable=True),
+            squared[..., n_others:].argsort(dim=-1, stable=True) + n_others,
+        ],
+        dim=-1,
+    )
+    return relative.gather(2, order.unsqueeze(-1).expand_as(relative))
+
+
 class CoreOutputs:
     """The output half of :class:`~mcrs.env.core.MCRSCore`: the observation, the result, the belief maps."""
 
@@ -63,7 +76,8 @@ class CoreOutputs:
             return torch.cat([others, no_fly_plane], dim=2)
 
         squared = objects(geometry.uav_squared, geometry.no_fly_squared)
-        scale = (squared <= c.sight_range**2).to(torch.float32) / c.sight_range  # zero beyond sight
+        in_sight = squared <= c.sight_range**2
+        scale = in_sight.to(torch.float32) / c.sight_range  # zero beyond sight
         relative = torch.stack(
             [
                 squared.sqrt() * scale,
@@ -72,6 +86,8 @@ class CoreOutputs:
             ],
             dim=-1,
         )  # (d, dx, dy) / R_sight
+        if c.relative_order == "nearest":
+            relative = nearest_first(relative, squared.masked_fill(~in_sight, float("inf")), N - 1)
         parts = [
             self.uav_pos.to(torch.float32) / self._pos_scale,
             unknown * movable,

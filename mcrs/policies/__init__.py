@@ -75,7 +75,7 @@ def check_policy(name: str, env_config: EnvConfig) -> None:
     env = export.trained_env(name) if exported else trained.trained_env(name)
     if env is None:  # loading it names the problem
         return
-    own = {field: getattr(env, field) for field in (*trained.OBSERVATION_FIELDS, *trained.REWARD_RULES)}
+    own = {field: getattr(env, field) for field in (*trained.OBSERVATION_FIELDS, *trained.TASK_RULES)}
     source = (
         f"exported agent {Path(name).expanduser()}"
         if exported

@@ -57,6 +57,11 @@ class CoveragePolicy(LawnmowerPolicy):
     """
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
+        if config.relative_order != "index":
+            raise ValueError(
+                f"policy coverage: env.relative_order={config.relative_order} is not supported: it remembers "
+                "zones by their observation slot and gives way to UAVs by index; use env.relative_order=index"
+            )
         super().__init__(config, seed)
         dev = torch.device(config.device)
         n = config.n_uavs

@@ -25,9 +25,11 @@ log = logging.getLogger(__name__)
 
 #: Env fields that shape what a trained agent observes but not the task it plays (beyond the paper):
 #: evaluations play a checkpoint with its own values of these (mcrs.policies.policy_env).
-OBSERVATION_FIELDS = ("far_view", "no_fly_view", "no_fly_prior")
-#: Reward fields: a policy may be judged under either value (said, not refused).
-REWARD_RULES = ("safety_rule", "discovery_rule")
+OBSERVATION_FIELDS = ("far_view", "no_fly_view", "relative_order")
+#: Fields of the task a policy may be judged under whatever it was trained under (said, not refused): the
+#: penalty and discovery rules, and whether zones are known (it changes r1 and the state; the surround
+#: shows a zone as 0 under it, as no_fly_view=blocked does).
+TASK_RULES = ("safety_rule", "discovery_rule", "no_fly_prior")
 #: The file suffix of an exported agent (``mcrs-export``, mcrs.policies.export).
 EXPORTED_SUFFIX = ".pt2"
 
@@ -172,8 +174,8 @@ def check_playable(
     trained: EnvConfig, env_config: EnvConfig, source: str | Path, legacy: bool = False
 ) -> None:
     """Refuse (ValueError, naming the override) an agent trained on ``trained`` playing ``env_config``:
-    another map or team, or other observation fields; warn when only a reward rule differs."""
-    for rule in REWARD_RULES:  # allowed (a policy judged under either rule): said
+    another map or team, or other observation fields; warn when only a task rule differs."""
+    for rule in TASK_RULES:  # allowed (a policy judged under either rule): said
         if getattr(trained, rule) != getattr(env_config, rule):
             made = " (saved before the field existed)" if legacy else ""
             value = getattr(trained, rule)

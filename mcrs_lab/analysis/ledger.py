@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mcrs.env.config import PRESETS, EnvConfig, scenario
+from mcrs.env.config import PRESETS, EnvConfig
 from mcrs.env.core import MOVES
 from mcrs.env.layout import ObservationLayout, StateLayout
 from mcrs.env.torchrl_env import MCRSEnv
@@ -42,6 +42,7 @@ from mcrs.experiment.checkpoint import CheckpointError
 from mcrs.experiment.tables import markdown
 from mcrs.policies import POLICIES, make_policy, policy_env
 from mcrs.policies.base import ACTION, ACTION_MASK, OBSERVATION
+from mcrs_lab.analysis.env_fields import scenario_with
 
 TERMS = ("r1 uncertainty", "r2 discovery", "r3 no-fly", "r4 collision")
 #: Fractions of the episode at which the uncertainty reward r1 gathered so far is reported.
@@ -187,12 +188,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the evaluation seed (mcrs-eval's)")
     parser.add_argument("--shield", action="store_true", help="play with env.no_fly_shield=true")
     parser.add_argument("--uav-shield", action="store_true", help="play with env.uav_shield=true")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="an env field, e.g. discovery_rule=target (repeatable; a trained policy keeps the observation "
+        "fields it was trained with)",
+    )
     args = parser.parse_args(argv)
     if not 1 <= args.episodes <= 4096:
         raise SystemExit(f"ledger: error: --episodes={args.episodes}: must be in [1, 4096]")
     if not 0 <= args.seed < 2**63:
         raise SystemExit(f"ledger: error: --seed={args.seed}: must be in [0, 2**63 - 1]")
-    config = scenario(args.env, no_fly_shield=args.shield, uav_shield=args.uav_shield)
+    config = scenario_with(
+        "ledger", args.env, args.set, no_fly_shield=args.shield, uav_shield=args.uav_shield
+    )
     ledgers = {}
     names = args.policy or list(POLICIES)
     for name, label in zip(names, policy_labels(names), strict=True):
@@ -201,7 +212,9 @@ def main(argv: list[str] | None = None) -> int:
         except (CheckpointError, ValueError, OSError) as error:
             raise SystemExit(f"ledger: error: --policy={name}: {error}") from None
     print(
-        f"{args.env}, safety_rule={config.safety_rule}, no_fly_shield={str(args.shield).lower()}, "
+        f"{args.env}, safety_rule={config.safety_rule}, discovery_rule={config.discovery_rule}, "
+        f"no_fly_view={config.no_fly_view}, no_fly_prior={config.no_fly_prior}, "
+        f"no_fly_shield={str(args.shield).lower()}, "
         f"uav_shield={str(args.uav_shield).lower()}: means over {args.episodes} episodes (seed {args.seed}), "
         f"T = {config.max_steps}"
     )

@@ -64,6 +64,7 @@ from mcrs_lab.analysis.runs import (
     find_runs,
     select_map,
 )
+from mcrs_lab.analysis.sensors import sensor_table
 from mcrs_lab.analysis.step_notation import parse_step_list
 from mcrs_lab.analysis.versus import versus_evaluated
 
@@ -273,6 +274,10 @@ def make_report(args: argparse.Namespace) -> int:
     if runs.training:
         report_training(report)
     has_ranges = report_comm_range(report)
+    sensors = sensor_table(runs.evaluations, env_name)
+    if sensors is not None:
+        (report.out / "sensors.md").write_text(sensors + "\n")
+        report.add("The heuristics and the bound by sensor model", sensors)
     if args.tsne:
         try:
             report_tsne(report, args.tsne_samples, args.seed)

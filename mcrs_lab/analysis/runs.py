@@ -34,6 +34,12 @@ from mcrs.experiment.logging import read_scalar_rows as logged_rows
 from mcrs.experiment.logging import sorted_points as _sorted_points
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs_lab.analysis.evaluation_rows import (  # noqa: F401 (EvaluationRow: read from here by the tools)
+    EvaluationRow,
+    env_node,
+    evaluation_config,
+    is_heuristic_policy,
+)
 from mcrs_lab.analysis.record_schema import (  # noqa: F401 (RECORD_FORMAT: read from here by the tools)
     RECORD_FORMAT,
     RECORD_VERSION,
@@ -125,30 +131,6 @@ class TrainingRun:
             path = scalar_file(self.path, name)
             self._cache[name] = _read_scalar_csv(path) if path.is_file() else None
         return self._cache[name]
-
-
-@dataclass(frozen=True)
-class EvaluationRow:
-    """One policy's results in one ``mcrs-eval`` run (one row of its ``metrics.csv``)."""
-
-    path: Path
-    policy: str
-    env_name: str
-    comm_range: float
-    seed: int
-    episodes: int
-    means: dict[str, float]
-    label: str | None = None  # a trained policy's label, kept by its record (the checkpoint may be gone)
-    run: str | None = None  # a trained policy's <experiment>/<run folder> (records made before it: None)
-
-    @property
-    def is_heuristic(self) -> bool:
-        return is_heuristic_policy(self.policy)
-
-
-def is_heuristic_policy(policy: str) -> bool:
-    """A heuristic's name, as opposed to a checkpoint or run directory given to ``mcrs-eval policy=``."""
-    return "/" not in policy and not policy.endswith(".pt")
 
 
 @dataclass
@@ -246,6 +228,7 @@ def _add_record(path: Path, record: dict[str, Any], runs: Runs) -> None:
                     {k: float(v) for k, v in row["means"].items()},
                     row.get("label"),
                     row.get("run"),
+                    env_node(record.get("config")),
                 )
             )
     else:
@@ -321,7 +304,8 @@ def _add_evaluation(path: Path, runs: Runs) -> None:
         except (ValueError, TypeError, SchemaField) as error:
             raise RecordError(f"{path}: line {line}: {error}") from None
         env_name = record_row.pop("env")
-        runs.evaluations.append(EvaluationRow(path.parent, env_name=env_name, **record_row))
+        env = env_node(evaluation_config(path.parent))
+        runs.evaluations.append(EvaluationRow(path.parent, env_name=env_name, env=env, **record_row))
 
 
 def flatten(config: dict[str, Any]) -> dict[str, Any]:
