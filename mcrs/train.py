@@ -1,8 +1,8 @@
-"""``mcrs-train`` (also ``python -m mcrs.train``): train QMIX, VDN or QPLEX on MCRS-LCR.
+"""``mcrs-train`` (also ``python -m mcrs.train``): train a learner (QMIX, VDN, QPLEX, EMC, EMU, SEMU, CNN-SEMU).
 
     mcrs-train algo=qmix env=map20 seed=3
     mcrs-train -m algo=qmix,vdn,qplex seed=0,1,2
-    mcrs-train resume=outputs/map10/qmix/2026-11-21_10-00-00_seed0
+    mcrs-train resume=outputs/map10/qmix/<run>
 
 Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the resolved config),
 ``train.log``, ``logs/`` (metrics), ``checkpoints/last.pt`` (everything needed to resume) and
