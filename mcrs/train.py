@@ -151,7 +151,10 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     with warnings.catch_warnings():  # said below as a note: line
         warnings.simplefilter("ignore", UnregisteredAlgorithm)
         experiment = Experiment(cfg, run_dir, resume=resume)
-    print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
+    print(
+        f"{'resuming' if resume else 'training'} {cfg.algo.name} on {experiment.task.name}: {run_dir}",
+        flush=True,
+    )
     if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: {experiment.algorithm_note}")
     done = experiment.counters.env_steps
