@@ -218,9 +218,10 @@ def with_agent_state(env: EnvBase, task: Task, num_envs: int, hidden_dim: int, d
     """``env`` with what the recurrent acting policy reads: ``step_count`` (TorchRL's ``StepCounter``, when
     the env writes none) and the agents' carried state (:func:`~mcrs.models.acting.recurrent_primer`)."""
     primer = recurrent_primer(num_envs, task.n_agents, hidden_dim, group=task.group, device=device)
+    # a task's own TransformedEnv (StepCounter(max_steps)) is unwrapped: one chain of transforms
     if "step_count" in env.observation_spec:
-        return TransformedEnv(env, primer)
-    return TransformedEnv(env, Compose(StepCounter(), primer))
+        return TransformedEnv(env, primer, auto_unwrap=True)
+    return TransformedEnv(env, Compose(StepCounter(), primer), auto_unwrap=True)
 
 
 def _floating(dtype: torch.dtype) -> bool:
