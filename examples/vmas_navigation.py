@@ -1,46 +1,59 @@
-"""Our QPLEX and QMIX (in TorchRL's QMixerLoss and in our loss) against TorchRL's QMixer on VMAS navigation.
+"""QMIX (or any of our learners) on VMAS navigation through the experiment, against the random baseline.
 
     pip install -e ".[vmas]"     # or: pip install vmas
-    .venv/bin/python examples/vmas_navigation.py [--frames 48000] [--seed 0] [--learners ...]
+    .venv/bin/python examples/vmas_navigation.py [--steps 48000] [--seed 0] [--algo qmix] [--out outputs/vmas]
 
-VMAS is a task we did not write; everything around the mixers is TorchRL's own: ``VmasEnv``, ``StepCounter``,
-``QValueActor`` over ``MultiAgentMLP``, ``EGreedyModule``, ``Collector``, ``ReplayBuffer``, ``QMixerLoss``,
-``HardUpdate``. Episodes end early when every agent is on its goal. See :mod:`mcrs.tasks.vmas_navigation`
-for the learners; each line prints the greedy team return on 64 fixed evaluation episodes before and after
-training. ``tests/test_vmas_navigation.py`` runs a short version.
+VMAS is a task we did not write: :class:`mcrs.tasks.vmas.VmasTask` puts it in the experiment's key contract
+(per-agent rewards summed into the team's, episodes that end early when every agent is on its goal padded in
+the replay, the joined observations as the mixer's state), and ``mcrs.Experiment`` trains it with the same
+loop, checkpoints and logs as MCRS. The command line is the same run: ``mcrs-train task=vmas_navigation
+algo=qmix``. The script ends with the trained agent and the random baseline on the same 64 episodes
+(``mcrs-eval policy=<run dir>`` does the same from the shell).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
-import torch
-
-from mcrs.tasks.vmas_navigation import LEARNERS, train_on_vmas
+import mcrs
+from mcrs.policies.task_runs import evaluate_task_run, load_task_run
+from mcrs.tasks.vmas import VmasTask
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=48_000, help="env steps (x agents) per learner")
+    parser.add_argument("--steps", type=int, default=48_000, help="env steps (a multiple of 800)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--learners", nargs="+", default=list(LEARNERS), choices=LEARNERS)
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (small tensors: 1 is fastest)"
-    )
+    parser.add_argument("--algo", default="qmix", choices=["qmix", "vdn", "qplex"])
+    parser.add_argument("--out", default="outputs/vmas_navigation")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
 
-    print(
-        f"VMAS navigation, {args.frames} frames, seed {args.seed}: greedy team return, untrained -> trained"
+    task = VmasTask("navigation", 50, {"n_agents": 3, "collisions": False, "shared_rew": False})
+    config = mcrs.compose(
+        f"algo={args.algo}",
+        f"seed={args.seed}",
+        f"train.total_env_steps={args.steps}",
+        "train.num_envs=16",  # 16 episodes of 50 steps a batch: 800 env steps
+        "train.batch_episodes=32",
+        f"train.eval_interval={max(args.steps // 6 // 800, 1) * 800}",
+        "train.eval_episodes=64",
+        f"train.eps_anneal_steps={args.steps // 3}",
+        "train.optimizer=adam",
+        "train.lr=0.001",
+        "train.target_update_episodes=100",
+        "threads=1",
     )
-    for learner in args.learners:
-        r = train_on_vmas(learner, frames=args.frames, seed=args.seed)
+    config.overwrite = True
+    run_dir = Path(args.out)
+    mcrs.Experiment(config, run_dir, task=task).run()
+    table = evaluate_task_run(load_task_run(run_dir), 64, seed=1, label=f"{args.algo} ({args.steps} steps)")
+    for name, metrics in table.items():
         print(
-            f"{learner:>17}: {r['untrained_return']:6.2f} -> {r['trained_return']:6.2f}"
-            f"  ({r['updates']} updates, {r['seconds']:.0f} s)",
-            flush=True,
+            f"{name:>24}: team return {float(metrics['episode_reward'].mean()):6.2f}, episode length "
+            f"{float(metrics['episode_length'].mean()):5.1f} (of 50)"
         )
 
 

@@ -34,6 +34,7 @@ from mcrs.experiment.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
+from mcrs.policies.task_runs import task_node
 
 ALL = "all"
 log = logging.getLogger(__name__)
@@ -267,6 +268,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     names = policy_names(str(cfg.policy))
     apply_threads(cfg.threads)
     episodes, seed = int(cfg.episodes), int(cfg.seed)
+    if len(names) == 1 and task_node(names[0]) is not None:  # a run of another task than MCRS
+        return run_task(names[0], episodes, seed, str(cfg.device), out_dir)
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")
     results = {name: summarize(values) for name, values in per_episode.items()}
@@ -281,6 +284,53 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
             )
             paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
             _say("figures: " + ", ".join(str(p) for p in paths))
+    _say(f"results in {out_dir}")
+    return results
+
+
+def run_task(
+    policy: str, episodes: int, seed: int, device: str, out_dir: Path, label: str | None = None
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """``mcrs-eval policy=<run>`` for a run of another task than MCRS: its task rebuilt from the run, the
+    trained agent and the random baseline on the same episodes, the table printed and written
+    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the table."""
+    from mcrs.experiment.checkpoint import CheckpointError
+    from mcrs.policies.task_runs import evaluate_task_run, load_task_run
+
+    try:
+        run = load_task_run(policy)
+    except CheckpointError as error:
+        raise ValueError(str(error)) from None
+    name = label or str(policy)
+    print(
+        f"evaluating {name} and the random baseline on {episodes} episodes of {run.task.name} ...", flush=True
+    )
+    per_episode = evaluate_task_run(run, min(episodes, MAX_EVAL_EPISODES), seed, device, name)
+    results = {policy_name: summarize(values) for policy_name, values in per_episode.items()}
+    metrics = list(next(iter(per_episode.values())))
+    from mcrs.experiment.tables import markdown, mean_std
+
+    table = markdown(
+        ["policy", *metrics], [[p] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()]
+    )
+    title = f"{run.task.name} ({run.config['task'].get('_target_')}): {episodes} episodes, seed {seed}"
+    _say(f"{title}\n\n{table}\n")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / "metrics.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            ["policy", "task", "seed", "episodes", *(f"{m}_{s}" for m in metrics for s in ("mean", "std"))]
+        )
+        for policy_name, r in results.items():
+            row = [f"{v:.6g}" for m in metrics for v in r[m]]
+            writer.writerow([policy_name, run.task.name, seed, episodes, *row])
+    with open(out_dir / "episodes.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["policy", "episode", *metrics])
+        for policy_name, values in per_episode.items():
+            for k, row in enumerate(torch.stack([values[m] for m in metrics], dim=-1).tolist()):
+                writer.writerow([policy_name, k, *(f"{v:.6g}" for v in row)])
+    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n")
     _say(f"results in {out_dir}")
     return results
 
@@ -346,6 +396,53 @@ def evaluate_run(
     pictures = write_figures(out, env_config.replace(num_envs=1), str(run_dir), seed)
     rewards = {name: r["episode_reward"] for name, r in labelled.items()}
     return RunReport(out / "summary.md", curve, pictures[-1], rewards)
+
+
+def evaluate_task_report(
+    run_dir: Path, label: str, episodes: int, seed: int, device: str = "cpu"
+) -> tuple[Path, Path, dict[str, tuple[float, float]]]:
+    """``report=true`` for a run of another task than MCRS: the trained agent and the random baseline on the
+    same episodes (:func:`run_task`, into ``run_dir/report/``) and the learning curve of every metric the
+    run logged, with the random baseline as a horizontal line (``learning_curves.png``). Returns the table,
+    the curve and the episode rewards ``{label: (mean, std)}``."""
+    import numpy as np
+
+    from mcrs.experiment.logging import read_scalar_rows, scalar_file, sorted_points
+    from mcrs.viz.learning_curves import Reference, confidence_half_width, curve_of, plot_curves
+
+    out = run_dir / REPORT_DIR
+    results = run_task(str(run_dir), episodes, seed, device, out, label)
+    per_episode = {}  # the random baseline's episodes, from the table just written
+    with open(out / "episodes.csv", newline="") as f:
+        for row in csv.DictReader(f):
+            if row["policy"] == "random":
+                for metric, value in row.items():
+                    if metric not in ("policy", "episode"):
+                        per_episode.setdefault(metric, []).append(float(value))
+    panels: dict[str, dict] = {}
+    references: dict[str, list[Reference]] = {}
+    for metric, values in per_episode.items():
+        path = scalar_file(run_dir, f"eval/{metric}")
+        if not path.is_file():
+            continue
+        panels[metric] = {label: curve_of(label, [sorted_points(read_scalar_rows(path))])}
+        array = np.asarray(values)
+        half = float(confidence_half_width(array[:, None])[0])
+        references[metric] = [Reference("random", float(array.mean()), half, len(array), "episodes")]
+    task = run_task_name(run_dir)
+    curve = plot_curves(
+        panels, out / "learning_curves.png", f"{task}: greedy evaluation", [label], references
+    )
+    return out / "summary.md", curve, {name: r["episode_reward"] for name, r in results.items()}
+
+
+def run_task_name(run_dir: Path) -> str:
+    """The task's name in a task run's ``config.yaml`` (its class name when the node has no ``name``)."""
+    from mcrs.experiment.rundir import task_name
+    from mcrs.experiment.untrusted import read_yaml
+
+    node = read_yaml(run_dir / "config.yaml", interpolations=False).get("task") or {}
+    return task_name(node, "task")
 
 
 def _say(message: str) -> None:

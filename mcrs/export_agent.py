@@ -38,8 +38,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mcrs-export: error: out={args.out}: {error.strerror or error}", file=sys.stderr)
         return 1
     steps = "" if meta["env_steps"] is None else f", {meta['env_steps']:,} env steps"
+    trained_on = meta["task"]["name"] if "task" in meta else meta["env"]["name"]
     print(
-        f"wrote {path} ({path.stat().st_size / 1e3:.0f} kB): {meta['algo']} on {meta['env']['name']}{steps}; "
+        f"wrote {path} ({path.stat().st_size / 1e3:.0f} kB): {meta['algo']} on {trained_on}{steps}; "
         f"{meta['n_agents']} agents, observation {meta['obs_dim']}, {meta['n_actions']} actions, hidden "
         f"{meta['hidden_dim']}\n"
         f"  step = torch.export.load({str(path)!r}).module()\n"

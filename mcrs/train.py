@@ -151,7 +151,10 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     with warnings.catch_warnings():  # said below as a note: line
         warnings.simplefilter("ignore", UnregisteredAlgorithm)
         experiment = Experiment(cfg, run_dir, resume=resume)
-    print(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {cfg.env.name}: {run_dir}", flush=True)
+    print(
+        f"{'resuming' if resume else 'training'} {cfg.algo.name} on {experiment.task.name}: {run_dir}",
+        flush=True,
+    )
     if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: {experiment.algorithm_note}")
     done = experiment.counters.env_steps
@@ -185,6 +188,17 @@ def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
     steps = experiment.counters.env_steps
     label = f"{cfg.algo.name} ({f'{steps / 1000:g}k' if steps >= 1000 else steps} steps)"
     episodes, seed = int(cfg.train.eval_episodes), int(cfg.train.eval_seed)
+    if experiment.config.task is not None:  # another task: the random baseline, its learning curve
+        from mcrs.evaluate import evaluate_task_report
+
+        table, curve, rewards = evaluate_task_report(run_dir, label, episodes, seed, str(cfg.device))
+        listed = ", ".join(f"{name} {mean:.1f}" for name, (mean, _) in rewards.items())
+        print(
+            f"report ({experiment.task.name}, episode reward: {listed}):\n"
+            f"  metric table    {table}\n  learning curve  {curve}",
+            flush=True,
+        )
+        return
     print(f"evaluating {label} and the heuristics on {episodes} episodes ...", flush=True)
     report = evaluate_run(run_dir, experiment.env_config, label, episodes, seed, cfg.logger.progress_bar)
     rewards = ", ".join(f"{name} {mean:.1f}" for name, (mean, _) in report.rewards.items())

@@ -13,9 +13,19 @@ from typing import Any
 
 
 def collector_batch(cfg: Any) -> int:
-    """Env steps per collector batch: ``train.num_envs`` whole episodes of ``env.max_steps`` steps. The
-    run's length and its evaluations fall on multiples of it."""
-    return int(cfg.train.num_envs) * int(cfg.env.max_steps)
+    """Env steps per collector batch: ``train.num_envs`` whole episodes of ``env.max_steps`` steps (a
+    task's ``task.max_steps``; 0, not checked, for a task whose node does not say). The run's length and its
+    evaluations fall on multiples of it."""
+    return int(cfg.train.num_envs) * _max_steps(cfg)[1]
+
+
+def _max_steps(cfg: Any) -> tuple[str, int]:
+    """Where the episode length comes from, and its value (0: a task node that does not say)."""
+    task = getattr(cfg, "task", None)
+    if task is None:
+        return "env.max_steps", int(cfg.env.max_steps)
+    steps = task.get("max_steps") if hasattr(task, "get") else None
+    return "task.max_steps", steps if isinstance(steps, int) and not isinstance(steps, bool) else 0
 
 
 #: Fields counted in env steps that whole collector batches must honour exactly when a command sets them.
@@ -40,7 +50,7 @@ def budget_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
         nearest = [v for v in (value // batch * batch, (value // batch + 1) * batch) if v > 0]
         errors.append(
             f"{name}={value}: not a whole number of collector batches of {batch} env steps "
-            f"(train.num_envs={t.num_envs} x env.max_steps={cfg.env.max_steps}); "
+            f"(train.num_envs={t.num_envs} x {_max_steps(cfg)[0]}={_max_steps(cfg)[1]}); "
             f"the nearest exact values: {' or '.join(map(str, nearest))}"
         )
     return errors

@@ -6,7 +6,9 @@ observations, masks and states for steps ``0..L`` (each stored once, not twice a
 actions, rewards and done flags for transitions ``0..L-1``, padded to ``T + 1`` rows. pymarl stores
 episodes the same way. Episodes that end early (terminated or truncated at any step; the collector resets
 the env and the row goes on with the next episode) become items of their own, padded and masked
-(``filled``), so every transition of the batch is kept.
+(``filled``), so every transition of the batch is kept; or, with ``first_episode_only`` (the trainer's
+choice), each row gives its first episode, padded, and what the env ran after it is dropped, as pymarl's
+runners do: one item per row.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ def episodes_from_rollout(
     *,
     whole_episodes: bool = True,
     time_limit: str = "bootstrap",
+    first_episode_only: bool = False,
 ) -> TensorDict:
     """Convert a collector batch ``[E, T]`` into the episode layout ``[M, T + 1]``, one item per episode.
 
@@ -60,6 +63,10 @@ def episodes_from_rollout(
     ``time_limit`` (:data:`TIME_LIMITS`): ``"terminal"`` also marks ``terminated`` the transitions the env
     flags ``("next", "truncated")`` (the horizon T), so their targets do not bootstrap; ``"bootstrap"``
     keeps them as the env says (truncated, not terminated).
+
+    ``first_episode_only`` (with ``whole_episodes``): one item per row, the row's first episode (each row
+    starts at a reset and must hold a done step); the steps after it (the env's next episode, cut by the
+    batch) are dropped. A row of exactly one episode gives the same item either way.
     """
     if time_limit not in TIME_LIMITS:
         raise ValueError(f"time_limit={time_limit!r}: must be one of {list(TIME_LIMITS)}")
@@ -76,7 +83,19 @@ def episodes_from_rollout(
         )
         terminated = terminated | truncated
     ends = done.reshape(E, T, -1).any(-1)  # [E, T]: the transition ends an episode
-    if whole_episodes:
+    if first_episode_only:
+        if not whole_episodes:
+            raise ValueError("first_episode_only needs whole_episodes=True (rows that start at a reset)")
+        if not bool(ends.any(-1).all()):
+            rows = (~ends.any(-1)).nonzero().flatten().tolist()
+            raise ValueError(
+                f"rows {rows[:8]} of the batch hold no done step: an episode outlasted the batch's "
+                f"{T} steps (a task's episodes must end by max_steps: TorchRL's StepCounter(max_steps))"
+            )
+        ends = ends & (ends.long().cumsum(-1) == 1)  # each row's first end only
+        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
+            raise ValueError("every row of the batch must start with a reset (step_count 0)")
+    elif whole_episodes:
         if not bool(ends[:, -1].all()):
             rows = (~ends[:, -1]).nonzero().flatten().tolist()
             raise ValueError(
@@ -97,7 +116,8 @@ def episodes_from_rollout(
     # Items: one per episode piece, in row-major order. starts/ends mark each piece's first/last step.
     starts = torch.zeros_like(ends)
     starts[:, 0] = True
-    starts[:, 1:] = ends[:, :-1]
+    if not first_episode_only:  # a piece starts after every end; with first_episode_only, only at 0
+        starts[:, 1:] = ends[:, :-1]
     row, first = starts.nonzero(as_tuple=True)  # [M]
     last = ends.nonzero(as_tuple=True)[1]  # [M]: the same order, one end per piece
     M, device = row.numel(), batch.device

@@ -50,6 +50,7 @@ class RunState:
             "learner": self.learner.state_dict(),
             "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
             "last_eval": dict(self.last_eval),
+            "evaluated_at": self._evaluated_at,  # the step of the last evaluation logged (one row a step)
             "rng": {"torch": torch.get_rng_state()},
         }
         if torch.cuda.is_available():
@@ -71,6 +72,8 @@ class RunState:
         learner = self.learner.weights() if learner is None else learner
         config = to_container(self.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
+        if config.get("task") is not None:  # another task: the unused scenario is not the run's identity
+            config = {k: v for k, v in config.items() if k != "env"}
         out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second,
         algorithm = type(self.algorithm)  # then the algorithm's class (a registered one not imported)
         return {
@@ -135,6 +138,9 @@ class RunState:
         known = {f.name for f in fields(Counters)}
         self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
+        evaluated_at = state.get("evaluated_at")  # None in checkpoints written before it was kept
+        if isinstance(evaluated_at, int) and evaluated_at == self.counters.env_steps:
+            self._evaluated_at = evaluated_at  # evaluate() right after the resume adds no second row
         self.epsilon.set_env_steps(self.counters.env_steps)
 
     def _check_callbacks(self, saved: dict[str, Any]) -> None:

@@ -57,8 +57,19 @@ def register_resolvers() -> None:
         )
     if not OmegaConf.has_resolver("mcrs.beside_run"):
         OmegaConf.register_new_resolver("mcrs.beside_run", beside_run)
+    if not OmegaConf.has_resolver("mcrs.task_name"):  # outputs/<task or map>/...: the task's name
+        OmegaConf.register_new_resolver("mcrs.task_name", task_name)
     if not OmegaConf.has_resolver("mcrs.config_groups"):  # --help: the groups the command accepts
         OmegaConf.register_new_resolver("mcrs.config_groups", config_groups_help)
+
+
+def task_name(task: Any, env_name: str) -> str:
+    """``${mcrs.task_name:${task},${env.name}}``: a run directory's task part, the task node's ``name`` (else
+    its class's name), or the map's name for an MCRS run (``task`` null)."""
+    if task is None:
+        return str(env_name)
+    name = task.get("name") if hasattr(task, "get") else None
+    return str(name or str(task.get("_target_", "task")).rsplit(".", 1)[-1])
 
 
 def config_groups_help(*, _root_: Any) -> str:

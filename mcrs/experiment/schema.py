@@ -220,6 +220,9 @@ class Config(FieldsOnly):
     report: bool = False  # after training: evaluate with the heuristics, write report/ (table, curve, GIF)
     resume: str | None = None  # a run directory to continue
     overwrite: bool = False  # a fresh run may replace the previous run in a non-empty hydra.run.dir
+    # the task, when not MCRS on env: {_target_: <module>.<Task class>, **its settings} (conf/task/, or what
+    # Experiment(task=...) records); None: MCRS on env, and the key is left out of config.yaml and checkpoints
+    task: dict[str, Any] | None = None
 
 
 def register_configs() -> None:
@@ -251,8 +254,9 @@ def as_typed(cfg: Config | DictConfig) -> Config:
 ENTRY_POINT_GROUP = "mcrs.algorithms"
 
 #: The nodes whose keys no schema lists: an algorithm's own settings, checked by the algorithm
-#: (:meth:`mcrs.experiment.algorithms.Algorithm.read_options`).
-FREE_FORM = ("algo.options.",)
+#: (:meth:`mcrs.experiment.algorithms.Algorithm.read_options`), and a task's, checked by its class
+#: (:func:`mcrs.experiment.task.make_task`).
+FREE_FORM = ("algo.options.", "task.")
 
 
 def _keys(tree: Any, prefix: str = "") -> set[str]:
@@ -271,5 +275,9 @@ def as_dictconfig(cfg: Config | DictConfig) -> DictConfig:
 
 
 def to_container(cfg: Config | DictConfig) -> dict[str, Any]:
-    """A plain, resolved dict of the config, choices as strings (checkpoints, loggers, fingerprints)."""
-    return OmegaConf.to_container(as_dictconfig(cfg), resolve=True, enum_to_str=True)
+    """A plain, resolved dict of the config, choices as strings (checkpoints, loggers, fingerprints). An
+    MCRS run (``task`` None) has no ``task`` key: its files are what they were before tasks."""
+    out = OmegaConf.to_container(as_dictconfig(cfg), resolve=True, enum_to_str=True)
+    if out.get("task", 0) is None:
+        del out["task"]
+    return out

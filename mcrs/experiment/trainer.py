@@ -65,12 +65,25 @@ from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
 from mcrs.experiment.replay_store import ReplayStore
 from mcrs.experiment.run_state import RunState
 from mcrs.experiment.rundir import RunDirError, RunLock, describe_os_error, io_errors, prepare_fresh
-from mcrs.experiment.task import MCRSTask, Task, check_env, check_supported, with_agent_state
+from mcrs.experiment.task import (
+    MCRSTask,
+    Task,
+    check_env,
+    check_supported,
+    make_task,
+    with_agent_state,
+)
 from mcrs.experiment.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
 __all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
+
+
+def _saved(cfg: Config) -> DictConfig:
+    """What ``config.yaml`` holds: the config, without the ``task`` key of an MCRS run (as before tasks)."""
+    node = as_dictconfig(cfg)
+    return node if cfg.task is not None else OmegaConf.masked_copy(node, [k for k in node if k != "task"])
 
 
 class Experiment(RunState):
@@ -84,7 +97,9 @@ class Experiment(RunState):
         run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
         resume: continue from ``run_dir/checkpoints/last.pt``.
         callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.callbacks`).
-        task: the environment (:class:`~mcrs.experiment.task.Task`); default: MCRS on ``config.env``.
+        task: the environment (:class:`~mcrs.experiment.task.Task`); default: the one ``config.task``
+            describes (``task=...`` on the command line), else MCRS on ``config.env``. The run's
+            ``config.yaml`` keeps how to rebuild it (``task``: :meth:`~mcrs.experiment.task.Task.spec`).
     """
 
     def __init__(
@@ -98,7 +113,17 @@ class Experiment(RunState):
         check_names(list(callbacks or []))  # before anything is built or written
         self.config = as_typed(config)
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
+        if task is None and self.config.task is not None:  # task=... on the command line, or a resume
+            task = make_task(self.config.task)
         self.task = MCRSTask(self.env_config) if task is None else task
+        self._raw_env = None
+        if not isinstance(self.task, MCRSTask):  # recorded: the tools rebuild the task from config.yaml
+            self.config = replace(self.config, task=self.task.spec())
+            # the contract, checked before anything is written or locked: a refusal leaves nothing behind
+            self._raw_env = self.task.make_env(
+                self.config.train.num_envs, torch.device(self.env_config.device)
+            )
+            check_env(self.task, self._raw_env)
         check_supported(self.config, self.task)  # ConfigError: what the task cannot run (logger.video, ...)
         # the one reading of algo.name (its class is built in _build, after torch's seed); its own
         # settings, checked and completed with their defaults (the caller's config is not changed):
@@ -149,7 +174,8 @@ class Experiment(RunState):
             group=self.task.group,
         )
         hidden, task = cfg.model.hidden_dim, self.task
-        raw_env = task.make_env(t.num_envs, self.device)
+        raw_env = self._raw_env if self._raw_env is not None else task.make_env(t.num_envs, self.device)
+        self._raw_env = None
         check_env(task, raw_env)  # the networks above were built from the task's declared sizes
         self.env = with_agent_state(raw_env, task, t.num_envs, hidden, self.device)
         self.eval_env = make_eval_env(task, t.eval_episodes, hidden, self.device)
@@ -170,7 +196,7 @@ class Experiment(RunState):
         else:
             with io_errors(f"write {self.run_dir / 'config.yaml'}"):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
-                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(as_dictconfig(cfg), resolve=True))
+                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(_saved(cfg), resolve=True))
         lg = cfg.logger
         self.logger = make_logger(
             str(lg.backend), self.run_dir, to_container(cfg), lg.project, str(lg.wandb_mode)
@@ -285,8 +311,12 @@ class Experiment(RunState):
         batch = self.collector.next_batch(collector_iter)
         self._check_finite(batch)
         task = self.task
-        episodes = episodes_from_rollout(
-            batch, task.step_keys, task.action_key, time_limit=str(self.config.algo.time_limit)
+        episodes = episodes_from_rollout(  # one item per row: its first episode, padded to T + 1
+            batch,
+            task.step_keys,
+            task.action_key,
+            time_limit=str(self.config.algo.time_limit),
+            first_episode_only=True,
         )
         episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
         episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())

@@ -39,6 +39,7 @@ from mcrs.env.core import MOVES, N_ACTIONS
 from mcrs.env.layout import ObservationLayout
 from mcrs.experiment.untrusted import check_archive
 from mcrs.models.agent import RecurrentAgent
+from mcrs.policies.task_runs import load_task_run, task_description, task_node
 from mcrs.policies.trained import (
     EXPORTED_SUFFIX,
     OBSERVATION_FIELDS,
@@ -127,15 +128,15 @@ def description(trained_env: EnvConfig, config: dict[str, Any], source: Path, en
 
 
 def _example_inputs(
-    E: int, n_agents: int, obs_dim: int, hidden_dim: int, seed: int
+    E: int, n_agents: int, obs_dim: int, hidden_dim: int, seed: int, n_actions: int = N_ACTIONS
 ) -> tuple[torch.Tensor, ...]:
     g = torch.Generator().manual_seed(seed)
-    mask = torch.rand(E, n_agents, N_ACTIONS, generator=g) > 0.5
+    mask = torch.rand(E, n_agents, n_actions, generator=g) > 0.5
     mask[..., 0] = True
     return (
         torch.rand(E, n_agents, obs_dim, generator=g) * 2 - 1,
         mask,
-        torch.randint(-1, N_ACTIONS, (E, n_agents), generator=g),
+        torch.randint(-1, n_actions, (E, n_agents), generator=g),
         torch.randn(E, n_agents, hidden_dim, generator=g),
     )
 
@@ -151,21 +152,31 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
         raise ExportError(f"out={out} exists: pass --force to replace it")
     if not out.parent.is_dir():
         raise ExportError(f"out={out}: the folder {out.parent} does not exist")
-    trained = load_trained_agent(policy)
-    step = GreedyAgentStep(trained.agent.cpu())
-    shape = (trained.env.n_uavs, trained.env.obs_dim, trained.agent.hidden_dim)
+    if task_node(policy) is not None:  # a run of another task: its agent fits its task (mcrs.json says which)
+        run = load_task_run(policy)
+        step = GreedyAgentStep(run.agent.cpu())
+        shape = (run.task.n_agents, run.task.obs_dim, run.agent.hidden_dim)
+        n_actions, meta = run.task.n_actions, task_description(run, FORMAT, VERSION)
+    else:
+        trained = load_trained_agent(policy)
+        step = GreedyAgentStep(trained.agent.cpu())
+        shape = (trained.env.n_uavs, trained.env.obs_dim, trained.agent.hidden_dim)
+        n_actions = N_ACTIONS
+        meta = description(trained.env, trained.config, trained.path, trained.env_steps)
     envs = torch.export.Dim("envs", min=1, max=MAX_ENVS)
     with warnings.catch_warnings():  # nn.GRU re-points its flat weights while traced: harmless here
         warnings.filterwarnings("ignore", message=".*were assigned during export.*")
         program = torch.export.export(
-            step, _example_inputs(2, *shape, seed=0), dynamic_shapes=tuple({0: envs} for _ in range(4))
+            step,
+            _example_inputs(2, *shape, seed=0, n_actions=n_actions),
+            dynamic_shapes=tuple({0: envs} for _ in range(4)),
         )
-    text = json.dumps(description(trained.env, trained.config, trained.path, trained.env_steps), indent=1)
+    text = json.dumps(meta, indent=1)
     folder = _temporary_folder(out)
     try:
         tmp = folder / out.name  # the archive's top folder is named after the file
         torch.export.save(program, tmp, extra_files={DESCRIPTION: text})
-        _check_written(tmp, step, shape)
+        _check_written(tmp, step, shape, n_actions)
         os.replace(tmp, out)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
@@ -208,12 +219,14 @@ def _alive(pid: int) -> bool:
 
 
 @torch.no_grad()
-def _check_written(path: Path, step: GreedyAgentStep, shape: tuple[int, int, int]) -> None:
+def _check_written(
+    path: Path, step: GreedyAgentStep, shape: tuple[int, int, int], n_actions: int = N_ACTIONS
+) -> None:
     """The file just written, loaded back, must compute ``step``'s outputs, and its weights read back
     (:func:`read_weights`) must be ``step``'s."""
     program, _, weights = _load(path)
     for E in (1, 3):
-        args = _example_inputs(E, *shape, seed=E)
+        args = _example_inputs(E, *shape, seed=E, n_actions=n_actions)
         for got, want in zip(program(*args), step(*args), strict=True):
             if not torch.equal(got, want):
                 raise ExportError(f"{path}: the exported program does not compute the agent's step (E={E})")
@@ -446,6 +459,11 @@ def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> T
     path = Path(path).expanduser()
     with _open(path) as archive:
         meta = _description(archive, path)
+        if isinstance(meta.get("task"), dict):  # its task's env is rebuilt from its run, not from a file
+            raise ExportError(
+                f"exported agent {path} plays the task {meta['task'].get('name') or meta['task'].get('_target_')!r}, "
+                "not MCRS: evaluate the run it came from (mcrs-eval policy=<run>)"
+            )
         trained = _trained_env(path, meta)
         check_playable(trained, env_config, f"exported agent {path}")  # first: the sizes are then the env's
         agent = _agent(path, meta, trained, _weights(archive, path))

@@ -55,6 +55,8 @@ def trained_env(path: str | Path) -> EnvConfig | None:
     state = ckpt.load(path, mmap=True)
     refuse_replay_block(state, path)
     try:
+        if state["config"].get("task") is not None:  # another task: its env is not the run's
+            return None
         return from_mapping(with_legacy_values(state["config"]["env"])[0])
     except (KeyError, TypeError, ValueError, OverflowError):
         return None
@@ -129,6 +131,12 @@ def load_trained_agent(path: str | Path) -> TrainedAgent:
     path = resolve_checkpoint(path)
     state = ckpt.load(path)
     refuse_replay_block(state, path)
+    task = state.get("config", {}).get("task") if isinstance(state.get("config"), dict) else None
+    if isinstance(task, dict):  # its agent fits its own task, not the MCRS scenario of its config
+        raise ckpt.CheckpointError(
+            f"checkpoint {path} is a run of the task {task.get('name') or task.get('_target_')!r}, not of "
+            "MCRS: evaluate it alone (mcrs-eval policy=<run>, which rebuilds its task)"
+        )
     try:
         saved_env, legacy = with_legacy_values(state["config"]["env"])
         trained = from_mapping(saved_env)

@@ -1,4 +1,5 @@
-"""Small TorchRL multi-agent tasks other than MCRS-LCR, to check that our mixers and loss are task-agnostic."""
+"""Tasks other than MCRS-LCR: the matrix game, any PettingZoo parallel env, VMAS scenarios
+(``task=simple_spread``, ``task=vmas_navigation``; conf/task/)."""
 
 from mcrs.tasks.matrix_game import (
     PAYOFF,
@@ -8,12 +9,16 @@ from mcrs.tasks.matrix_game import (
     make_matrix_game,
     train_on_matrix_game,
 )
+from mcrs.tasks.pettingzoo import PettingZooTask
+from mcrs.tasks.vmas import VmasTask
 
 __all__ = [
     "PAYOFF",
     "QPLEX_MATRIX_GAME",
     "MatrixGameEnv",
     "MatrixGameTask",
+    "PettingZooTask",
+    "VmasTask",
     "make_matrix_game",
     "train_on_matrix_game",
 ]

@@ -183,6 +183,9 @@ class MatrixGameTask(Task):
     def make_env(self, num_envs: int, device: torch.device) -> MatrixGameEnv:
         return MatrixGameEnv(num_envs, self.payoff, device)
 
+    def settings(self) -> dict[str, Any]:
+        return {"payoff": self.payoff.tolist()}
+
     def fingerprint(self) -> dict[str, Any]:
         return {**super().fingerprint(), "task.payoff": self.payoff.flatten().tolist()}
 
