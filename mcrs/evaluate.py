@@ -39,6 +39,13 @@ from mcrs.policies.task_runs import task_node
 ALL = "all"
 log = logging.getLogger(__name__)
 MAX_BATCH = 512  # environments per batch; bounds memory on the largest map
+#: Said under every table of summary.md: what a cell holds and which way is better.
+LEGEND = (
+    "Each cell: mean ± standard deviation over the episodes, of the value at the end of each episode. "
+    "Higher is better for episode reward, targets found and coverage; lower for final uncertainty, false "
+    "discoveries, collisions and no-fly violations."
+)
+TASK_LEGEND = "Each cell: mean ± standard deviation over the episodes. Higher episode reward is better."
 
 
 @dataclass
@@ -250,7 +257,7 @@ def write_results(
             columns = torch.stack([values[m].to(torch.float64) for m in METRICS], dim=-1).tolist()
             for k, row in enumerate(columns):
                 writer.writerow([name, k, *(f"{v:.6g}" for v in row)])
-    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n")
+    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n\n{LEGEND}\n")
 
 
 def write_figures(out_dir: Path, env_config: EnvConfig, policy_name: str, seed: int) -> list[Path]:
@@ -330,7 +337,7 @@ def run_task(
         for policy_name, values in per_episode.items():
             for k, row in enumerate(torch.stack([values[m] for m in metrics], dim=-1).tolist()):
                 writer.writerow([policy_name, k, *(f"{v:.6g}" for v in row)])
-    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n")
+    (out_dir / "summary.md").write_text(f"# Evaluation\n\n{title}\n\n{table}\n\n{TASK_LEGEND}\n")
     _say(f"results in {out_dir}")
     return results
 
@@ -391,7 +398,7 @@ def evaluate_run(
                 Reference(f"{name} (heuristic)", float(np.mean(values)), half, len(values), "episodes")
             )
     curve = plot_curves(
-        panels, out / "learning_curves.png", f"{env_config.name}: greedy evaluation", [label], references
+        panels, out / "learning_curves.png", f"{env_config.name}: evaluations of the trained policy (greedy actions)", [label], references
     )
     pictures = write_figures(out, env_config.replace(num_envs=1), str(run_dir), seed)
     rewards = {name: r["episode_reward"] for name, r in labelled.items()}
@@ -431,7 +438,7 @@ def evaluate_task_report(
         references[metric] = [Reference("random", float(array.mean()), half, len(array), "episodes")]
     task = run_task_name(run_dir)
     curve = plot_curves(
-        panels, out / "learning_curves.png", f"{task}: greedy evaluation", [label], references
+        panels, out / "learning_curves.png", f"{task}: evaluations of the trained policy (greedy actions)", [label], references
     )
     return out / "summary.md", curve, {name: r["episode_reward"] for name, r in results.items()}
 

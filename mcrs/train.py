@@ -209,6 +209,12 @@ def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
         f"  episode GIF     {report.gif}",
         flush=True,
     )
+    if cfg.get("budget") == "quickstart":
+        print(
+            f"quickstart: a smoke test of the pipeline ({steps:,} env steps), not a result: budget=campaign "
+            "(1M env steps, docs/RESULTS.md) or budget=paper (the paper's 2M) trains a policy to compare",
+            flush=True,
+        )
 
 
 def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:

@@ -66,5 +66,8 @@ def test_quickstart_writes_table_curve_and_gif(device: str, tmp_path: Path) -> N
         assert image.format == "PNG" and image.width > 300 and image.height > 200
     with Image.open(gif) as image:
         assert image.format == "GIF" and image.n_frames > 1
+    assert "Higher is better for episode reward" in table.read_text()  # the legend says which way is better
+    last = done.stdout.strip().splitlines()[-1]
+    assert last.startswith("quickstart: a smoke test of the pipeline") and "budget=campaign" in last
     # mcrs-eval's files beside the table, so mcrs-report reads the heuristics of this run too
     assert (report / "metrics.csv").is_file() and (report / "episodes.csv").is_file()
