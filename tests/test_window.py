@@ -61,3 +61,19 @@ def test_set_reads_fields_as_values_and_names_bad_ones():
         scenario_with("tool", "map10", ["discovery_rule=x"])
     with pytest.raises(SystemExit, match="unknown environment field"):
         scenario_with("tool", "map10", ["p_detekt=0.5"])
+
+
+def test_reward_under_the_target_rule_takes_out_the_false_discoveries_only_under_eq_24(capsys):
+    pilot = RECORDS.parents[1] / "pilot" / "baselines" / "cpu" / "map10_qmix_seed0.json"
+    record = json.loads(pilot.read_text())
+    assert record["config"]["env"]["discovery_rule"] == "belief"
+    reward = dict(map(tuple, record["scalars"]["eval/episode_reward"]))[200000]
+    false = dict(map(tuple, record["scalars"]["eval/false_discoveries"]))[200000]
+    old = dict(map(tuple, json.loads(SEEDS[0].read_text())["scalars"]["eval/episode_reward"]))[200000]
+    assert window.main([str(pilot), str(SEEDS[0]), "--at", "200000", "--metric", "reward_target_r2"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if "map10 qmix" in line]
+    values = {row.split("|")[1].strip(): float(row.split("|")[-2]) for row in rows}
+    under_eq_24 = next(v for label, v in values.items() if "discovery_rule=belief" in label)
+    under_target = next(v for label, v in values.items() if "discovery_rule=target" in label)
+    assert under_eq_24 == pytest.approx(reward - false, abs=5e-3) and false > 0
+    assert under_target == pytest.approx(old, abs=5e-3)

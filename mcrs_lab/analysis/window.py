@@ -5,7 +5,8 @@
 For each training run or record found under the paths (as ``mcrs-report`` finds them), one row: its label
 (algorithm and the settings that tell it from the others), seed, the mean of each metric over the
 evaluations whose env step lies in ``[--from, --to]``, and each metric at every ``--at`` step (the last
-evaluation at or before it; blank when the run has not reached it).
+evaluation at or before it; blank when the run has not reached it). ``--metric reward_target_r2`` compares
+runs under the two r2 rules like with like.
 """
 
 from __future__ import annotations
@@ -21,11 +22,31 @@ from mcrs_lab.analysis.records import RecordError
 from mcrs_lab.analysis.runs import TrainingRun, find_runs, run_labels
 
 METRICS = ("episode_reward", "no_fly_violations", "collisions", "false_discoveries", "targets_found")
+#: The episode reward as r2 by ``discovery_rule=target`` would have paid it: less w2 per false discovery
+#: for a run under eq. 24 (``belief``), the reward itself for a run under ``target``. Compares runs of the
+#: two rules like with like.
+TARGET_R2 = "reward_target_r2"
+CHOICES = (*METRICS, TARGET_R2)
+
+
+def points_of(run: TrainingRun, metric: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(steps, values)`` of ``eval/<metric>``, or of :data:`TARGET_R2`; None when the run lacks them."""
+    if metric != TARGET_R2:
+        return run.scalar(f"eval/{metric}")
+    reward, false = run.scalar("eval/episode_reward"), run.scalar("eval/false_discoveries")
+    if reward is None:
+        return None
+    if run.setting("env.discovery_rule") != "belief":
+        return reward
+    if false is None or not np.array_equal(reward[0], false[0]):
+        return None
+    weight = float(run.setting("env.w_discovery") or 0.0)
+    return reward[0], reward[1] - weight * false[1]
 
 
 def window_mean(run: TrainingRun, metric: str, low: int, high: int) -> float | None:
     """The mean of ``eval/<metric>`` over the evaluations with ``low <= step <= high``; None if there is none."""
-    points = run.scalar(f"eval/{metric}")
+    points = points_of(run, metric)
     if points is None:
         return None
     steps, values = points
@@ -35,7 +56,7 @@ def window_mean(run: TrainingRun, metric: str, low: int, high: int) -> float | N
 
 def value_at(run: TrainingRun, metric: str, step: int) -> float | None:
     """``eval/<metric>`` of the last evaluation at or before ``step``, if the run reached ``step``."""
-    points = run.scalar(f"eval/{metric}")
+    points = points_of(run, metric)
     if points is None:
         return None
     steps, values = points
@@ -72,7 +93,11 @@ def main(argv: list[str] | None = None) -> int:
         "--at", type=int, action="append", default=[], help="an env step to read (repeatable)"
     )
     parser.add_argument(
-        "--metric", action="append", choices=METRICS, help=f"repeatable (default: {', '.join(METRICS)})"
+        "--metric",
+        action="append",
+        choices=CHOICES,
+        help=f"repeatable (default: {', '.join(METRICS)}); {TARGET_R2}: the reward as r2 for real targets only "
+        "would pay it",
     )
     args = parser.parse_args(argv)
     if args.low < 0 or args.high < args.low:
