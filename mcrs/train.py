@@ -155,10 +155,16 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: {experiment.algorithm_note}")
     done = experiment.counters.env_steps
-    if resume and done >= cfg.train.total_env_steps:
+    if resume and experiment.finished:
         print(
             f"note: the run is already at {done:,} env steps (train.total_env_steps={cfg.train.total_env_steps:,}): "
             "nothing to train; pass a larger train.total_env_steps to train on",
+            flush=True,
+        )
+    elif resume and done >= cfg.train.total_env_steps:
+        print(
+            f"note: the run reached {done:,} env steps but stopped before its final evaluation: "
+            "evaluating and saving it now",
             flush=True,
         )
     result = experiment.run()

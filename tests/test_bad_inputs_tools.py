@@ -456,27 +456,6 @@ def test_the_record_path_of_a_good_config_is_under_records(tmp_path: Path) -> No
 
 # ------------------------------------------------------------------------------- run config.yaml
 BAD_RUN_CONFIGS: list[tuple[str, str]] = [
-    # overrides: config values only, never Hydra's settings, the run's identity or a path
-    (POINTS + "overrides: {all: ['+hydra.callbacks.x._target_=builtins.open']}\n", "overrides all: +hydra.callbacks.x._target_=builtins.open: a Hydra setting"),
-    (POINTS + "overrides: {all: ['hydra.output_subdir=../../../..']}\n", "overrides all: hydra.output_subdir=../../../..: a Hydra setting"),
-    (POINTS + "overrides: {qmix: ['~hydra.callbacks.run_dir_check']}\n", "overrides qmix: ~hydra.callbacks.run_dir_check: a Hydra setting"),
-    (POINTS + "overrides: {all: ['hydra.job_logging.handlers.file.filename=/tmp/x.log']}\n", "a Hydra setting"),
-    (POINTS + "overrides: {all: ['hydra/launcher=joblib']}\n", "overrides all: hydra/launcher=joblib: a Hydra setting"),
-    (POINTS + "overrides: {all: ['++hydra.run.dir=/tmp']}\n", "overrides all: ++hydra.run.dir=/tmp: a Hydra setting"),
-    (POINTS + "overrides: {all: ['resume=/tmp/run']}\n", "resume=/tmp/run: set by the tool for each run"),
-    (POINTS + "overrides: {all: ['overwrite=true']}\n", "overwrite=true: set by the tool for each run"),
-    (POINTS + "overrides: {all: ['seed=7']}\n", "seed=7: set by the tool for each run"),
-    (POINTS + "overrides: {all: ['env=map20']}\n", "env=map20: set by the tool for each run"),
-    (POINTS + "overrides: {all: ['env.name=${now:%H-%M}']}\n", "env.name=${now:%H-%M}: an interpolation"),
-    (POINTS + "overrides: {all: ['+algo.options.x=../../../etc']}\n", "'../../../etc' names a path"),
-    (POINTS + "overrides: {all: ['+algo.options.x=[1, /etc/passwd]']}\n", "'/etc/passwd' names a path"),
-    (POINTS + "overrides: {all: ['train.lr=0.1,0.2']}\n", "train.lr=0.1,0.2: a sweep of values"),
-    (POINTS + "overrides: {all: [3]}\n", "overrides all: 3"),
-    (POINTS + "overrides: {all: ['train.lr']}\n", "'train.lr': not an override key=value"),
-    (POINTS + "overrides: [a=1]\n", "overrides: a mapping of 'all' or an algorithm"),
-    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['hydra.sweep.dir=/tmp']"), "variant on: hydra.sweep.dir=/tmp: a Hydra setting"),
-    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['policy=../../run']"), "variant on: policy=../../run: set by the tool for each run"),
-    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['+hydra.callbacks.x._target_=os.remove']"), "a Hydra setting"),
     (ALIAS_BOMB, "holds YAML anchors or aliases"),
     ("seed: &s 0\nx: *s\n", "holds YAML anchors or aliases"),
     ("a: &a {b: 1}\nc: {<<: *a}\n", "holds YAML anchors or aliases"),

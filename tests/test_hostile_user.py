@@ -7,6 +7,7 @@ whose arithmetic overflows. Each test is one reproduction: it failed before the 
 from __future__ import annotations
 
 import importlib
+import logging
 import sys
 from pathlib import Path
 
@@ -149,3 +150,150 @@ def test_the_allowed_hydra_overrides_still_pass() -> None:
     assert command_line_problems(["hydra.run.dir=/tmp/x", "hydra.output_subdir=null", "hydra/launcher=joblib",
                                   "hydra.output_subdir=meta/hydra", "hydra.job_logging.root.level=WARNING",
                                   "hydra.sweep.dir=s", "-m", "--config-dir=/x", "train.lr=1e-3"]) == []  # fmt: skip
+
+
+# ------------------------------------------------------------------- a kill before the final evaluation
+#: Runs ``Experiment`` in a child that SIGKILLs itself at one point of the run's end (``argv``: the point,
+#: the run directory, the overrides).
+_KILLED_AT = """
+import os, signal, sys
+from mcrs.experiment import run_state
+from mcrs.experiment.trainer import Experiment
+from tests.train_helpers import compose_config
+
+point, run_dir, *overrides = sys.argv[1:]
+cfg = compose_config(*overrides)
+total = int(cfg.train.total_env_steps)
+kill = lambda: os.kill(os.getpid(), signal.SIGKILL)
+real_evaluate, real_save, real_atomic = Experiment.evaluate, run_state.RunState.save, run_state.ckpt.save_atomic
+saves = []
+
+def evaluate(self):  # "window": after the last batch's checkpoint, before the final evaluation
+    if point == "window" and self.counters.env_steps >= total:
+        kill()
+    return real_evaluate(self)
+
+def save(self, name="last.pt"):  # "evaluated": the final evaluation logged, not yet saved
+    if point == "evaluated" and self._evaluated_at == total:
+        kill()
+    return real_save(self, name)
+
+def save_atomic(payload, path):  # "saving": the final last.pt written, its weights file not
+    out = real_atomic(payload, path)
+    if path.name == "last.pt" and payload["counters"]["env_steps"] == total:
+        saves.append(path)
+        if point == "saving" and len(saves) == 2:
+            kill()
+    return out
+
+Experiment.evaluate, run_state.RunState.save, run_state.ckpt.save_atomic = evaluate, save, save_atomic
+Experiment(cfg, run_dir).run()
+"""
+#: A budget that is a multiple of checkpoint_interval: the last batch's checkpoint is at the run's end.
+_WINDOW = ["train.total_env_steps=120", "train.checkpoint_interval=40", "train.eval_interval=40"]
+KILL_POINTS = ["window", "evaluated", "saving"]
+
+
+def _csv_rows(run_dir: Path) -> dict[str, list[str]]:
+    """Every CSV log but the wall-clock timings (``time/``), by name."""
+    root = run_dir / "logs" / "scalars"
+    return {
+        p.relative_to(root).as_posix(): p.read_text().splitlines()
+        for p in sorted(root.rglob("*.csv"))
+        if not p.relative_to(root).as_posix().startswith("time/")
+    }
+
+
+@pytest.fixture(scope="module")
+def straight_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import compose_config
+
+    run_dir = tmp_path_factory.mktemp("straight") / "run"
+    Experiment(compose_config(*_WINDOW), run_dir).run()
+    return run_dir
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("point", KILL_POINTS)
+def test_a_run_killed_before_its_final_evaluation_resumes_to_the_straight_runs_rows(
+    point: str, straight_run: Path, tmp_path: Path
+) -> None:
+    """Killed between its last checkpoint (at the budget, a multiple of ``checkpoint_interval``) and its
+    final evaluation, a run resumed to "nothing to train" and gave the previous evaluation as the final
+    one; its evaluation CSVs never got the last row. Now it is finished only once that row is written: the
+    resumed run's CSVs are the straight run's, at each point of the run's end."""
+    import os
+    import subprocess
+
+    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.trainer import Experiment
+    from mcrs_lab.analysis.records import training_record
+    from tests.train_helpers import compose_config
+
+    run_dir = tmp_path / "run"
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", _KILLED_AT, point, str(run_dir), *_WINDOW], cwd=root,
+                          capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "PYTHONPATH": str(root)})  # fmt: skip
+    assert done.returncode == -9, done.stderr  # SIGKILL
+    assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 120
+    if point == "window":  # not finished: a record says stopped, a resume evaluates
+        assert training_record(run_dir)["status"] == "stopped"
+    result = Experiment(compose_config(*_WINDOW), run_dir, resume=True).run()
+    assert _csv_rows(run_dir) == _csv_rows(straight_run)
+    eval_rows = _csv_rows(run_dir)["eval/episode_reward.csv"]
+    assert [int(float(r.split(",")[0])) for r in eval_rows] == [0, 40, 80, 120]
+    assert result["episode_reward"] == float(eval_rows[-1].split(",")[1])
+    assert training_record(run_dir)["status"] == "finished"
+
+
+class _Killed(BaseException):
+    """Stands for a kill in the process (raised where the run would die)."""
+
+
+def _without_last_eval_step(run_dir: Path) -> None:
+    """``last.pt`` as a checkpoint written before it named its last evaluation's step."""
+    from mcrs.experiment import checkpoint as ckpt
+
+    path = ckpt.checkpoint_path(run_dir)
+    state = ckpt.load(path)
+    del state["last_eval_step"]
+    ckpt.save_atomic({k: v for k, v in state.items() if k not in ("format", "version")}, path)
+
+
+@pytest.mark.parametrize("finished", [False, True], ids=["killed_in_the_window", "finished"])
+def test_a_checkpoint_from_before_last_eval_step_is_judged_by_its_evaluation_log(
+    finished: bool,
+    straight_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Checkpoints users and a running campaign hold today carry no ``last_eval_step``: a finished one
+    stays finished (nothing is evaluated or logged again), one killed in the window is evaluated."""
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import compose_config
+
+    run_dir = tmp_path / "run"
+    if finished:
+        Experiment(compose_config(*_WINDOW), run_dir).run()
+    else:
+        real = Experiment.evaluate
+
+        def evaluate(self: Experiment) -> dict[str, float]:
+            if self.counters.env_steps >= 120:
+                raise _Killed
+            return real(self)
+
+        monkeypatch.setattr(Experiment, "evaluate", evaluate)
+        with pytest.raises(_Killed):
+            Experiment(compose_config(*_WINDOW), run_dir).run()
+        monkeypatch.setattr(Experiment, "evaluate", real)
+    _without_last_eval_step(run_dir)
+    with caplog.at_level(logging.INFO, logger="mcrs.run"):
+        experiment = Experiment(compose_config(*_WINDOW), run_dir, resume=True)
+        assert experiment.finished == finished
+    assert "was written before checkpoints named their last evaluation's step: judged by" in caplog.text
+    experiment.run()
+    assert _csv_rows(run_dir) == _csv_rows(straight_run)

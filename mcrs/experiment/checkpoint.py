@@ -217,6 +217,17 @@ def refuse_pre_release(state: dict[str, Any], path: str | Path) -> dict[str, Any
     return state
 
 
+def awaits_final_evaluation(state: Mapping[str, Any]) -> bool:
+    """Whether ``state`` (a ``last.pt``) was saved after the run's last collector batch but before its
+    final evaluation: a kill in that window leaves a run at its length that is not finished. A checkpoint
+    written before ``last_eval_step`` was saved says nothing here (False)."""
+    counters = state.get("counters")
+    step = state.get("last_eval_step", -1)
+    if not isinstance(counters, Mapping) or step == -1:
+        return False
+    return step != counters.get("env_steps")
+
+
 def weights_path(run_dir: str | Path, env_steps: int) -> Path:
     """``checkpoints/model_<steps>.pt``: the policy's weights at ``env_steps`` (what ``mcrs-eval`` loads)."""
     return checkpoint_path(run_dir, f"model_{env_steps:09d}.pt")

@@ -35,6 +35,10 @@ RESUME_ADVICE = {
 }
 
 
+#: ``last_eval_step`` of a checkpoint written before it was saved: the step is read from the eval log.
+LEGACY_EVAL_STEP = -1
+
+
 class RunState:
     """The checkpoint half of :class:`~mcrs.experiment.trainer.Experiment`: :meth:`state_dict`,
     :meth:`load_state_dict`, :meth:`save`, :meth:`fingerprint` and the resume's random state."""
@@ -50,6 +54,7 @@ class RunState:
             "learner": self.learner.state_dict(),
             "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
             "last_eval": dict(self.last_eval),
+            "last_eval_step": self._last_eval_step,  # a run is finished once it is its final step
             "rng": {"torch": torch.get_rng_state()},
         }
         if torch.cuda.is_available():
@@ -135,6 +140,7 @@ class RunState:
         known = {f.name for f in fields(Counters)}
         self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
+        self._last_eval_step = state.get("last_eval_step", LEGACY_EVAL_STEP)
         self.epsilon.set_env_steps(self.counters.env_steps)
 
     def _check_callbacks(self, saved: dict[str, Any]) -> None:
@@ -180,6 +186,29 @@ class RunState:
         rows = state.get("logs", {}).get("rows")
         with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
             self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
+
+    def final_evaluation_written(self) -> bool:
+        """Whether the run's final evaluation is done: its last evaluation is at the current env step.
+
+        A run killed between its last checkpoint (at ``train.total_env_steps`` when that is a multiple of
+        ``checkpoint_interval``) and its final evaluation has reached its length without it. A checkpoint
+        written before ``last_eval_step`` was saved is judged by the last row of its evaluation log (CSV);
+        without that log, by whether it holds an evaluation, as before."""
+        step = self.counters.env_steps
+        if self._last_eval_step != LEGACY_EVAL_STEP:
+            return bool(self.last_eval) and self._last_eval_step == step
+        rows = self._log_rows.get("eval/episode_reward")
+        log = self.run_dir / "logs" / "scalars" / "eval" / "episode_reward.csv"
+        if not rows or not log.is_file():
+            return bool(self.last_eval)
+        log_event(f"{ckpt.checkpoint_path(self.run_dir)} was written before checkpoints named their last "
+                  f"evaluation's step: judged by {log}")  # fmt: skip
+        with open(log) as f:
+            kept = [line for line in f.read().splitlines() if line][:rows]
+        try:
+            return bool(kept) and float(kept[-1].split(",")[0]) == step
+        except ValueError:
+            return bool(self.last_eval)
 
     def _restore_rng(self) -> None:
         """The checkpoint's random state, put back last: building the run may draw random numbers."""
