@@ -297,3 +297,146 @@ def test_a_checkpoint_from_before_last_eval_step_is_judged_by_its_evaluation_log
     assert "was written before checkpoints named their last evaluation's step: judged by" in caplog.text
     experiment.run()
     assert _csv_rows(run_dir) == _csv_rows(straight_run)
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Two finished 40-step runs of the same config (their checkpoints share a fingerprint)."""
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import compose_config
+
+    root = tmp_path_factory.mktemp("runs")
+    for name in ("a", "b"):
+        Experiment(
+            compose_config("train.total_env_steps=40", "train.checkpoint_interval=40"), root / name
+        ).run()
+    return root / "a", root / "b"
+
+
+def _copy(run: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, tmp_path / "run")
+    return tmp_path / "run"
+
+
+def _edit(run_dir: Path, change) -> None:
+    """Rewrite ``last.pt`` with ``change`` applied (a consistent file, checksum included)."""
+    from mcrs.experiment import checkpoint as ckpt
+
+    path = ckpt.checkpoint_path(run_dir)
+    state = ckpt.load(path)
+    change(state)
+    ckpt.save_atomic({k: v for k, v in state.items() if k not in ("format", "version", "checksum")}, path)
+
+
+def _resume_refused(run_dir: Path) -> str:
+    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import compose_config
+
+    cfg = compose_config("train.total_env_steps=80", "train.checkpoint_interval=40")
+    with pytest.raises(ckpt.CheckpointError) as refused:
+        Experiment(cfg, run_dir, resume=True)
+    message = str(refused.value)
+    assert "\n" not in message and str(ckpt.checkpoint_path(run_dir)) in message, message
+    return message
+
+
+def _flip_a_weight_byte(path: Path) -> None:
+    """One byte flipped in the middle of the agent's first weight tensor, in place."""
+    import torch
+
+    state = torch.load(path, weights_only=True)
+    tensor = next(iter(state["learner"]["agent"].values()))
+    data = path.read_bytes()
+    at = data.find(tensor.contiguous().numpy().tobytes()) + tensor.numel() * tensor.element_size() // 2
+    assert at > 0
+    path.write_bytes(data[:at] + bytes([data[at] ^ 0x10]) + data[at + 1 :])
+
+
+def test_a_flipped_byte_in_a_checkpoints_tensor_is_refused(
+    two_runs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """A checkpoint with one byte flipped in a weight resumed with corrupted weights (torch does not check
+    a zip member's CRC). Now its checksum refuses it, naming the file and the entry, for a resume and for
+    ``mcrs-eval``'s weights file."""
+    from mcrs.experiment import checkpoint as ckpt
+
+    run_dir = _copy(two_runs[0], tmp_path)
+    last = ckpt.checkpoint_path(run_dir)
+    _flip_a_weight_byte(last)
+    message = _resume_refused(run_dir)
+    assert message.endswith(f"checkpoint {last}: entry learner: its data does not match the checksum written "
+                            "with it: the file is damaged; refused (use an earlier checkpoint or run again)")  # fmt: skip
+    weights = ckpt.weights_path(run_dir, 40)
+    _flip_a_weight_byte(weights)
+    with pytest.raises(
+        ckpt.CheckpointError, match=rf"^checkpoint {weights}: entry learner: its data does not"
+    ):
+        ckpt.load(weights)
+
+
+def test_a_checkpoint_without_a_checksum_loads_and_says_so(
+    two_runs: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Checkpoints written before checksums existed (users' and a running campaign's) still resume."""
+    import torch
+
+    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.trainer import Experiment
+    from tests.train_helpers import compose_config
+
+    run_dir = _copy(two_runs[0], tmp_path)
+    for path in (run_dir / "checkpoints").glob("*.pt"):
+        state = torch.load(path, weights_only=True)
+        del state["checksum"]
+        torch.save(state, path)
+    with caplog.at_level(logging.INFO, logger="mcrs.run"):
+        Experiment(compose_config("train.total_env_steps=80", "train.checkpoint_interval=40"), run_dir,
+                   resume=True).run()  # fmt: skip
+    assert "was written before checksums existed: its data is read unverified" in caplog.text
+    assert ckpt.load(ckpt.checkpoint_path(run_dir))["counters"]["env_steps"] == 80
+
+
+def _manifest_names_another_run(other: Path, run_dir: Path):
+    """The first replay block named through ``..`` as the other run's block file."""
+    import os
+
+    def change(state: dict) -> None:
+        name = state["replay_blocks"]["files"][0]
+        theirs = os.path.relpath(other / "checkpoints" / name, run_dir / "checkpoints")
+        assert theirs.startswith("../../") and Path(run_dir / "checkpoints" / theirs).is_file()
+        state["replay_blocks"]["files"][0] = theirs
+
+    return change
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ("manifest", "entry replay_blocks.files[0]: '../../"),
+        (lambda s: s["counters"].update(env_steps=-1000), "entry counters.env_steps: -1000 is not a whole number >= 0"),
+        (lambda s: s["counters"].update(update_credit=float("nan")), "entry counters.update_credit: nan is not a finite number >= 0"),
+        (lambda s: s["counters"].update(episodes="12"), "entry counters.episodes: '12' is not a whole number >= 0"),
+        (lambda s: s["counters"].update(updates=1.5), "entry counters.updates: 1.5 is not a whole number >= 0"),
+        (lambda s: s.update(counters=[1, 2]), "entry counters: [1, 2] is not a mapping of counters"),
+        (lambda s: s["rng"].update(torch=s["rng"]["torch"][:100]), "entry rng.torch: a torch.uint8 tensor of 100 is not a random state"),
+        (lambda s: s["rng"].update(torch=s["rng"]["torch"].float()), "entry rng.torch: a torch.float32 tensor of"),
+        (lambda s: s["rng"].update(torch="seed"), "entry rng.torch: 'seed' is not a random state"),
+        (lambda s: s.update(last_eval_step=-3), "entry last_eval_step: -3 is not a whole number >= 0"),
+        (lambda s: s.update(last_eval={"episode_reward": "high"}), "entry last_eval: {'episode_reward': 'high'}"),
+        (lambda s: s.update(logs={"rows": {"eval/x": -1}}), "entry logs.rows: {'eval/x': -1}"),
+    ],
+    ids=["manifest", "negative_steps", "nan_credit", "string_counter", "float_counter", "counters_list",
+         "short_rng", "float_rng", "string_rng", "negative_eval_step", "string_metric", "negative_rows"],
+)  # fmt: skip
+def test_a_damaged_checkpoint_entry_is_refused_naming_it(
+    change, expected: str, two_runs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """A manifest naming ``../../other_run/...`` read another run's replay; negative or NaN counters were
+    accepted; a wrong-sized random state or a counter of the wrong type gave a traceback."""
+    run_dir = _copy(two_runs[0], tmp_path)
+    _edit(run_dir, _manifest_names_another_run(two_runs[1], run_dir) if change == "manifest" else change)
+    assert expected in _resume_refused(run_dir)
