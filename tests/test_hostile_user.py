@@ -440,3 +440,110 @@ def test_a_damaged_checkpoint_entry_is_refused_naming_it(
     run_dir = _copy(two_runs[0], tmp_path)
     _edit(run_dir, _manifest_names_another_run(two_runs[1], run_dir) if change == "manifest" else change)
     assert expected in _resume_refused(run_dir)
+
+
+# -------------------------------------------------------------------------------- mcrs-results update
+RECORDS = Path("results/records/near/heuristics/map20")  # committed evaluations
+
+
+def _document(tmp_path: Path) -> Path:
+    """A copy of the heuristic records and a document under docs/ with one stale generated table."""
+    import shutil
+
+    shutil.copytree(RECORDS, tmp_path / RECORDS)
+    doc = tmp_path / "docs" / "R.md"
+    doc.parent.mkdir()
+    doc.write_text(f"# R\n\n<!-- table evaluations.md of: mcrs-report {RECORDS} --env map20 -->\n| stale |\n"
+                   "<!-- end table -->\n")  # fmt: skip
+    return doc
+
+
+def test_mcrs_results_update_keeps_a_line_added_while_it_generated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``mcrs-results update`` read the document, generated for 40-60 s, then wrote its old copy back: a
+    line added meanwhile was lost. Now the update is refused in one line and the line stays."""
+    import mcrs_lab.analysis.doc_tables as doc_tables
+
+    doc = _document(tmp_path)
+    real = doc_tables.generate
+
+    def generate_while_edited(blocks, root):
+        made = real(blocks, root)
+        with open(doc, "a") as f:
+            f.write("a line written while the tables were generated\n")
+        return made
+
+    monkeypatch.setattr(doc_tables, "generate", generate_while_edited)
+    edited = None
+    with pytest.raises(SystemExit) as refused:
+        doc_tables.main(["update", str(doc)])
+        edited = doc.read_text()
+    assert refused.value.code == (
+        f"mcrs-results: error: {doc} changed since it was read: nothing written (the change is kept); run again"
+    )
+    assert edited is None and doc.read_text().endswith("| stale |\n<!-- end table -->\na line written while "
+                                                       "the tables were generated\n")  # fmt: skip
+    assert sorted(p.name for p in doc.parent.iterdir()) == ["R.md"]  # no temporary left
+
+
+def test_mcrs_results_update_writes_through_a_temporary_of_its_own(tmp_path: Path) -> None:
+    """Two updates shared one temporary name (``.R.md.partial``): whatever sat at that name (another
+    update's half-written copy, or a link to a file elsewhere) was written through and renamed over the
+    document. Now each update writes a temporary of its own and the file at that name is left alone."""
+    from mcrs_lab.analysis.doc_tables import main
+
+    doc = _document(tmp_path)
+    victim = _victim(tmp_path)
+    (doc.parent / f".{doc.name}.partial").symlink_to(victim)
+    assert main(["update", str(doc)]) == 0
+    assert victim.read_text() == "precious\n"
+    assert not doc.is_symlink() and "| greedy (heuristic)" in doc.read_text()
+
+
+# -------------------------------------------------------------------------------- one run, one claim
+@pytest.mark.slow
+def test_a_second_command_into_a_starting_run_is_refused_before_it_writes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two ``mcrs-train`` started together into one ``hydra.run.dir`` (different algo and seed): the run
+    trained one config while ``.hydra/config.yaml`` held the other's, and the refused process logged into
+    the winner's ``train.log`` (the lock was taken after torch loaded). Now the first claims the directory
+    before Hydra writes there; the second, started while the first still loads, is refused and writes
+    nothing."""
+    import os
+    import subprocess
+    import time
+
+    from tests.train_helpers import TINY
+
+    run_dir = tmp_path / "run"
+    root = Path(__file__).resolve().parents[1]
+    first = subprocess.Popen([sys.executable, "-m", "mcrs.train", f"hydra.run.dir={run_dir}", "algo=qmix", "seed=0",
+                              *TINY], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, "PYTHONPATH": str(root), "HYDRA_FULL_ERROR": "0"})  # fmt: skip
+    hydra_config = run_dir / ".hydra" / "config.yaml"
+    deadline = time.monotonic() + 120
+    while not hydra_config.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert hydra_config.exists(), first.communicate()
+    written = {p: p.read_bytes() for p in hydra_config.parent.iterdir()}  # Hydra's files of the first run
+    try:
+        message = _refused(monkeypatch, tmp_path, "mcrs.train", f"hydra.run.dir={run_dir}", "algo=vdn", "seed=1",
+                           *TINY)  # fmt: skip
+        assert message == (
+            f"mcrs-train: error: run directory {run_dir} is in use by process {first.pid}: one process writes "
+            "a run; wait for it to end (then resume=), or choose another directory"
+        )
+        assert {p: p.read_bytes() for p in written} == written  # the first run's files as they were
+    finally:
+        _out, err = first.communicate(timeout=600)
+    assert first.returncode == 0, err
+    import yaml
+
+    assert yaml.safe_load(hydra_config.read_text())["algo"]["name"] == "qmix"
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["algo"]["name"] == "qmix"
+    assert (
+        "vdn" not in (run_dir / "train.log").read_text()
+        and "in use" not in (run_dir / "train.log").read_text()
+    )

@@ -32,7 +32,16 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
-from mcrs.experiment.rundir import LOCK, describe_os_error, fresh_problem, lock_holder, resume_problem
+from mcrs.experiment.rundir import (
+    LOCK,
+    RunDirError,
+    claim_run_dir,
+    describe_os_error,
+    fresh_problem,
+    lock_holder,
+    release_claims,
+    resume_problem,
+)
 from mcrs.experiment.sweep import sweep_jobs
 from mcrs.experiment.untrusted import PLAIN_NAME
 
@@ -323,6 +332,12 @@ class RunDirCheck(Callback):
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
         self._make(run_dir)
+        if self.fresh_run:  # mcrs-train: the run is this process's before Hydra writes .hydra/ or the log
+            try:
+                claim_run_dir(Path(str(resume)).expanduser() if resume is not None else run_dir)
+            except RunDirError as error:
+                remove_refused_dirs()
+                raise SystemExit(f"{self.command}: error: {error}") from None
 
     def _invalid(self, config: DictConfig, run_dir: Path) -> str | None:
         """A config the command will refuse, judged before Hydra rewrites the ``.hydra/`` files of the run
@@ -411,7 +426,9 @@ def remove_refused_dirs(run_dir: Path | None = None) -> None:
 
     Only what this process created goes: a directory that was there before the command (``out=`` or
     ``hydra.run.dir=`` naming a folder of one's own) is left as it is, Hydra's files in it included; a
-    directory with a run's lock or any other file is kept (a run may be starting in it)."""
+    directory with a run's lock or any other file is kept (a run may be starting in it). The run directory
+    this process claimed is released first (its lock file goes if the claim made it)."""
+    release_claims()
     if run_dir is not None:
         run_dir = Path(os.path.abspath(run_dir))
         if any(run_dir.is_relative_to(root) for _, root in _CREATED):
