@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -119,17 +120,23 @@ def test_a_command_line_callback_is_refused_before_it_runs(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["victim.txt"]
 
 
+#: (override, what it would have written outside, the refusal): Hydra's own files and logs moved out of the run.
+HYDRA_FILES_AND_LOGS = [
+    ("hydra.output_subdir=../../../x", "x", "Hydra's files go in a folder inside the run directory"),
+    ("hydra.job_logging.handlers.file.filename={tmp}/elsewhere.log", "elsewhere.log",
+     "the command's log is written in its run directory"),
+    ("hydra.job.name=../../../job", "job.log", "the job's name names its log file in the run directory"),
+    ("~hydra.callbacks.run_dir_check", None, "adds, changes or removes a Hydra callback"),
+]  # fmt: skip
+#: Overrides refused on the command line before Hydra starts: the callback and the cases above.
+COMMAND_LINE_REFUSALS = 1 + len(HYDRA_FILES_AND_LOGS)
+
+
 @pytest.mark.parametrize(
     ("override", "outside", "expected"),
-    [
-        ("hydra.output_subdir=../../../x", "x", "Hydra's files go in a folder inside the run directory"),
-        ("hydra.job_logging.handlers.file.filename={tmp}/elsewhere.log", "elsewhere.log",
-         "the command's log is written in its run directory"),
-        ("hydra.job.name=../../../job", "job.log", "the job's name names its log file in the run directory"),
-        ("~hydra.callbacks.run_dir_check", None, "adds, changes or removes a Hydra callback"),
-    ],
+    HYDRA_FILES_AND_LOGS,
     ids=["output_subdir", "log_file", "job_name", "remove_check"],
-)  # fmt: skip
+)
 def test_hydras_files_and_logs_stay_in_the_run_directory(
     override: str, outside: str | None, expected: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -523,10 +530,14 @@ def test_a_second_command_into_a_starting_run_is_refused_before_it_writes(
                               *TINY], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              env={**os.environ, "PYTHONPATH": str(root), "HYDRA_FULL_ERROR": "0"})  # fmt: skip
     hydra_config = run_dir / ".hydra" / "config.yaml"
+    last = run_dir / ".hydra" / "overrides.yaml"  # Hydra writes config, hydra, overrides in turn
     deadline = time.monotonic() + 120
-    while not hydra_config.exists() and first.poll() is None and time.monotonic() < deadline:
+    while (
+        not (last.exists() and last.stat().st_size) and first.poll() is None and time.monotonic() < deadline
+    ):
         time.sleep(0.05)
     assert hydra_config.exists(), first.communicate()
+    time.sleep(0.2)  # the last file's write done
     written = {p: p.read_bytes() for p in hydra_config.parent.iterdir()}  # Hydra's files of the first run
     try:
         message = _refused(monkeypatch, tmp_path, "mcrs.train", f"hydra.run.dir={run_dir}", "algo=vdn", "seed=1",
@@ -547,3 +558,70 @@ def test_a_second_command_into_a_starting_run_is_refused_before_it_writes(
         "vdn" not in (run_dir / "train.log").read_text()
         and "in use" not in (run_dir / "train.log").read_text()
     )
+
+
+# ------------------------------------------------------------------------ values, names and full disks
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["env.name=${now:%H-%M}"], "env.name=${now:%H-%M}: must be a plain name, not an interpolation"),
+        (["env.name=map20"], "env.name='map20' names the preset env=map20, but this run has width=10 (the preset's 20)"),
+        (["env.p_detect=0.2", "env.p_false_alarm=0.8"], "p_detect=0.2 < p_false_alarm=0.8: the sensor would read backwards"),
+        (["train.lr=1e300"], "train.lr=1e+300: must be <= 1"),
+        (["env.comm_range=1e308"], "env.comm_range=1e+308: must be <= 1e+09 cells or inf"),
+    ],
+    ids=["interpolated_name", "preset_name", "backwards_sensor", "huge_lr", "huge_range"],
+)  # fmt: skip
+def test_nonsense_values_are_refused_before_anything_runs(
+    overrides: list[str], expected: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``env.name=${now:%H-%M}`` filed a map10 run under another name, ``env.name=map20`` passed a map10
+    run for map20, a sensor reading backwards was accepted, and ``train.lr=1e300`` or
+    ``env.comm_range=1e308`` ended in an overflow's traceback."""
+    message = _refused(monkeypatch, tmp_path, "mcrs.train", *overrides)
+    assert message.startswith("mcrs-train: error: invalid config: ") and expected in message, message
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_sensors_that_make_sense_pass() -> None:
+    """The default sensor, a perfect one and an uninformative one (always F: used to test the discovery
+    reward) are not backwards."""
+    from mcrs.env.config import EnvConfig, validation_errors
+
+    for p_detect, p_false_alarm in ((0.8, 0.2), (1.0, 0.0), (1.0, 1.0), (0.5, 0.5)):
+        assert validation_errors(EnvConfig(p_detect=p_detect, p_false_alarm=p_false_alarm)) == []
+
+
+def test_mcrs_eval_on_a_full_disk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``mcrs-eval`` on a full disk printed 86 lines of OSError."""
+    import errno
+
+    import mcrs.evaluate
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(mcrs.evaluate, "write_results", full)
+    out = tmp_path / "out"
+    message = _refused(monkeypatch, tmp_path, "mcrs.evaluate", "episodes=1", "figures=false", "env.max_steps=5",
+                       f"hydra.run.dir={out}")  # fmt: skip
+    assert message == f"mcrs-eval: error: cannot write {out}: No space left on device", message
+
+
+def test_the_documented_counts_are_the_suites() -> None:
+    """README.md and docs/RELIABILITY.md state the refused overrides (campaign files and command line) and
+    the kill points of a run's end that these tests try."""
+    from tests.test_bad_inputs_tools import BAD_CAMPAIGN_OVERRIDES
+
+    overrides = len(BAD_CAMPAIGN_OVERRIDES) + COMMAND_LINE_REFUSALS
+    root = Path(__file__).resolve().parents[1]
+    for doc in ("README.md", "docs/RELIABILITY.md"):
+        text = " ".join((root / doc).read_text().split())
+        found = {int(n) for n in re.findall(r"(\d+) refused overrides", text)}
+        assert found == {overrides}, (
+            f"{doc} states {sorted(found)} refused overrides; the suite tries {overrides}"
+        )
+        kills = {int(n) for n in re.findall(r"(\d+) kill points", text)}
+        assert kills == {len(KILL_POINTS)}, (
+            f"{doc} states {sorted(kills)} kill points; the suite has {len(KILL_POINTS)}"
+        )
