@@ -30,7 +30,7 @@ from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment import evaluation
 from mcrs.experiment.cli import one_line_errors, ranked, remove_refused_dirs
 from mcrs.experiment.evaluation import final_metrics
-from mcrs.experiment.rundir import register_resolvers
+from mcrs.experiment.rundir import describe_os_error, register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
@@ -470,6 +470,8 @@ def main(cfg: DictConfig) -> None:
     except ValueError as error:  # bad input: one clear message, no traceback, no directory left
         remove_refused_dirs(out_dir)
         raise SystemExit(f"mcrs-eval: error: {error}") from None
+    except OSError as error:  # a full disk, a read-only folder: one line, not the trace of the write
+        raise SystemExit(f"mcrs-eval: error: cannot write {out_dir}: {describe_os_error(error)}") from None
 
 
 if __name__ == "__main__":

@@ -158,10 +158,16 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
     if experiment.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
         print(f"note: {experiment.algorithm_note}")
     done = experiment.counters.env_steps
-    if resume and done >= cfg.train.total_env_steps:
+    if resume and experiment.finished:
         print(
             f"note: the run is already at {done:,} env steps (train.total_env_steps={cfg.train.total_env_steps:,}): "
             "nothing to train; pass a larger train.total_env_steps to train on",
+            flush=True,
+        )
+    elif resume and done >= cfg.train.total_env_steps:
+        print(
+            f"note: the run reached {done:,} env steps but stopped before its final evaluation: "
+            "evaluating and saving it now",
             flush=True,
         )
     result = experiment.run()
@@ -229,7 +235,32 @@ def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     except ConfigError as error:
         return [str(error).removeprefix("invalid config: ")]
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
-    return problems + budget_errors(cfg, explicit) + option_errors(cfg)
+    return problems + env_name_errors(cfg) + budget_errors(cfg, explicit) + option_errors(cfg)
+
+
+#: What makes a map a preset: a run named after a preset must have these values of it.
+PRESET_FIELDS = ("width", "height", "n_uavs", "n_targets", "n_no_fly")
+
+
+def env_name_errors(cfg: DictConfig) -> list[str]:
+    """``env.name`` names the run's directory and the map its records are filed under: a plain name, not
+    an interpolation (``${now:%H-%M}`` would file a map10 run under another name), and not a preset's name
+    (conf/env/) on a map that is not that preset's."""
+    if OmegaConf.is_interpolation(cfg.env, "name"):
+        raw = OmegaConf.to_container(cfg.env, resolve=False)["name"]
+        return [f"env.name={raw}: must be a plain name, not an interpolation: it names the run's directory "
+                "and the map its records are filed under"]  # fmt: skip
+    name = str(cfg.env.name)
+    preset = Path(CONFIG_DIR, "env", f"{name}.yaml")
+    if not preset.is_file():
+        return []
+    values = OmegaConf.load(preset)
+    differ = [f"{f}={cfg.env.get(f)!r} (the preset's {values.get(f)!r})" for f in PRESET_FIELDS
+              if f in values and cfg.env.get(f) != values.get(f)]  # fmt: skip
+    if not differ:
+        return []
+    return [f"env.name={name!r} names the preset env={name}, but this run has {', '.join(differ)}: a run may "
+            f"not pass for a map it is not; choose env={name}, or another name"]  # fmt: skip
 
 
 def option_errors(cfg: DictConfig) -> list[str]:

@@ -25,7 +25,7 @@ from mcrs.experiment.algorithms import (
     register_algorithm,
 )
 from mcrs.experiment.callbacks import Callback
-from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.experiment.checkpoint import CheckpointError, save_atomic
 from mcrs.experiment.config import ConfigError, compose, validate
 from mcrs.experiment.learner import Learner
 from mcrs.experiment.trainer import Experiment
@@ -458,7 +458,8 @@ def test_a_setting_added_to_an_algorithm_after_its_checkpoint_is_said_on_resume(
         path = tmp_path / "checkpoints" / "last.pt"
         state = torch.load(path, weights_only=False)
         del state["fingerprint"]["algo.options.note"]  # as the class was when the checkpoint was written
-        torch.save(state, path)
+        whole = {k: v for k, v in state.items() if k not in ("format", "version", "checksum")}
+        save_atomic(whole, path)  # a whole file, its checksum its own
         longer = compose("algo=qmix", *TINY, "algo.name=clipped_qmix", "train.total_env_steps=80")
         with caplog.at_level("INFO", logger="mcrs.run"):
             Experiment(longer, tmp_path, resume=True).close()

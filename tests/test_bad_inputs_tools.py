@@ -69,6 +69,31 @@ ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
 )  # 9 levels of 10: 10^9 strings once expanded, 700 bytes unexpanded
 DEEP = "x: " + "[" * 200 + "]" * 200 + "\n"
 
+#: Overrides a campaign file may not pass on (to mcrs-train, or to mcrs-eval in an evaluation's variants):
+#: config values only, never Hydra's settings, the run's identity or a path. Each a bad input.
+BAD_CAMPAIGN_OVERRIDES: list[tuple[str, str]] = [
+    (POINTS + "overrides: {all: ['+hydra.callbacks.x._target_=builtins.open']}\n", "overrides all: +hydra.callbacks.x._target_=builtins.open: a Hydra setting"),
+    (POINTS + "overrides: {all: ['hydra.output_subdir=../../../..']}\n", "overrides all: hydra.output_subdir=../../../..: a Hydra setting"),
+    (POINTS + "overrides: {qmix: ['~hydra.callbacks.run_dir_check']}\n", "overrides qmix: ~hydra.callbacks.run_dir_check: a Hydra setting"),
+    (POINTS + "overrides: {all: ['hydra.job_logging.handlers.file.filename=/tmp/x.log']}\n", "a Hydra setting"),
+    (POINTS + "overrides: {all: ['hydra/launcher=joblib']}\n", "overrides all: hydra/launcher=joblib: a Hydra setting"),
+    (POINTS + "overrides: {all: ['++hydra.run.dir=/tmp']}\n", "overrides all: ++hydra.run.dir=/tmp: a Hydra setting"),
+    (POINTS + "overrides: {all: ['resume=/tmp/run']}\n", "resume=/tmp/run: set by the tool for each run"),
+    (POINTS + "overrides: {all: ['overwrite=true']}\n", "overwrite=true: set by the tool for each run"),
+    (POINTS + "overrides: {all: ['seed=7']}\n", "seed=7: set by the tool for each run"),
+    (POINTS + "overrides: {all: ['env=map20']}\n", "env=map20: set by the tool for each run"),
+    (POINTS + "overrides: {all: ['env.name=${now:%H-%M}']}\n", "env.name=${now:%H-%M}: an interpolation"),
+    (POINTS + "overrides: {all: ['+algo.options.x=../../../etc']}\n", "'../../../etc' names a path"),
+    (POINTS + "overrides: {all: ['+algo.options.x=[1, /etc/passwd]']}\n", "'/etc/passwd' names a path"),
+    (POINTS + "overrides: {all: ['train.lr=0.1,0.2']}\n", "train.lr=0.1,0.2: a sweep of values"),
+    (POINTS + "overrides: {all: [3]}\n", "overrides all: 3"),
+    (POINTS + "overrides: {all: ['train.lr']}\n", "'train.lr': not an override key=value"),
+    (POINTS + "overrides: [a=1]\n", "overrides: a mapping of 'all' or an algorithm"),
+    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['hydra.sweep.dir=/tmp']"), "variant on: hydra.sweep.dir=/tmp: a Hydra setting"),
+    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['policy=../../run']"), "variant on: policy=../../run: set by the tool for each run"),
+    (POINTS + EVALUATION.replace("[env.no_fly_shield=true]", "['+hydra.callbacks.x._target_=os.remove']"), "a Hydra setting"),
+]  # fmt: skip
+
 #: (what the campaign file holds in place of a valid part, the error's text). Each a bad input.
 BAD_CAMPAIGN_FILES: list[tuple[str, str]] = [
     (POINTS + EVALUATION.replace("shield:", "'../../..':"), "evaluation name='../../..': must be a plain name"),
@@ -116,6 +141,7 @@ BAD_CAMPAIGN_FILES: list[tuple[str, str]] = [
     ("root:x:0:0:root:/root:/bin/bash\n", "not a campaign file"),  # any file, read as a mapping
     (POINTS.replace("figures:", "figure:"), "not a campaign file"),
     (POINTS + "evaluation: {}\n", "unknown keys ['evaluation']; allowed: ['budget', 'evaluations',"),
+    *BAD_CAMPAIGN_OVERRIDES,
     (ALIAS_BOMB, "holds YAML anchors or aliases"),
     (DEEP, "is nested deeper than 32 levels"),
     ("a: [1, 2\n", "is not a valid config (bad YAML"),

@@ -214,7 +214,7 @@ def test_a_foreign_checkpoint_is_refused_naming_the_first_difference(
     assert str(info.value).endswith(difference) and "\n" not in str(info.value)
     # A checkpoint written before fingerprints is judged by the config and weights it holds.
     state = torch.load(ckpt.checkpoint_path(run_dir), weights_only=True)
-    del state["fingerprint"]
+    del state["fingerprint"], state["checksum"]  # neither existed then
     torch.save(state, ckpt.checkpoint_path(run_dir))
     with pytest.raises(ckpt.CheckpointError, match="does not belong to this run") as info:
         _resume(run_dir)
@@ -228,7 +228,8 @@ def test_the_networks_are_part_of_the_fingerprint(qmix_run: Path, tmp_path: Path
     state = torch.load(ckpt.checkpoint_path(run_dir), weights_only=True)
     name = next(k for k in state["fingerprint"] if k.startswith("networks.mixer."))
     state["fingerprint"][name] = [1, 2, 3]
-    torch.save(state, ckpt.checkpoint_path(run_dir))
+    whole = {k: v for k, v in state.items() if k not in ("format", "version", "checksum")}
+    ckpt.save_atomic(whole, ckpt.checkpoint_path(run_dir))  # a whole file, its checksum its own
     with pytest.raises(ckpt.CheckpointError, match=f"{name}: \\[1, 2, 3\\] in the checkpoint"):
         _resume(run_dir)
     _resume(qmix_run).close()  # its own checkpoint is accepted

@@ -237,6 +237,11 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+#: A finite range or safety distance beyond this many cells is refused (inf means unlimited): any map is
+#: smaller, and the squares the fusion takes stay finite.
+MAX_DISTANCE = 1e9
+
+
 def validation_errors(cfg: EnvConfig) -> list[str]:
     """All problems of a config, one message each naming the field, the value and what is allowed."""
     errors: list[str] = []
@@ -261,6 +266,13 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         value = getattr(cfg, name)
         if not _is_number(value) or math.isnan(value) or value < 0:
             errors.append(f"{name}={value!r}: must be a distance >= 0 (inf allowed)")
+        elif MAX_DISTANCE < value < math.inf:  # squared distances of 1e308 overflow in the fusion
+            errors.append(f"{name}={value!r}: must be <= {MAX_DISTANCE:g} cells or inf (unlimited)")
+    if _is_number(cfg.p_detect) and _is_number(cfg.p_false_alarm) and cfg.p_detect < cfg.p_false_alarm:
+        errors.append(
+            f"p_detect={cfg.p_detect!r} < p_false_alarm={cfg.p_false_alarm!r}: the sensor would read "
+            "backwards (a target reported less often than an empty cell)"
+        )
     sight_ok = _is_number(cfg.sight_range) and 0 < cfg.sight_range < math.inf
     if not sight_ok and not any(e.startswith("sight_range") for e in errors):
         errors.append(f"sight_range={cfg.sight_range!r}: must be finite and > 0 (it normalises positions)")
@@ -320,6 +332,10 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         errors.append(f"device={cfg.device!r}: {problem}")
     if not errors:
         cells = cfg.width * cfg.height
+        if cells < 2:  # every one of the 8 moves leaves the grid: no action is allowed
+            errors.append(
+                f"width={cfg.width}, height={cfg.height}: a 1x1 map leaves a UAV no move: at least 2 cells"
+            )
         if cfg.n_targets + cfg.n_no_fly > cells:
             errors.append(
                 f"n_targets + n_no_fly = {cfg.n_targets} + {cfg.n_no_fly} > {cells} cells: "

@@ -2,10 +2,15 @@
 
 A checkpoint is a plain dict of tensors, numbers, strings and nested dicts; ``FORMAT`` and ``VERSION``
 mark it as ours so a foreign or truncated file is refused with a clear error instead of a crash later.
+Each top-level entry's data (tensor bytes included: torch reads a zip member without checking its CRC)
+has a SHA-256 written with the file (``checksum``) and checked before the entry is used, so a flipped
+byte is refused naming the entry instead of resuming with damaged weights.
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import os
 import re
 import tempfile
@@ -23,8 +28,76 @@ VERSION = 1
 LAST = "last.pt"
 
 
+#: The hash of each entry's data (``checksum.entries``); a file without ``checksum`` predates them.
+CHECKSUM = "sha256"
+#: Folders whose checkpoints were said to predate checksums (said once per folder, not per file).
+_UNVERIFIED: set[Path] = set()
+
+
 class CheckpointError(ValueError):
     """A file that is not a usable mcrs checkpoint."""
+
+
+def digest(value: Any) -> str:
+    """SHA-256 of ``value``'s data: every tensor's dtype, shape and bytes, every other value's type and
+    ``repr``, mappings and sequences in their order (which ``torch.save`` and ``torch.load`` keep)."""
+    sha = hashlib.sha256()
+    _feed(sha, value)
+    return sha.hexdigest()
+
+
+def _feed(sha: Any, value: Any) -> None:
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach()
+        sha.update(f"T{tensor.dtype}{tuple(tensor.shape)};".encode())
+        if tensor.numel():
+            flat = tensor.cpu().contiguous().reshape(-1)
+            sha.update(flat.view(torch.uint8).numpy().data)
+    elif isinstance(value, Mapping):
+        sha.update(b"{")
+        for key, item in value.items():
+            _feed(sha, key)
+            _feed(sha, item)
+        sha.update(b"}")
+    elif isinstance(value, (list, tuple)):
+        sha.update(b"[" if isinstance(value, list) else b"(")
+        for item in value:
+            _feed(sha, item)
+        sha.update(b"]")
+    else:
+        sha.update(f"{type(value).__name__}:{value!r};".encode())
+
+
+def verify(state: Mapping[str, Any], path: str | Path, entries: Any = None) -> None:
+    """Check ``entries`` of ``state`` (all of them by default) against the checksum written with the file;
+    refuse a damaged entry in one line naming the file and the entry. A file written before checksums
+    existed is read as before, said once in the run's log."""
+    path = Path(path)
+    checksum = state.get("checksum")
+    if checksum is None:
+        if path.parent not in _UNVERIFIED:
+            _UNVERIFIED.add(path.parent)
+            logging.getLogger("mcrs.run").info(
+                "%s was written before checksums existed: its data is read unverified (as are the other "
+                "such files in %s)",
+                path,
+                path.parent,
+            )
+        return
+    expected = checksum.get("entries") if isinstance(checksum, Mapping) else None
+    if not isinstance(expected, Mapping) or checksum.get("algorithm") != CHECKSUM:
+        raise CheckpointError(f"checkpoint {path}: entry checksum: not a {CHECKSUM} checksum of its entries")
+    names = [k for k in state if k != "checksum"] if entries is None else list(entries)
+    for name in [*names, *(k for k in expected if entries is None and k not in state)]:
+        if name not in state:
+            raise CheckpointError(f"checkpoint {path}: entry {name}: in its checksum but not in the file")
+        if name not in expected:
+            raise CheckpointError(f"checkpoint {path}: entry {name}: not covered by its checksum: refused")
+        if digest(state[name]) != expected[name]:
+            raise CheckpointError(
+                f"checkpoint {path}: entry {name}: its data does not match the checksum written with it: "
+                "the file is damaged; refused (use an earlier checkpoint or run again)"
+            )
 
 
 def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
@@ -36,8 +109,10 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
     try:
         with os.fdopen(fd, "wb") as handle:
             writer = _Writer(handle)
+            whole = {"format": FORMAT, "version": VERSION, **payload}
+            whole["checksum"] = {"algorithm": CHECKSUM, "entries": {k: digest(v) for k, v in whole.items()}}
             try:
-                torch.save({"format": FORMAT, "version": VERSION, **payload}, writer)
+                torch.save(whole, writer)
             except RuntimeError:  # torch reports a failed write as "unexpected pos": give the OS's reason
                 if writer.error is not None:
                     raise writer.error from None
@@ -86,9 +161,16 @@ def remove_stale_temporaries(directory: str | Path) -> list[Path]:
     return stale
 
 
-def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool = False) -> dict[str, Any]:
+def load(
+    path: str | Path,
+    map_location: str | torch.device = "cpu",
+    mmap: bool = False,
+    verify_data: bool | None = None,
+) -> dict[str, Any]:
     """Read a checkpoint without executing code; refuse anything that is not ours. ``mmap=True`` maps
-    the tensors instead of reading them (cheap when only a part, e.g. the episodic buffer, is needed)."""
+    the tensors instead of reading them (cheap when only a part, e.g. the counters, is needed).
+    ``verify_data`` (default: unless mapped, where reading every byte would undo the saving) checks every
+    entry against its checksum (:func:`verify`); a caller that maps and then uses an entry verifies it."""
     path = Path(path)
     try:
         if not path.is_file():
@@ -112,6 +194,9 @@ def load(path: str | Path, map_location: str | torch.device = "cpu", mmap: bool 
         raise CheckpointError(
             f"{path} has checkpoint version {payload.get('version')}; this mcrs reads {VERSION}"
         )
+    check = not mmap if verify_data is None else verify_data
+    if check:
+        verify(payload, path)
     return payload
 
 
@@ -154,6 +239,8 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
     path = checkpoint_path(run_dir)
     before = path.stat().st_size if path.is_file() else 0
     state = load(path, mmap=True)  # the bulk is mapped, never read into memory
+    # what is kept is written with a new checksum: it is checked first (the entries dropped whole are not)
+    verify(state, path, [k for k in state if k != "checksum" and k not in BULK])
     dropped = []
     for dotted in BULK:
         *parents, last = dotted.split(".")
@@ -166,7 +253,7 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
     if not dropped:
         return before, before
     state["pruned"] = {"dropped": dropped, "bytes_before": before}
-    state = {k: v for k, v in state.items() if k not in ("format", "version")}
+    state = {k: v for k, v in state.items() if k not in ("format", "version", "checksum")}
     save_atomic(state, path)
     if "replay_blocks" in dropped:  # the replay's block files beside last.pt (mcrs.experiment.replay_store)
         for block in path.parent.glob("replay_*_*.pt"):
@@ -215,6 +302,17 @@ def refuse_pre_release(state: dict[str, Any], path: str | Path) -> dict[str, Any
             "'callbacks'); it cannot be resumed: start a new run"
         )
     return state
+
+
+def awaits_final_evaluation(state: Mapping[str, Any]) -> bool:
+    """Whether ``state`` (a ``last.pt``) was saved after the run's last collector batch but before its
+    final evaluation: a kill in that window leaves a run at its length that is not finished. A checkpoint
+    written before ``last_eval_step`` was saved says nothing here (False)."""
+    counters = state.get("counters")
+    step = state.get("last_eval_step", -1)
+    if not isinstance(counters, Mapping) or step == -1:
+        return False
+    return step != counters.get("env_steps")
 
 
 def weights_path(run_dir: str | Path, env_steps: int) -> Path:

@@ -20,17 +20,30 @@ import difflib
 import functools
 import os
 import shutil
-from collections.abc import Callable, Sequence
+import sys
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import Override, OverrideType
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
-from mcrs.experiment.rundir import LOCK, describe_os_error, fresh_problem, lock_holder, resume_problem
+from mcrs.experiment.rundir import (
+    LOCK,
+    RunDirError,
+    claim_run_dir,
+    describe_os_error,
+    fresh_problem,
+    lock_holder,
+    release_claims,
+    resume_problem,
+)
 from mcrs.experiment.sweep import sweep_jobs
+from mcrs.experiment.untrusted import PLAIN_NAME
 
 F = TypeVar("F", bound=Callable[..., Any])
 #: Files Hydra (and the sweep's progress, mcrs.experiment.sweep) writes into a run or sweep directory before
@@ -143,6 +156,10 @@ def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F
     Ctrl-C that reaches the wrapper (Hydra composing, the task's first imports) prints ``<command>: SIGINT:
     <interrupted>``, removes what the command made and exits 130, without a traceback.
 
+    Before Hydra starts, the command line's overrides of Hydra's own config are judged
+    (:func:`command_line_problems`): a callback would run, and a log or ``.hydra/`` moved out of the run
+    would be written, before any check of the command's.
+
     Hydra prints its own report unless ``HYDRA_FULL_ERROR=1``, in which case it re-raises: the wrapper
     sets it for the call so that it receives the exception. A user who sets it gets Hydra's full trace.
     """
@@ -150,6 +167,9 @@ def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F
     def wrap(hydra_main: F) -> F:
         @functools.wraps(hydra_main)
         def entry(*args: Any, **kwargs: Any) -> Any:
+            refused = command_line_problems(sys.argv[1:])
+            if refused:  # before Hydra instantiates a callback or writes anything
+                raise SystemExit(f"{command}: error: {refused[0]}")
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
                 return hydra_main(*args, **kwargs)
             before = os.environ.get("HYDRA_FULL_ERROR")
@@ -174,6 +194,113 @@ def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F
         return entry  # type: ignore[return-value]
 
     return wrap
+
+
+# ------------------------------------------------------------------------------ overrides of Hydra
+#: Logging settings a command line may change: levels, not where or through what the records go.
+LOGGING_KEYS = {"level", "propagate", "disable_existing_loggers"}
+
+
+def _under(key: str, node: str) -> bool:
+    return key == node or key.startswith(node + ".")
+
+
+def _parsed(overrides: Sequence[str]) -> list[Override]:
+    """The overrides Hydra's grammar reads; one it cannot read is left for Hydra to report."""
+    parser, out = OverridesParser.create(), []
+    for text in overrides:
+        try:
+            out.append(parser.parse_override(text))
+        except (HydraException, ValueError):
+            continue
+    return out
+
+
+def _inside_path(value: object) -> bool:
+    """A path that stays inside the folder it is joined to: relative, no ``..``, no ``~`` or ``${``."""
+    if not isinstance(value, str) or not value or "${" in value or value.startswith("~"):
+        return False
+    path = Path(value)
+    return not path.is_absolute() and ".." not in path.parts
+
+
+def hydra_override_problem(override: Override) -> str | None:
+    """What is wrong with a command-line override of Hydra's own config: a callback (code Hydra
+    instantiates before the command checks anything), a log handler, or Hydra's files or log moved out of
+    the run directory. ``hydra.run.dir``, the launcher, the sweeper and the levels of the logs stay free."""
+    key, text = override.key_or_group, override.input_line or override.key_or_group
+    if "hydra" in str(override.package or "").split("."):
+        return f"{text}: a config placed into Hydra's own settings: refused"
+    if key == "hydra" or _under(key, "hydra.callbacks"):
+        return (
+            f"{text}: adds, changes or removes a Hydra callback, code Hydra runs before the command checks "
+            "anything: refused (the command's own callbacks are fixed)"
+        )
+    for node in ("hydra.job_logging", "hydra.hydra_logging"):
+        if _under(key, node) and key.rsplit(".", 1)[-1] not in LOGGING_KEYS:
+            return (
+                f"{text}: the command's log is written in its run directory through its own handlers; "
+                f"only levels may be set ({node}.root.level=WARNING)"
+            )
+    if key == "hydra.output_subdir" and override.type != OverrideType.DEL:
+        value = None if override.is_sweep_override() else override.value()
+        if override.is_sweep_override() or (value is not None and not _inside_path(value)):
+            return (
+                f"{text}: Hydra's files go in a folder inside the run directory: a relative path without "
+                "'..', '~' or '${...}' (.hydra), or null for none"
+            )
+    if key == "hydra.job.name":
+        value = None if override.is_sweep_override() else override.value()
+        if not isinstance(value, str) or not PLAIN_NAME.fullmatch(value):
+            return f"{text}: the job's name names its log file in the run directory: a plain name (letters, digits, _ . + = -)"
+    return None
+
+
+def command_line_problems(argv: Sequence[str]) -> list[str]:
+    """The overrides of a command line (``key=value`` and ``~key`` arguments, not options) that
+    :func:`hydra_override_problem` refuses, each one line."""
+    texts = [a for a in argv if ("=" in a or a.startswith("~")) and not a.startswith("-")]
+    return [p for p in map(hydra_override_problem, _parsed(texts)) if p]
+
+
+def _strings(value: object) -> list[str]:
+    if isinstance(value, dict):
+        return [s for k, v in value.items() for s in (*_strings(k), *_strings(v))]
+    if isinstance(value, (list, tuple)):
+        return [s for v in value for s in _strings(v)]
+    return [value] if isinstance(value, str) else []
+
+
+def file_override_problem(text: object, reserved: Collection[str]) -> str | None:
+    """What is wrong with an override read from a file someone else wrote (a campaign file): it sets config
+    values only. No Hydra setting (``hydra.*``, ``+hydra.*``, ``~hydra.*``, ``hydra/...``: callbacks, output
+    and log folders), no ``resume``/``overwrite``, none of ``reserved`` (what the tool sets for each run),
+    no interpolation and no value that names a path."""
+    if not isinstance(text, str):
+        return f"{text!r}: an override is a string key=value"
+    parsed = _parsed([text])
+    if not parsed:
+        return f"{text!r}: not an override key=value (the syntax: {GRAMMAR})"
+    override = parsed[0]
+    key = override.key_or_group
+    root = key.replace("/", ".").split(".", 1)[0]
+    if root == "hydra" or "hydra" in str(override.package or "").split("."):
+        return (
+            f"{text}: a Hydra setting (callbacks, output and log folders): a campaign file sets config values "
+            "only; where the runs and their files go is the campaign's"
+        )
+    if key in {"resume", "overwrite", *reserved}:
+        allowed = ", ".join(sorted({"resume", "overwrite", *reserved}))
+        return f"{text}: set by the tool for each run ({allowed}): not in a campaign file"
+    value = None if override.is_sweep_override() else override.value()
+    if override.is_sweep_override():
+        return f"{text}: a sweep of values: a campaign file sets one value per override"
+    for string in _strings(value):
+        if "${" in string:
+            return f"{text}: an interpolation (${{...}}): a campaign file sets plain values"
+        if "/" in string or "\\" in string or string.startswith("~") or string == "..":
+            return f"{text}: {string!r} names a path: a campaign file sets config values, not paths"
+    return None
 
 
 # --------------------------------------------------------------------------------- run directories
@@ -205,6 +332,12 @@ class RunDirCheck(Callback):
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
         self._make(run_dir)
+        if self.fresh_run:  # mcrs-train: the run is this process's before Hydra writes .hydra/ or the log
+            try:
+                claim_run_dir(Path(str(resume)).expanduser() if resume is not None else run_dir)
+            except RunDirError as error:
+                remove_refused_dirs()
+                raise SystemExit(f"{self.command}: error: {error}") from None
 
     def _invalid(self, config: DictConfig, run_dir: Path) -> str | None:
         """A config the command will refuse, judged before Hydra rewrites the ``.hydra/`` files of the run
@@ -293,7 +426,9 @@ def remove_refused_dirs(run_dir: Path | None = None) -> None:
 
     Only what this process created goes: a directory that was there before the command (``out=`` or
     ``hydra.run.dir=`` naming a folder of one's own) is left as it is, Hydra's files in it included; a
-    directory with a run's lock or any other file is kept (a run may be starting in it)."""
+    directory with a run's lock or any other file is kept (a run may be starting in it). The run directory
+    this process claimed is released first (its lock file goes if the claim made it)."""
+    release_claims()
     if run_dir is not None:
         run_dir = Path(os.path.abspath(run_dir))
         if any(run_dir.is_relative_to(root) for _, root in _CREATED):

@@ -109,6 +109,10 @@ __all__ = [
 ]
 
 
+#: Learning rates above this are refused: no optimiser here takes a step larger than the parameters.
+MAX_LR = 1.0
+
+
 def _positive(errors: list[str], name: str, value: float, allow_zero: bool = False) -> None:
     ok = value >= 0 if allow_zero else value > 0
     if not ok or (isinstance(value, float) and not math.isfinite(value)):
@@ -232,6 +236,9 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
         "checkpoint_interval",
     ):  # fmt: skip
         _positive(errors, f"train.{name}", getattr(t, name))
+    for name, lr in (("train.lr", t.lr), ("algo.memory.embedding_lr", cfg.algo.memory.embedding_lr)):
+        if math.isfinite(lr) and lr > MAX_LR:  # RMSprop's squared gradients overflow at 1e300
+            errors.append(f"{name}={lr}: must be <= {MAX_LR:g} (a larger step diverges at once)")
     _positive(errors, "train.updates_per_episode", t.updates_per_episode, allow_zero=True)
     _positive(errors, "train.checkpoint_minutes", t.checkpoint_minutes, allow_zero=True)
     if t.keep_checkpoints < 0:

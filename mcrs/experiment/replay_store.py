@@ -106,6 +106,7 @@ class ReplayStore:
 
         if len(buffer):
             raise ValueError("ReplayStore.load needs an empty buffer")
+        check_manifest(manifest)
         if int(manifest["block_episodes"]) != self.block_episodes:
             raise ckpt.CheckpointError(
                 f"the saved replay has blocks of {manifest['block_episodes']} episodes, this run "
@@ -116,7 +117,7 @@ class ReplayStore:
             raise ValueError(f"the saved replay holds {n} episodes, more than this buffer's capacity")
         for block, name in enumerate(manifest["files"]):
             path = self.directory / name
-            payload = ckpt.load(path, mmap=True)
+            payload = ckpt.load(path, mmap=True, verify_data=True)  # its episodes are used: checked
             if payload.get("replay_block") != block:
                 raise ckpt.CheckpointError(
                     f"{path} is not block {block} of this run's replay (it says {payload.get('replay_block')!r})"
@@ -139,3 +140,24 @@ class ReplayStore:
         self.files = list(manifest["files"])
         self.generation = int(manifest["generation"])
         self._dirty.clear()
+
+
+def check_manifest(manifest: Any) -> None:
+    """A ``replay_blocks`` manifest read from ``last.pt``: whole numbers >= 0 and block files named as this
+    module names them (a plain name in the run's ``checkpoints/``), so that a manifest naming
+    ``../../other_run/...`` never reads another run's replay. Refused naming the entry."""
+    if not isinstance(manifest, dict):
+        raise ckpt.CheckpointError("entry replay_blocks: not a mapping")
+    for key in ("length", "block_episodes", "generation"):
+        value = manifest.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ckpt.CheckpointError(f"entry replay_blocks.{key}: {value!r} is not a whole number >= 0")
+    files = manifest.get("files")
+    if not isinstance(files, list):
+        raise ckpt.CheckpointError("entry replay_blocks.files: not a list of file names")
+    for k, name in enumerate(files):
+        if not isinstance(name, str) or not _BLOCK_FILE.match(name):
+            raise ckpt.CheckpointError(
+                f"entry replay_blocks.files[{k}]: {name!r} is not a block file of this run "
+                "(replay_<block>_<generation>.pt in its checkpoints/ folder): refused"
+            )

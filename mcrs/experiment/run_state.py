@@ -9,6 +9,7 @@ reads the attributes ``Experiment`` builds (config, task, learner, replay, callb
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -35,6 +36,74 @@ RESUME_ADVICE = {
 }
 
 
+#: Counters beyond this are no run's (int64 arithmetic on them must stay exact).
+MAX_COUNTER = 2**62
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_COUNTER
+
+
+def check_resume_state(state: dict[str, Any], path: Path) -> None:
+    """The counters, random state and bookkeeping of a checkpoint, checked for type, sign, size and
+    finiteness before any is used: a damaged or edited file is one line naming the file and the entry,
+    not a run that counts from -1000, a NaN credit of updates or a traceback from torch."""
+
+    def refuse(entry: str, value: Any, rule: str) -> None:
+        shown = (
+            repr(value)
+            if not isinstance(value, torch.Tensor)
+            else f"a {value.dtype} tensor of {value.numel()}"
+        )
+        raise ckpt.CheckpointError(f"{path}: entry {entry}: {shown} {rule}")
+
+    counters = state.get("counters")
+    if not isinstance(counters, dict):
+        refuse("counters", counters, "is not a mapping of counters")
+    for field in fields(Counters):
+        if field.name not in counters:
+            continue
+        value = counters[field.name]
+        if field.name == "update_credit":
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if not number or not math.isfinite(value) or not 0 <= value <= MAX_COUNTER:
+                refuse(f"counters.{field.name}", value, "is not a finite number >= 0")
+        elif not _whole(value):
+            refuse(f"counters.{field.name}", value, "is not a whole number >= 0")
+    rng = state.get("rng")
+    if not isinstance(rng, dict):
+        refuse("rng", rng, "is not a mapping of random states")
+    size = torch.get_rng_state().numel()
+    states = [("rng.torch", rng.get("torch"), size)]
+    if "cuda" in rng and torch.cuda.is_available():
+        cuda = rng["cuda"]
+        if not isinstance(cuda, (list, tuple)):
+            refuse("rng.cuda", cuda, "is not a list of random states")
+        sizes = [s.numel() for s in torch.cuda.get_rng_state_all()]
+        states += [(f"rng.cuda[{k}]", s, sizes[k] if k < len(sizes) else -1) for k, s in enumerate(cuda)]
+    for entry, value, expected in states:
+        if not isinstance(value, torch.Tensor) or value.dtype != torch.uint8 or value.shape != (expected,):
+            refuse(entry, value, f"is not a random state (a uint8 tensor of {expected} bytes)")
+    step = state.get("last_eval_step")
+    if step is not None and not _whole(step):
+        refuse("last_eval_step", step, "is not a whole number >= 0")
+    last_eval = state.get("last_eval", {})
+    if not isinstance(last_eval, dict) or not all(
+        isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool)
+        for k, v in last_eval.items()
+    ):
+        refuse("last_eval", last_eval, "is not a mapping of metric names to numbers")
+    rows = state.get("logs", {}).get("rows") if isinstance(state.get("logs"), dict) else None
+    if rows is not None and (
+        not isinstance(rows, dict) or not all(isinstance(k, str) and _whole(v) for k, v in rows.items())
+    ):
+        refuse("logs.rows", rows, "is not a mapping of log names to row counts >= 0")
+
+
+#: ``last_eval_step`` of a checkpoint written before it was saved: the step is read from the eval log.
+LEGACY_EVAL_STEP = -1
+
+
 class RunState:
     """The checkpoint half of :class:`~mcrs.experiment.trainer.Experiment`: :meth:`state_dict`,
     :meth:`load_state_dict`, :meth:`save`, :meth:`fingerprint` and the resume's random state."""
@@ -50,7 +119,7 @@ class RunState:
             "learner": self.learner.state_dict(),
             "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
             "last_eval": dict(self.last_eval),
-            "evaluated_at": self._evaluated_at,  # the step of the last evaluation logged (one row a step)
+            "last_eval_step": self._last_eval_step,  # a run is finished once it is its final step
             "rng": {"torch": torch.get_rng_state()},
         }
         if torch.cuda.is_available():
@@ -138,9 +207,9 @@ class RunState:
         known = {f.name for f in fields(Counters)}
         self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
-        evaluated_at = state.get("evaluated_at")  # None in checkpoints written before it was kept
-        if isinstance(evaluated_at, int) and evaluated_at == self.counters.env_steps:
-            self._evaluated_at = evaluated_at  # evaluate() right after the resume adds no second row
+        self._last_eval_step = state.get("last_eval_step", LEGACY_EVAL_STEP)
+        if self._last_eval_step == self.counters.env_steps:  # its row is logged: evaluate() right after the
+            self._evaluated_at = self._last_eval_step  # resume adds no second row at this step
         self.epsilon.set_env_steps(self.counters.env_steps)
 
     def _check_callbacks(self, saved: dict[str, Any]) -> None:
@@ -170,6 +239,7 @@ class RunState:
         state = ckpt.load_resumable(
             path, self.fingerprint(), self.fingerprint, self.device, advice=RESUME_ADVICE
         )
+        check_resume_state(state, path)  # before anything is restored
         self._resume_rng = state["rng"]  # restored last (_restore_rng), once everything is built
         saved, ours = state.get("fingerprint") or {}, self.fingerprint()
         added = [k for k in ours if k.startswith("algo.options.") and saved and k not in saved]
@@ -186,6 +256,29 @@ class RunState:
         rows = state.get("logs", {}).get("rows")
         with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
             self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
+
+    def final_evaluation_written(self) -> bool:
+        """Whether the run's final evaluation is done: its last evaluation is at the current env step.
+
+        A run killed between its last checkpoint (at ``train.total_env_steps`` when that is a multiple of
+        ``checkpoint_interval``) and its final evaluation has reached its length without it. A checkpoint
+        written before ``last_eval_step`` was saved is judged by the last row of its evaluation log (CSV);
+        without that log, by whether it holds an evaluation, as before."""
+        step = self.counters.env_steps
+        if self._last_eval_step != LEGACY_EVAL_STEP:
+            return bool(self.last_eval) and self._last_eval_step == step
+        rows = self._log_rows.get("eval/episode_reward")
+        log = self.run_dir / "logs" / "scalars" / "eval" / "episode_reward.csv"
+        if not rows or not log.is_file():
+            return bool(self.last_eval)
+        log_event(f"{ckpt.checkpoint_path(self.run_dir)} was written before checkpoints named their last "
+                  f"evaluation's step: judged by {log}")  # fmt: skip
+        with open(log) as f:
+            kept = [line for line in f.read().splitlines() if line][:rows]
+        try:
+            return bool(kept) and float(kept[-1].split(",")[0]) == step
+        except ValueError:
+            return bool(self.last_eval)
 
     def _restore_rng(self) -> None:
         """The checkpoint's random state, put back last: building the run may draw random numbers."""

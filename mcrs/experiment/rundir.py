@@ -134,6 +134,36 @@ def beside_run(policy: Any, kind: str, default: str) -> str:
     return str(run / kind) if run is not None else default
 
 
+#: Run directories this process claimed before Hydra wrote into them (:func:`claim_run_dir`), by their
+#: resolved path: the lock and whether this process created the lock file.
+_CLAIMED: dict[Path, tuple[RunLock, bool]] = {}
+
+
+def _key(run_dir: str | Path) -> Path:
+    return Path(os.path.abspath(run_dir)).resolve()
+
+
+def claim_run_dir(run_dir: str | Path) -> None:
+    """Take ``run_dir``'s lock now, before Hydra writes ``.hydra/`` and the log there: a second command
+    started into the same directory (while this one still loads torch) is refused before it writes
+    anything. :class:`RunLock` of this process then takes the claim over; :func:`release_claims` drops it
+    for a command refused before it ran. Raises :class:`RunDirError` naming the holder."""
+    key = _key(run_dir)
+    if key in _CLAIMED:
+        return
+    existed = (key / LOCK).exists()
+    _CLAIMED[key] = (RunLock(run_dir), not existed)
+
+
+def release_claims() -> None:
+    """Drop the claims of a command refused before its run started; a lock file the claim created goes."""
+    for key, (lock, created) in list(_CLAIMED.items()):
+        if created and lock.fd is not None:
+            (key / LOCK).unlink(missing_ok=True)  # while still held: no other process relies on it
+        lock.release()
+    _CLAIMED.clear()
+
+
 class RunLock:
     """An exclusive advisory lock on a run directory, held until :meth:`release` or process exit."""
 
@@ -142,6 +172,10 @@ class RunLock:
 
         self.fd: int | None = None
         self.path = Path(run_dir) / LOCK
+        claimed = _CLAIMED.pop(_key(run_dir), None)
+        if claimed is not None and claimed[0].fd is not None:  # this process's claim: taken over
+            self.fd, claimed[0].fd = claimed[0].fd, None
+            return
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)

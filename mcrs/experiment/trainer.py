@@ -186,6 +186,7 @@ class Experiment(RunState):
             next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes
         )
         self.last_eval: dict[str, float] = {}
+        self._last_eval_step: int | None = None  # the env step of last_eval (saved in checkpoints)
         self._evaluated_at: int | None = None  # the env step of this process's last evaluation
         self._batch_keys_checked = False  # the callbacks' batch keys are checked on the first update
         self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
@@ -241,11 +242,19 @@ class Experiment(RunState):
         raise KeyError(f"no callback {name!r}; this experiment has {[c.name for c in self.callbacks]}")
 
     # ------------------------------------------------------------------ the loop
+    @property
+    def finished(self) -> bool:
+        """Whether the run is complete: at ``train.total_env_steps`` with its final evaluation written (a
+        run killed between its last checkpoint and its final evaluation is not)."""
+        return (
+            self.counters.env_steps >= self.config.train.total_env_steps and self.final_evaluation_written()
+        )
+
     def run(self) -> dict[str, float]:
         """Train until ``train.total_env_steps``; returns the last evaluation's metrics."""
         t, c = self.config.train, self.counters
         self._session_start_steps = c.env_steps
-        if c.env_steps >= t.total_env_steps and self.last_eval:  # a resumed run that had finished
+        if self.finished:  # a resumed run that had finished
             log_event(f"the run is finished at env step {c.env_steps}: nothing to train, evaluate or save")
             self._evaluated_at = c.env_steps  # its final evaluation is logged at this step
             self.collector.shutdown()
@@ -415,6 +424,7 @@ class Experiment(RunState):
         would move its threshold twice)."""
         start = time.perf_counter()
         self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task)
+        self._last_eval_step = self.counters.env_steps
         if self._evaluated_at == self.counters.env_steps:
             self._timer["eval"] += time.perf_counter() - start
             return dict(self.last_eval)

@@ -38,6 +38,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from mcrs.experiment.atomic import ChangedSinceRead, write_bytes_atomic, write_if_unchanged
 from mcrs.experiment.untrusted import UntrustedInput, confined
 from mcrs_lab.analysis import report
 
@@ -213,28 +214,28 @@ def _image_path(doc: Path, block: Block) -> Path:
 
 def update(doc: Path) -> int:
     """Rewrite every generated table of ``doc``, and every generated figure's image, from the records
-    (each file atomically, and nothing when one cannot be made); how many changed."""
-    text = doc.read_text()
+    (each file atomically, and nothing when one cannot be made); how many changed. The document is
+    replaced only if it is as it was read (:func:`write_if_unchanged`): an edit made while the tables were
+    generated is kept and the update refused."""
+    read = doc.read_bytes()
+    text = read.decode()
     blocks = find_blocks(text)
-    fresh = generate(blocks, _root(doc))
+    fresh = generate(blocks, _root(doc))  # a minute or more: the document may be edited meanwhile
+    if doc.read_bytes() != read:  # before any image: an update refused writes nothing
+        raise ChangedSinceRead(f"{doc} changed since it was read: nothing written (the change is kept); run again")
     changed = 0
     for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
         made = fresh[block]
         if isinstance(made, bytes):
             image = _image_path(doc, block)
             if not image.is_file() or image.read_bytes() != made:
-                image.parent.mkdir(parents=True, exist_ok=True)
-                partial = image.with_name(f".{image.name}.partial")
-                partial.write_bytes(made)
-                os.replace(partial, image)
+                write_bytes_atomic(image, made)  # drawn from the records alone
                 changed += 1
         elif made != block.body:
             text = text[: block.start] + made + text[block.end :]
             changed += 1
-    if changed:
-        partial = doc.with_name(f".{doc.name}.partial")
-        partial.write_text(text)
-        os.replace(partial, doc)
+    if text.encode() != read:
+        write_if_unchanged(doc, text.encode(), read)
     return changed
 
 
@@ -255,6 +256,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
             return 0
         diffs = check(args.doc)
+    except ChangedSinceRead as error:
+        raise SystemExit(f"mcrs-results: error: {error}") from None
     except (DocTableError, OSError, UnicodeDecodeError) as error:
         raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
     if diffs:

@@ -206,6 +206,14 @@ def _sessions(run_dir: Path) -> list[dict[str, Any]]:
 
 
 # -------------------------------------------------------------------------------------- records
+def _finished(checkpoint_steps: int | None, total: int, final_step: int | None) -> bool:
+    """At its length with its final evaluation logged: a run killed between its last checkpoint and its
+    final evaluation is stopped (a resume evaluates it), not finished."""
+    if checkpoint_steps is None or checkpoint_steps < total:
+        return False
+    return final_step is not None and final_step >= checkpoint_steps
+
+
 def training_record(run_dir: Path) -> dict[str, Any]:
     """The record of an ``mcrs-train`` run directory (finished, stopped or still running)."""
     runs = find_runs([run_dir])
@@ -237,7 +245,7 @@ def training_record(run_dir: Path) -> dict[str, Any]:
         "version": RECORD_VERSION,
         "kind": "training",
         "run_dir": _shown(run_dir),
-        "status": "finished" if checkpoint_steps is not None and checkpoint_steps >= total else "stopped",
+        "status": "finished" if _finished(checkpoint_steps, total, final_step) else "stopped",
         "total_env_steps": total,
         "checkpoint_env_steps": checkpoint_steps,  # where a resume would start
         "logged_env_steps": logged,  # the last step with a metric (past the checkpoint if stopped)

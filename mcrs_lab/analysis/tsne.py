@@ -39,6 +39,8 @@ class MemorySample:
 def _episodic_state(run: TrainingRun) -> dict:
     path = ckpt.checkpoint_path(run.path)
     payload = ckpt.refuse_pre_release(ckpt.load(path, mmap=True), path)
+    if "callbacks" in payload:  # mapped, then used: checked against the file's checksum
+        ckpt.verify(payload, path, ["callbacks"])
     if "memory" not in payload.get("callbacks", {}):
         raise ValueError(f"{run.path}: its last.pt holds no episodic memory (algo {run.algo_name})")
     return payload["callbacks"]["memory"]

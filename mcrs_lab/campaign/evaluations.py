@@ -34,9 +34,11 @@ from mcrs_lab.analysis.records import (
     write_record,
 )
 from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
-from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, load_campaign_file, plain
+from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, check_overrides, load_campaign_file, plain
 
 EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
+#: What ``EvaluationJob.command`` sets for each job: a variant's overrides may not.
+EVAL_KEYS = ("policy", "env", "episodes", "seed", "figures")
 
 
 @dataclass(frozen=True)
@@ -164,7 +166,8 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                 episodes=episodes,
                 seeds=tuple(seeds),
                 variants=tuple(
-                    (str(v), tuple(str(o) for o in _as_tuple(ov or ()))) for v, ov in variants.items()
+                    (str(v), check_overrides(ov or (), f"{where}: variant {v}", EVAL_KEYS))
+                    for v, ov in variants.items()
                 ),
             )
         )

@@ -15,6 +15,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from mcrs.experiment.cli import file_override_problem
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
 from mcrs_lab.analysis.records import point_name, swept_fields
@@ -159,6 +160,30 @@ def _as_list(value: Any) -> list[Any]:
     return list(value) if isinstance(value, (list, tuple)) else [value]
 
 
+#: What ``Point.train_command`` sets for each point: a campaign file's overrides may not.
+TRAIN_KEYS = ("experiment", "budget", "env", "algo", "seed", "threads")
+
+
+def check_overrides(overrides: Any, where: str, reserved: tuple[str, ...]) -> tuple[str, ...]:
+    """``overrides`` (a list of ``key=value``) as a tuple, each one a config value the tool may pass on:
+    no Hydra setting, no ``resume``/``overwrite``, none of ``reserved``, no path (``file_override_problem``
+    in mcrs.experiment.cli), else MatrixError naming ``where`` and the override."""
+    out = []
+    for override in _as_list(overrides):
+        problem = file_override_problem(override, reserved)
+        if problem:
+            raise MatrixError(f"{where}: {problem}")
+        out.append(str(override))
+    return tuple(out)
+
+
+def _overrides(spec: Any, path: Path) -> dict[str, tuple[str, ...]]:
+    """The campaign file's ``overrides:`` (``all`` and per algorithm), each checked."""
+    if not isinstance(spec, dict):
+        raise MatrixError(f"{path}: overrides: a mapping of 'all' or an algorithm to lists of overrides")
+    return {str(k): check_overrides(v, f"{path}: overrides {k}", TRAIN_KEYS) for k, v in spec.items()}
+
+
 def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str]]:
     """Every point of the campaign file (each once, in the file's order, seed by seed within a
     figure), and each figure's title."""
@@ -170,7 +195,7 @@ def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str
     budget = plain(spec.get("budget", "campaign"), f"{path}: budget")
     seeds = [_seed(s, str(path)) for s in _as_list(spec.get("seeds", [0]))]
     budget_steps(budget)  # an unknown budget fails here, naming the allowed ones
-    overrides = {str(k): tuple(str(o) for o in _as_list(v)) for k, v in (spec.get("overrides") or {}).items()}
+    overrides = _overrides(spec.get("overrides") or {}, path)
     figures = spec.get("figures") or {}
     if not isinstance(figures, dict):
         raise MatrixError(f"{path}: figures: a mapping of figure names to entries")

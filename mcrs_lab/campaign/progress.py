@@ -2,7 +2,8 @@
 
 - ``done``: a record of a finished run at the budget's length;
 - ``unrecorded``: the run finished but has no record yet (``mcrs-campaign run`` records it first);
-- ``partial``: a run directory with ``checkpoints/last.pt`` short of the budget: resumable;
+- ``partial``: a run directory with ``checkpoints/last.pt`` short of the budget, or at it without its final
+  evaluation (killed after its last batch): resumable;
 - ``missing``: nothing to resume (a record of a stopped run elsewhere is only noted).
 """
 
@@ -26,15 +27,17 @@ class Progress:
     note: str = ""
 
 
-def checkpoint_steps(run_dir: Path) -> int | None:
-    """The env steps in ``run_dir``'s ``last.pt`` (mapped, not read: it holds the replay), or None."""
+def checkpoint_steps(run_dir: Path) -> tuple[int | None, bool]:
+    """The env steps in ``run_dir``'s ``last.pt`` (mapped, not read: it holds the replay), or None, and
+    whether it still awaits its final evaluation (a kill after its last batch: resumed, not recorded)."""
     path = ckpt.checkpoint_path(run_dir)
     if not path.is_file():
-        return None
+        return None, False
     try:
-        return int(ckpt.load(path, mmap=True)["counters"]["env_steps"])
-    except (ckpt.CheckpointError, KeyError):
-        return None
+        state = ckpt.load(path, mmap=True)
+        return int(state["counters"]["env_steps"]), ckpt.awaits_final_evaluation(state)
+    except (ckpt.CheckpointError, KeyError, TypeError, ValueError):
+        return None, False
 
 
 def progress(point: Point, outputs: Path, records: Path, total_env_steps: int) -> Progress:
@@ -44,8 +47,8 @@ def progress(point: Point, outputs: Path, records: Path, total_env_steps: int) -
         if steps >= total_env_steps:
             return Progress(point, "done", steps, f"record of {record.get('run_dir')}")
     run_dir = point.run_dir(outputs)
-    steps = checkpoint_steps(run_dir)
-    if steps is not None and steps >= total_env_steps:
+    steps, awaiting = checkpoint_steps(run_dir)
+    if steps is not None and steps >= total_env_steps and not awaiting:
         return Progress(point, "unrecorded", steps, str(run_dir))
     if steps is not None:
         return Progress(point, "partial", steps, str(run_dir))
