@@ -398,7 +398,11 @@ def evaluate_run(
                 Reference(f"{name} (heuristic)", float(np.mean(values)), half, len(values), "episodes")
             )
     curve = plot_curves(
-        panels, out / "learning_curves.png", f"{env_config.name}: evaluations of the trained policy (greedy actions)", [label], references
+        panels,
+        out / "learning_curves.png",
+        f"{env_config.name}: evaluations of the trained policy (greedy actions)",
+        [label],
+        references,
     )
     pictures = write_figures(out, env_config.replace(num_envs=1), str(run_dir), seed)
     rewards = {name: r["episode_reward"] for name, r in labelled.items()}
@@ -438,7 +442,11 @@ def evaluate_task_report(
         references[metric] = [Reference("random", float(array.mean()), half, len(array), "episodes")]
     task = run_task_name(run_dir)
     curve = plot_curves(
-        panels, out / "learning_curves.png", f"{task}: evaluations of the trained policy (greedy actions)", [label], references
+        panels,
+        out / "learning_curves.png",
+        f"{task}: evaluations of the trained policy (greedy actions)",
+        [label],
+        references,
     )
     return out / "summary.md", curve, {name: r["episode_reward"] for name, r in results.items()}
 

@@ -129,7 +129,9 @@ def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
         assert len(list(csv.DictReader(f))) == 4 * 3
     summary = (tmp_path / "summary.md").read_text()
     assert "| lawnmower" in summary
-    assert "mean ± standard deviation over the episodes" in summary and "lower for final uncertainty" in summary
+    assert (
+        "mean ± standard deviation over the episodes" in summary and "lower for final uncertainty" in summary
+    )
     for policy in results:
         for name in ("scene.png", "uncertainty_contours.png", "episode.gif"):
             assert (tmp_path / policy / name).stat().st_size > 1000

@@ -222,7 +222,9 @@ def update(doc: Path) -> int:
     blocks = find_blocks(text)
     fresh = generate(blocks, _root(doc))  # a minute or more: the document may be edited meanwhile
     if doc.read_bytes() != read:  # before any image: an update refused writes nothing
-        raise ChangedSinceRead(f"{doc} changed since it was read: nothing written (the change is kept); run again")
+        raise ChangedSinceRead(
+            f"{doc} changed since it was read: nothing written (the change is kept); run again"
+        )
     changed = 0
     for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
         made = fresh[block]
