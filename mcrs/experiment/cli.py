@@ -63,18 +63,23 @@ GRAMMAR = "https://hydra.cc/docs/advanced/override_grammar/basic/"
 
 # --------------------------------------------------------------------------------------- messages
 def ranked(name: str, allowed: Sequence[str]) -> list[str]:
-    """``allowed`` with the close matches of ``name`` first (best first), the rest in their order."""
-    score = {a: difflib.SequenceMatcher(None, name, a).ratio() for a in allowed}
+    """``allowed`` with the close matches of ``name`` first (best first), the rest in their order; case
+    does not count (``QMIX`` is closest to ``qmix``)."""
+    score = {a: _similarity(name, a) for a in allowed}
     close = sorted(
         (a for a in allowed if score[a] >= CLOSE), key=lambda a: -score[a]
     )  # stable: ties keep order
     return close + [a for a in allowed if a not in close]
 
 
+def _similarity(name: str, other: str) -> float:
+    return difflib.SequenceMatcher(None, name.lower(), other.lower()).ratio()
+
+
 def listing(name: str, allowed: Sequence[str]) -> str:
     """``" (closest first): comm_range, comm_budget, ..."`` (every allowed name), or ``": a, b"`` when none is close."""
     order = ranked(name, allowed)
-    close = difflib.SequenceMatcher(None, name, order[0]).ratio() >= CLOSE if order else False
+    close = _similarity(name, order[0]) >= CLOSE if order else False
     return f"{' (closest first)' if close else ''}: {', '.join(order)}"
 
 
@@ -118,7 +123,11 @@ def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
     if not keys:
         return f"{full_key}: unknown key"
     where = f"the keys of {parent}" if parent else "the top-level keys"
-    return f"{full_key}: unknown key; {where}{listing(key, keys)}"
+    sections = (
+        [k for k in keys if isinstance(node.get(k), DictConfig) and key in node.get(k)] if not parent else []
+    )
+    hint = f" (did you mean {' or '.join(f'{k}.{key}' for k in sections)}?)" if sections else ""
+    return f"{full_key}: unknown key{hint}; {where}{listing(key, keys)}"
 
 
 def _bad_value(message: str, cause: ValidationError) -> str:
