@@ -422,3 +422,27 @@ def test_cli_bad_run_config_is_one_line(qmix_run: Path, tmp_path: Path) -> None:
     (run_dir / "config.yaml").write_text("seed: 0\nalgo:\n  lrr: 1\n")
     rc, _, err = _finish(start_train(f"resume={run_dir}", cwd=tmp_path))
     _assert_one_line_error(rc, err, "does not fit this mcrs's config")
+
+
+def test_a_log_write_on_a_full_disk_says_nothing_after_its_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A CSV log the disk refuses (/dev/full: every flush is ENOSPC) stops the run in one line; its file's
+    unwritten buffer used to fail again when the logger was collected (``Exception ignored in
+    CSVExperiment.__del__``). The run closes its log files, so nothing is left to fail."""
+    import gc
+
+    ignored: list[object] = []
+    monkeypatch.setattr(sys, "unraisablehook", ignored.append)
+    run_dir = tmp_path / "run"
+    trainer = Experiment(compose_config("train.total_env_steps=80", "train.checkpoint_interval=40"), run_dir)
+    experiment = trainer.logger.experiment
+    path = os.path.join(experiment.log_dir, "scalars", "train", "epsilon.csv")
+    handle = experiment.files[path] = open("/dev/full", "a+")  # noqa: SIM115 (the logger owns it)
+    with pytest.raises(RunDirError, match="No space left on device") as info:
+        trainer.run()
+    assert "\n" not in str(info.value)
+    assert handle.closed and experiment.files == {}
+    del trainer, experiment, handle, info
+    gc.collect()
+    assert ignored == []

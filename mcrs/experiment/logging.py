@@ -119,6 +119,22 @@ def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
         logger.log_scalar(name, float(value), step=step)
 
 
+def close_log_files(logger: Logger) -> None:
+    """Close the CSV logger's open files now. A write the disk refused leaves data in a file's buffer, and
+    TorchRL closes its files only when the logger is collected, where a second failure prints
+    ``Exception ignored in CSVExperiment.__del__`` after the run's one-line error: closing here, with that
+    error dropped (the run has already said it), leaves nothing to fail then. Another write reopens."""
+    files = getattr(getattr(logger, "experiment", None), "files", None)
+    if not isinstance(files, dict):
+        return
+    for handle in list(files.values()):
+        try:
+            handle.close()  # flushes; the file is closed even when the flush fails
+        except OSError:
+            pass
+    files.clear()
+
+
 def log_video(
     logger: Logger, run_dir: Path, name: str, frames: list[np.ndarray], step: int, fps: int = 5
 ) -> Path:

@@ -54,6 +54,7 @@ from mcrs.experiment.counters import Counters, batch_seed
 from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
 from mcrs.experiment.interrupt import RunInterrupted, StopSignals
 from mcrs.experiment.logging import (
+    close_log_files,
     log_event,
     log_scalars,
     make_logger,
@@ -145,7 +146,10 @@ class Experiment(RunState):
         return self.config
 
     def close(self) -> None:
-        """Release the run directory (done by :meth:`run`; the process's exit does it too)."""
+        """Close the log files and release the run directory (done by :meth:`run`; the process's exit
+        does it too)."""
+        if getattr(self, "logger", None) is not None:
+            close_log_files(self.logger)
         if self._lock is not None:
             self._lock.release()
             self._lock = None
