@@ -21,6 +21,7 @@ keeps it to warnings unless ``RL_LOGGING_LEVEL`` (TorchRL's own setting) asks ot
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import math
@@ -128,10 +129,8 @@ def close_log_files(logger: Logger) -> None:
     if not isinstance(files, dict):
         return
     for handle in list(files.values()):
-        try:
-            handle.close()  # flushes; the file is closed even when the flush fails
-        except OSError:
-            pass
+        with contextlib.suppress(OSError):  # the flush failed; the file is closed all the same
+            handle.close()
     files.clear()
 
 
