@@ -69,14 +69,20 @@ def _cell(value: float | None) -> str:
     return "" if value is None else f"{value:.2f}"
 
 
-def table(runs: list[TrainingRun], metrics: tuple[str, ...], low: int, high: int, at: list[int]) -> str:
+def table(
+    runs: list[TrainingRun], metrics: tuple[str, ...], low: int | None, high: int | None, at: list[int]
+) -> str:
+    """One row per run: the window's means (when ``low`` or ``high`` is given) and the values at ``at``."""
     labels = run_labels(runs)
-    header = ["run", "seed", *(f"{m} [{low}, {high}]" for m in metrics)]
+    window = low is not None or high is not None
+    low, high = low or 0, high if high is not None else 2**62
+    shown = f"{low}, {high}" if high < 2**62 else f"{low}, end"
+    header = ["run", "seed", *((f"{m} [{shown}]" for m in metrics) if window else ())]
     header += [f"{m} at {step}" for step in at for m in metrics]
     rows = []
     for run in sorted(runs, key=lambda r: (labels[r.path], r.env_name, r.seed, str(r.path))):
         row = [f"{run.env_name} {labels[run.path]}", str(run.seed)]
-        row += [_cell(window_mean(run, m, low, high)) for m in metrics]
+        row += [_cell(window_mean(run, m, low, high)) for m in metrics] if window else []
         row += [_cell(value_at(run, m, step)) for step in at for m in metrics]
         rows.append(row)
     return markdown(header, rows)
@@ -87,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m mcrs_lab.analysis.window", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("paths", nargs="+", type=Path, help="runs, records, or folders of them")
-    parser.add_argument("--from", dest="low", type=int, default=0, help="first env step of the window")
-    parser.add_argument("--to", dest="high", type=int, default=2**62, help="last env step of the window")
+    parser.add_argument("--from", dest="low", type=int, default=None, help="first env step of the window")
+    parser.add_argument("--to", dest="high", type=int, default=None, help="last env step of the window")
     parser.add_argument(
         "--at", type=int, action="append", default=[], help="an env step to read (repeatable)"
     )
@@ -100,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         "would pay it",
     )
     args = parser.parse_args(argv)
-    if args.low < 0 or args.high < args.low:
+    low, high = args.low or 0, args.high if args.high is not None else 2**62
+    if low < 0 or high < low:
         raise SystemExit(f"window: error: --from={args.low} --to={args.high}: need 0 <= from <= to")
     if any(step < 0 for step in args.at):
         raise SystemExit(f"window: error: --at={min(args.at)}: must be >= 0")
