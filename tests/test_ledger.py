@@ -69,16 +69,20 @@ class ZoneSeeker(Policy):
         return torch.where(visible[..., 0], toward, first_allowed)
 
 
-def test_a_zone_is_charged_as_unread_once_then_as_read(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("prior", ["unknown", "known"])
+def test_a_zone_is_charged_as_unread_once_then_as_read(monkeypatch: pytest.MonkeyPatch, prior: str) -> None:
+    """An unread zone's first entry buys a reading; a known zone (the paper's reading) buys nothing."""
     config = scenario(
-        "map10", width=5, height=5, n_uavs=1, n_no_fly=1, n_targets=1, sight_range=8.0, max_steps=12
-    )
+        "map10", width=5, height=5, n_uavs=1, n_no_fly=1, n_targets=1, sight_range=8.0, max_steps=12,
+        no_fly_prior=prior,
+    )  # fmt: skip
     monkeypatch.setitem(POLICIES, "zone_seeker", ZoneSeeker)
     ledger = play(config, "zone_seeker", 4, seed=1)
     charges = ledger.charged_first + ledger.charged_read
     assert bool((charges >= 4).all())  # it reaches the zone within 4 steps, then enters every other step
-    assert ledger.charged_first.tolist() == [1.0] * 4
-    torch.testing.assert_close(ledger.charged_read, charges - 1)
+    first = 1.0 if prior == "unknown" else 0.0
+    assert ledger.charged_first.tolist() == [first] * 4
+    torch.testing.assert_close(ledger.charged_read, charges - first)
     torch.testing.assert_close(charges * config.w_no_fly, -ledger.terms[:, 2])
 
 

@@ -6,8 +6,8 @@ For each policy (a heuristic or an ``mcrs-train`` run) it plays the same evaluat
 - the four reward terms r1 (uncertainty), r2 (discovery), r3 (no-fly), r4 (collision);
 - r1 reached by a quarter, a half and three quarters of the episode: how fast the map is read;
 - the no-fly charges r3 counts, by the UAV's move that caused them: onto a cell no UAV had read yet (the
-  charge buys a first reading, worth up to ``m_E`` of uncertainty), onto a cell already read (it buys
-  little), and of those, how many were made while the UAV had an allowed move that r3 does not charge to
+  charge buys a first reading, worth up to ``m_E`` of uncertainty), onto a cell already read or known (it
+  buys little; under ``no_fly_prior=known`` every zone is known), and of those, how many were made while the UAV had an allowed move that r3 does not charge to
   a cell it still held unread (its own m(U) = 1 in its observation): a charge it could have avoided
   without giving up a first reading;
 - the moves onto a cell the UAV holds read (its own m(U) < 1) made while an allowed move onto a cell it
@@ -124,6 +124,8 @@ def play(config: EnvConfig, policy_name: str, episodes: int, seed: int) -> Ledge
             dest = position + moves[action]
             flat = (dest[..., 0] * config.height + dest[..., 1]).clamp(0, config.n_cells - 1)
             unread = td.get("state_counts").sum(-1).gather(1, flat) == 0  # [E, N]: no UAV had read it
+            if config.no_fly_prior == "known":  # a zone is known from reset: entering it buys no reading
+                unread &= ~(dest.unsqueeze(2) == zones.unsqueeze(1)).all(-1).any(-1)
             own_unknown = obs_layout.unknown_by_action(td.get(OBSERVATION))  # [E, N, 8]: own m(U) there
             own_unread = own_unknown >= UNREAD
             safe_unread = (mask & (charged_every == 0) & own_unread).any(-1)
