@@ -292,7 +292,11 @@ def test_the_schema_choices_are_the_implementations() -> None:
 @pytest.mark.parametrize(
     ("module", "listed", "not_listed"),
     [
-        ("mcrs.train", ["algo", "budget", "env", "experiment", "logger", "model", "preset"], ["study"]),
+        (
+            "mcrs.train",
+            ["algo", "budget", "env", "experiment", "logger", "model", "preset", "task"],
+            ["study"],
+        ),
         ("mcrs.evaluate", ["env", "study"], ["algo", "budget", "experiment", "logger", "model", "preset"]),
     ],
 )
@@ -311,3 +315,22 @@ def test_help_lists_only_the_groups_the_command_accepts(
     assert not any(f"\n{group}: " in groups for group in not_listed), groups
     assert "study" not in done.stdout if module == "mcrs.train" else "study: comm_range, heuristics" in groups
     assert list(tmp_path.iterdir()) == []  # --help runs nothing
+
+
+def test_a_task_key_without_a_task_is_one_line_naming_the_tasks() -> None:
+    """``+task._target_=...`` with no ``task=`` used to end in OmegaConf's bare AssertionError."""
+    from mcrs.experiment.cli import command_line_problems
+
+    (problem,) = command_line_problems(["+task._target_=os.system"], tasks=True)
+    assert problem.startswith(
+        "task._target_: no task is chosen: pick one first with task=<name> (simple_spread,"
+    )
+    assert command_line_problems(["task=simple_spread", "task.max_steps=5"], tasks=True) == []
+    assert command_line_problems(["+task._target_=os.system"]) == []  # a command without tasks says its own
+    done = subprocess.run(
+        [sys.executable, "-m", "mcrs.train", "task.max_steps=5"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 1 and done.stderr.strip().splitlines() == [
+        "mcrs-train: error: task.max_steps: no task is chosen: pick one first with task=<name> (simple_spread, "
+        'vmas_navigation), or pass a Task object in Python (docs/API.md, "Bring your own task")'
+    ]

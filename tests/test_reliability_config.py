@@ -389,8 +389,9 @@ def _tried(cases: list[str]) -> set[str]:
 
 #: Fields with no bad value of their own: labels set by their group files (``experiment=x`` on the
 #: command line picks a group option, tried in UNKNOWN_KEYS), and the resume directory (refused when it
-#: is not a run: tests/test_training.py::test_resume_refuses_bad_directories...).
-NOT_VALUE_CHECKED = {"preset", "experiment", "budget", "resume", "env"}
+#: is not a run: tests/test_training.py::test_resume_refuses_bad_directories...), and the task node, whose
+#: settings its Task class checks when the Experiment builds it (tests/test_task_runs.py, test_task_envs.py).
+NOT_VALUE_CHECKED = {"preset", "experiment", "budget", "resume", "env", "task"}
 
 
 def test_every_field_is_tried() -> None:

@@ -42,6 +42,7 @@ from mcrs.experiment.rundir import (
     release_claims,
     resume_problem,
 )
+from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.sweep import sweep_jobs
 from mcrs.experiment.untrusted import PLAIN_NAME
 
@@ -176,7 +177,7 @@ def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F
     def wrap(hydra_main: F) -> F:
         @functools.wraps(hydra_main)
         def entry(*args: Any, **kwargs: Any) -> Any:
-            refused = command_line_problems(sys.argv[1:])
+            refused = command_line_problems(sys.argv[1:], tasks=command == "mcrs-train")
             if refused:  # before Hydra instantiates a callback or writes anything
                 raise SystemExit(f"{command}: error: {refused[0]}")
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
@@ -265,11 +266,29 @@ def hydra_override_problem(override: Override) -> str | None:
     return None
 
 
-def command_line_problems(argv: Sequence[str]) -> list[str]:
+def command_line_problems(argv: Sequence[str], tasks: bool = False) -> list[str]:
     """The overrides of a command line (``key=value`` and ``~key`` arguments, not options) that
-    :func:`hydra_override_problem` refuses, each one line."""
+    :func:`hydra_override_problem` refuses and, for a command that takes ``task=`` (``tasks``), a key of a
+    task set with no task chosen, each one line."""
     texts = [a for a in argv if ("=" in a or a.startswith("~")) and not a.startswith("-")]
-    return [p for p in map(hydra_override_problem, _parsed(texts)) if p]
+    problems = [p for p in map(hydra_override_problem, _parsed(texts)) if p]
+    return problems + (_unchosen_task(texts) if tasks else [])
+
+
+def _unchosen_task(texts: Sequence[str]) -> list[str]:
+    """``task.<key>=...`` without ``task=<name>``: the ``task`` node is empty until a task is chosen, and
+    OmegaConf's refusal of a key under it is an AssertionError that names nothing."""
+    keys = [t.split("=", 1)[0] for t in texts]
+    if any(k.lstrip("+~") == "task" for k in keys):
+        return []
+    setting = next((k for k in keys if k.lstrip("+~").startswith("task.")), None)
+    if setting is None:
+        return []
+    options = sorted(p.stem for p in (Path(CONFIG_DIR) / "task").glob("*.yaml"))
+    return [
+        f"{setting.lstrip('+~')}: no task is chosen: pick one first with task=<name> ({', '.join(options)}), "
+        'or pass a Task object in Python (docs/API.md, "Bring your own task")'
+    ]
 
 
 def _strings(value: object) -> list[str]:
