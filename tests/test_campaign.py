@@ -51,11 +51,15 @@ RECORD_FIELDS = {
 
 
 def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
+    """The landed campaign: the paper's penalty and horizon (the defaults), and the no-fly and r2 reading it
+    ran under, which the defaults no longer are (docs/ENVIRONMENT.md, "No-fly cells and the discovery
+    reward"): every point says so in its overrides."""
     points, titles = load_matrix()
     assert list(titles) == ["fig7", "table4", "fig6", "fig8"]
     assert len(points) == 21 + 9 + 18 + 6 and len({p.id for p in points}) == len(points)
     assert all(p.budget == "campaign" for p in points)
-    assert all(p.overrides == () for p in points)  # the defaults: safety_rule=enter, time_limit=terminal
+    lured = ("env.no_fly_view=belief", "env.no_fly_prior=unknown", "env.discovery_rule=target")
+    assert all(p.overrides == lured for p in points)  # and safety_rule=enter, time_limit=terminal: defaults
     fig7 = select(points, ["fig7"])
     assert sorted({p.algo for p in fig7}) == sorted(
         ["qmix", "vdn", "qplex", "emc", "emu", "semu", "cnn_semu"]
