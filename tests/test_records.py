@@ -125,6 +125,31 @@ def test_recording_twice_changes_nothing_and_another_run_is_not_overwritten(
     assert write_record(path, other, replace=True) == "updated"
 
 
+def test_a_record_changed_while_it_is_rewritten_is_kept(
+    runs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another process writes the point's record between this one's read and its write: that record is
+    kept, and this one is refused in one line (the edit is never written over)."""
+    import mcrs_lab.analysis.records as records
+
+    run_dir = runs / "train" / "map10_qmix_rc0_seed0"
+    assert campaign_main(["record", str(run_dir), "--records", str(tmp_path)]) == 0
+    path = tmp_path / "comm_range" / "smoke" / "map10_qmix_rc0_seed0.json"
+    other = json.loads(path.read_bytes())
+    other["run_dir"] = "elsewhere/map10_qmix_rc0_seed0"
+    real_dumps = records.dumps
+
+    def meanwhile(record):
+        path.write_text('{"written": "meanwhile"}')  # the other process's record lands now
+        return real_dumps(record)
+
+    monkeypatch.setattr(records, "dumps", meanwhile)
+    with pytest.raises(ValueError, match="changed since it was read: nothing written"):
+        write_record(path, other, replace=True)
+    assert path.read_text() == '{"written": "meanwhile"}'
+    assert not [p.name for p in path.parent.iterdir() if p.name != path.name]  # no temporary left
+
+
 def test_report_from_records_alone_equals_the_report_from_run_directories(runs: Path, tmp_path: Path) -> None:
     records = tmp_path / "records"
     dirs = sorted((runs / "train").glob("map10_*")) + sorted((runs / "heuristics").glob("seed*"))

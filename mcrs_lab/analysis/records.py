@@ -24,7 +24,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.atomic import write_text_atomic
+from mcrs.experiment.atomic import ChangedSinceRead, write_if_unchanged
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
 from mcrs_lab.analysis.curves import Q_TOT
@@ -373,9 +373,11 @@ def write_record(path: Path, record: dict[str, Any], replace: bool = False) -> s
     """Write ``record`` atomically; ``"unchanged"`` when the same evidence is already there (recording
     twice changes nothing), ``"updated"`` or ``"written"`` otherwise. A record of another run
     directory at ``path`` is kept unless ``replace`` (two runs of one point need a choice), or unless it
-    was stopped and this run finished."""
+    was stopped and this run finished. The file is replaced only if it is still what was read (another
+    process recording the same point meanwhile keeps its record, and this one is refused in one line)."""
     outcome = "written"
-    if path.is_file():
+    before = path.read_bytes() if path.is_file() else None
+    if before is not None:
         old = read_record(path)
         if old is not None and _evidence(old) == json.loads(json.dumps(_evidence(record))):
             return "unchanged"
@@ -386,5 +388,8 @@ def write_record(path: Path, record: dict[str, Any], replace: bool = False) -> s
                 f"{record['run_dir']} there instead"
             )
         outcome = "updated"
-    write_text_atomic(path, dumps(record))
+    try:
+        write_if_unchanged(path, dumps(record).encode(), before)
+    except ChangedSinceRead as error:
+        raise RecordError(str(error)) from None
     return outcome
