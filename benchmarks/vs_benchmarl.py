@@ -218,7 +218,7 @@ def run_ours(s: Settings) -> SideResult:
         evaluations,
         int(experiment.counters.env_steps),
         wall,
-        float(experiment._timer["eval"]),  # the trainer's own clock around its evaluations
+        float(experiment.seconds["eval"]),  # the trainer's own clock around its evaluations
         {
             "mcrs": _installed("mcrs"),
             "torchrl": torchrl.__version__,

@@ -18,23 +18,8 @@ class ChangedSinceRead(Exception):
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file in the same folder, synced, then renamed over
-    ``path`` (the folder is made if missing). The file is 0644, not ``mkstemp``'s 0600: a committed or
-    shared file stays readable by the machine's other users."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """:func:`write_bytes_atomic` for text (UTF-8)."""
+    return write_bytes_atomic(path, text.encode())
 
 
 def _temporary(path: Path, data: bytes) -> str:
@@ -55,7 +40,9 @@ def _temporary(path: Path, data: bytes) -> str:
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """:func:`write_text_atomic` for bytes (an image)."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder, synced, then renamed over
+    ``path`` (the folder is made if missing). The file is 0644, not ``mkstemp``'s 0600: a committed or
+    shared file stays readable by the machine's other users."""
     path = Path(path)
     tmp = _temporary(path, data)
     try:

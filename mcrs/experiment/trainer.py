@@ -145,6 +145,11 @@ class Experiment(RunState):
         """The typed config (the name the builders' docstrings use)."""
         return self.config
 
+    @property
+    def seconds(self) -> dict[str, float]:
+        """This session's wall seconds by part (``collect``, ``update``, ``eval`` and each callback)."""
+        return dict(self._timer)
+
     def close(self) -> None:
         """Close the log files and release the run directory (done by :meth:`run`; the process's exit
         does it too)."""
