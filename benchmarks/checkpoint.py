@@ -2,7 +2,7 @@
 
 Why: a map20 run at the pymarl preset holds 5000 episodes (about 3.3 GB) in its replay; written whole
 into every checkpoint, that is expensive in time and disk, so an interrupted campaign loses more work
-between checkpoints. The replay is saved incrementally (:mod:`mcrs.experiment.replay_store`); this
+between checkpoints. The replay is saved incrementally (:mod:`mcrs.experiment.run.replay_store`); this
 times the real :meth:`Experiment.save` of a run whose replay is full:
 
 1. the first checkpoint, which writes every block (what any checkpoint cost before);
@@ -29,10 +29,10 @@ from mcrs_benchmarks.common import compose_config, load_average, synthetic_episo
 from mcrs_benchmarks.harness import Goal, Report, make_parser, require_at_least, run_benchmark
 
 from mcrs.env.config import SCENARIOS, from_mapping
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 
 if TYPE_CHECKING:
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
 GOAL_SECONDS = 10.0
 GOAL_MAP = "map20"
@@ -41,7 +41,7 @@ CHUNK = 250  # synthetic episodes generated at a time
 
 def _fill(trainer: Experiment, n: int, generator: torch.Generator) -> None:
     """Add ``n`` synthetic episodes through the trainer's own path (replay + store bookkeeping)."""
-    env_config = from_mapping(trainer.cfg.env)
+    env_config = from_mapping(trainer.config.env)
     while n > 0:
         k = min(CHUNK, n)
         trainer.replay_store.mark_written(trainer.replay.extend(synthetic_episodes(k, env_config, generator)))
@@ -78,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _time_checkpoints(trainer: Experiment, run_dir: Path, args: argparse.Namespace, report: Report) -> float:
     """Fill the replay, time the first and an incremental checkpoint (and, if asked, the inline format);
     return the incremental checkpoint's seconds."""
-    cfg = trainer.cfg
+    cfg = trainer.config
     capacity = int(cfg.train.replay_episodes)
     new = min(args.new_episodes, capacity)
     generator = torch.Generator().manual_seed(0)
@@ -129,7 +129,7 @@ def _time_checkpoints(trainer: Experiment, run_dir: Path, args: argparse.Namespa
 
 def _run(args: argparse.Namespace, report: Report) -> None:
     """Fill a replay, time the first and an incremental checkpoint (and the inline format), judge the goal."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
     extra = ["logger=csv", "logger.progress_bar=false", f"threads={args.threads}"]
     cfg = compose_config(args.map, args.quick, extra)

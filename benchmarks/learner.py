@@ -5,7 +5,7 @@ learner update much slower than the plain PyTorch a pymarl user would write, and
 fit the design's time budget. This prints, at the pymarl preset (QMIX, 32-episode batches, RMSprop,
 double Q, one-step targets), with PASS/FAIL:
 
-* seconds per learner update of our :class:`~mcrs.experiment.learner.Learner` (a batch sampled from our
+* seconds per learner update of our :class:`~mcrs.experiment.training.learner.Learner` (a batch sampled from our
   TorchRL episode buffer, then ``Learner.update``) and of the plain-PyTorch reference learner
   (:mod:`mcrs_benchmarks.reference_learner`: same networks, no TorchRL, no tensordict); goal: ours <= 1.15x
   the reference (JSON figure ``<map>.update_ratio``);
@@ -89,8 +89,8 @@ def _timed(step: Callable[[], Any], update: Callable[[Any], Any]) -> tuple[float
 
 def measure_updates(map_name: str, quick: bool, updates: int) -> tuple[EnvConfig, Agreement, UpdateTimes]:
     """Build both learners from the same weights, check their losses agree, then time them alternately."""
-    from mcrs.experiment.learner import Learner
-    from mcrs.experiment.replay import make_episode_buffer
+    from mcrs.experiment.training.learner import Learner
+    from mcrs.experiment.training.replay import make_episode_buffer
 
     cfg = compose_config(map_name, quick)
     env_config = from_mapping(cfg.env)

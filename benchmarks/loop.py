@@ -2,7 +2,7 @@
 
 Why: a whole run's wall clock is what a user waits for, and it is more than the learner update: the
 collector, logging and evaluation all count. :func:`measure_loop` runs the real
-:class:`~mcrs.experiment.trainer.Experiment` and times its steady state; :func:`launcher_rates` compares one
+:class:`~mcrs.experiment.training.trainer.Experiment` and times its steady state; :func:`launcher_rates` compares one
 2-thread run with two 1-thread runs side by side (how a sweep should share two cores);
 :func:`collector_step_seconds` times collection alone.
 """
@@ -61,7 +61,7 @@ def measure_loop(
     first batch, the first update, allocation of the replay) and it contains whole iterations: the updates
     after a batch, logging, and the next collection.
     """
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
     cfg = compose_config(
         map_name, quick, ["logger=csv", "logger.progress_bar=false", f"threads={threads}", *extra], algo

@@ -4,7 +4,7 @@ Why: the memory must cost close to nothing next to the learner (goal: a CNN-SEMU
 wall clock on map20 for the same env steps; JSON figure ``ratio``, printed as ``CNN_SEMU vs QMIX: X.XXx``).
 A 2M-step run takes hours, so this measures and projects:
 
-1. The real :class:`~mcrs.experiment.trainer.Experiment` of each algorithm runs ``--loop-steps`` env steps
+1. The real :class:`~mcrs.experiment.training.trainer.Experiment` of each algorithm runs ``--loop-steps`` env steps
    (pymarl preset; the memory inserts every batch, attaches look-ups to every learner batch and trains
    phi every ``t_emb`` = 10k steps, all inside the timed window), exactly as
    :func:`mcrs_benchmarks.loop.measure_loop` times QMIX; evaluation is timed apart and added back at
@@ -29,7 +29,7 @@ from mcrs_benchmarks.loop import GOAL_STEPS, LoopResult, measure_loop
 from mcrs_benchmarks.memory import fill, median_seconds, rollout
 
 from mcrs.env.config import SCENARIOS, from_mapping
-from mcrs.experiment.episodic import build_embedding
+from mcrs.experiment.training.episodic import build_embedding
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.episodic import EpisodicMemory
 

@@ -111,7 +111,7 @@ def compose(args: argparse.Namespace):
 def run(args: argparse.Namespace, run_dir: Path) -> tuple[list[Sample], object]:
     """Train, sampling the RSS before every collector batch that crosses a multiple of ``--every`` and after
     the final evaluation and checkpoint (before the collector shuts down, which frees memory)."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
     trainer = Experiment(compose(args), run_dir)
     samples: list[Sample] = []
@@ -173,13 +173,15 @@ def _report(args: argparse.Namespace, report: Report) -> None:
         report.row("samples", **asdict(s))
         print(f"{s.env_steps:>10} {s.rss_mib:>9.1f} {s.replay_episodes:>16} {s.memory_entries:>15}")
     middle, last, rise = growth(samples, args.env_steps)
-    capacity = trainer.cfg.train.replay_episodes
+    capacity = trainer.config.train.replay_episodes
     report.figure("replay_full_at_half", middle.replay_episodes >= capacity)
     full = "full" if middle.replay_episodes >= capacity else f"NOT full ({middle.replay_episodes}/{capacity})"
     memory_text = ""
     if trainer.config.algo.memory.enabled:
         report.figure("memory_entries_at_half", middle.memory_entries, "entries")
-        memory_text = f"; memory at 50%: {middle.memory_entries}/{trainer.cfg.algo.memory.capacity} entries"
+        memory_text = (
+            f"; memory at 50%: {middle.memory_entries}/{trainer.config.algo.memory.capacity} entries"
+        )
     print(f"\nrun: {elapsed.value:.0f} s; replay at 50%: {full}{memory_text}")
     report.figure("rss_mib_half", middle.rss_mib, "MiB", note=f"at {middle.env_steps} env steps")
     report.figure("rss_mib_end", last.rss_mib, "MiB", note=f"at {last.env_steps} env steps")

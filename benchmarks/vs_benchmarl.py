@@ -193,7 +193,7 @@ def run_ours(s: Settings) -> SideResult:
     import torch
 
     import mcrs
-    from mcrs.experiment.callbacks import Callback
+    from mcrs.experiment.training.callbacks import Callback
     from mcrs.tasks.vmas import VmasTask
 
     evaluations: list[tuple[int, float]] = []

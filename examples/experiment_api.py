@@ -97,7 +97,7 @@ print(
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from mcrs.experiment.logging import read_scalar_rows, scalar_file  # noqa: E402
+from mcrs.experiment.run.logging import read_scalar_rows, scalar_file  # noqa: E402
 
 rows = read_scalar_rows(scalar_file(RUN_DIR, "eval/episode_reward"))
 fig = Figure(figsize=(6, 3.5), layout="constrained")

@@ -12,12 +12,12 @@ from __future__ import annotations
 from typing import Any
 
 _LAZY = {
-    "Experiment": "mcrs.experiment.trainer",
-    "Callback": "mcrs.experiment.callbacks",
+    "Experiment": "mcrs.experiment.training.trainer",
+    "Callback": "mcrs.experiment.training.callbacks",
     "Config": "mcrs.experiment.config",
     "compose": "mcrs.experiment.config",
-    "Task": "mcrs.experiment.task",
-    "MCRSTask": "mcrs.experiment.task",
+    "Task": "mcrs.experiment.training.task",
+    "MCRSTask": "mcrs.experiment.training.task",
 }
 __all__ = sorted(_LAZY)
 

@@ -27,12 +27,13 @@ from omegaconf import DictConfig
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.metrics import METRIC_LABELS, METRICS
 from mcrs.env.torchrl_env import MCRSEnv
-from mcrs.experiment import evaluation
-from mcrs.experiment.cli import one_line_errors, ranked, remove_refused_dirs
-from mcrs.experiment.evaluation import final_metrics
-from mcrs.experiment.rundir import describe_os_error, register_resolvers
+from mcrs.experiment.commands.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.run.rundir import describe_os_error, register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
-from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
+from mcrs.experiment.training import evaluation
+from mcrs.experiment.training.evaluation import final_metrics
+from mcrs.experiment.util.messages import ranked
+from mcrs.experiment.util.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
 from mcrs.policies.task_runs import task_node
 
@@ -88,7 +89,7 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
 
 def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     """What an evaluation will be refused for, told before it runs: its values, its scenario and its
-    policy. ``conf/eval.yaml`` names it as :class:`~mcrs.experiment.cli.RunDirCheck`'s ``validate``, so a
+    policy. ``conf/eval.yaml`` names it as :class:`~mcrs.experiment.commands.cli.RunDirCheck`'s ``validate``, so a
     sweep (``-m``) checks every job before the first one starts (``overrides``: the job's, unused)."""
     errors = eval_errors(cfg)
     try:
@@ -142,7 +143,7 @@ def episode_metrics(
 ) -> dict[str, torch.Tensor]:
     """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``, on the
     CPU whatever the env's device (callers turn them into numpy arrays, CSV rows and figures).
-    ``progress`` (a bar: :func:`mcrs.experiment.logging.progress_bar`) advances by one per step of the batched environments."""
+    ``progress`` (a bar: :func:`mcrs.experiment.run.logging.progress_bar`) advances by one per step of the batched environments."""
     if episodes < 1:
         raise ValueError(f"episodes={episodes}: must be >= 1")
     batch = min(episodes, max_batch)
@@ -163,7 +164,7 @@ def evaluate_episodes(
 ) -> dict[str, dict[str, torch.Tensor]]:
     """:func:`episode_metrics` of each policy in ``names``, with one progress bar over all their steps
     (ETA included; plain lines when the console is no terminal), named after the policy it is running."""
-    from mcrs.experiment.logging import progress_bar
+    from mcrs.experiment.run.logging import progress_bar
 
     for name in names:  # a checkpoint of another map or team: refused before the bar's first line
         check_policy(name, env_config)
@@ -199,7 +200,7 @@ def evaluate_policy(
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
     """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
-    from mcrs.experiment.tables import markdown, mean_std
+    from mcrs.experiment.util.tables import markdown, mean_std
 
     header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
     return markdown(header, [[name] + [mean_std(*r[m]) for m in METRICS] for name, r in results.items()])
@@ -301,7 +302,7 @@ def run_task(
     """``mcrs-eval policy=<run>`` for a run of another task than MCRS: its task rebuilt from the run, the
     trained agent and the random baseline on the same episodes, the table printed and written
     (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the table."""
-    from mcrs.experiment.checkpoint import CheckpointError
+    from mcrs.experiment.run.checkpoint import CheckpointError
     from mcrs.policies.task_runs import evaluate_task_run, load_task_run
 
     try:
@@ -315,7 +316,7 @@ def run_task(
     per_episode = evaluate_task_run(run, min(episodes, MAX_EVAL_EPISODES), seed, device, name)
     results = {policy_name: summarize(values) for policy_name, values in per_episode.items()}
     metrics = list(next(iter(per_episode.values())))
-    from mcrs.experiment.tables import markdown, mean_std
+    from mcrs.experiment.util.tables import markdown, mean_std
 
     table = markdown(
         ["policy", *metrics], [[p] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()]
@@ -366,7 +367,7 @@ def evaluate_run(
     ``progress``: a progress bar while the episodes run."""
     import numpy as np
 
-    from mcrs.experiment.logging import read_scalar_rows, scalar_file, sorted_points
+    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file, sorted_points
     from mcrs.viz.learning_curves import (
         CURVE_METRICS,
         Reference,
@@ -418,7 +419,7 @@ def evaluate_task_report(
     the curve and the episode rewards ``{label: (mean, std)}``."""
     import numpy as np
 
-    from mcrs.experiment.logging import read_scalar_rows, scalar_file, sorted_points
+    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file, sorted_points
     from mcrs.viz.learning_curves import Reference, confidence_half_width, curve_of, plot_curves
 
     out = run_dir / REPORT_DIR
@@ -453,8 +454,8 @@ def evaluate_task_report(
 
 def run_task_name(run_dir: Path) -> str:
     """The task's name in a task run's ``config.yaml`` (its class name when the node has no ``name``)."""
-    from mcrs.experiment.rundir import task_name
-    from mcrs.experiment.untrusted import read_yaml
+    from mcrs.experiment.run.rundir import task_name
+    from mcrs.experiment.util.untrusted import read_yaml
 
     node = read_yaml(run_dir / "config.yaml", interpolations=False).get("task") or {}
     return task_name(node, "task")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mcrs.experiment.checkpoint import CheckpointError
+from mcrs.experiment.run.checkpoint import CheckpointError
 from mcrs.policies.export import ExportError, export_agent, read_description
 
 

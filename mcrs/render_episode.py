@@ -19,8 +19,8 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from mcrs.env.config import EnvConfig, from_mapping
-from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
-from mcrs.experiment.rundir import register_resolvers
+from mcrs.experiment.commands.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.run.rundir import register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_SEED
 
 SCHEMA_NAME = "mcrs_render"

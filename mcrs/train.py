@@ -28,7 +28,7 @@ def _interrupted_while_loading(signum: int, frame: object) -> None:
 
 #: Installed only when this module is the command (``python -m mcrs.train``, the ``mcrs-train`` script),
 #: never when a program imports it; from the end of the imports on, Ctrl-C is a KeyboardInterrupt again,
-#: which :func:`main` (and :func:`mcrs.experiment.cli.one_line_errors` before it) turn into the same line.
+#: which :func:`main` (and :func:`mcrs.experiment.commands.cli.one_line_errors` before it) turn into the same line.
 _LOADING = (
     (__name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") == "mcrs-train")
     and threading.current_thread() is threading.main_thread()
@@ -47,8 +47,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mcrs.experiment.budget import budget_errors
-from mcrs.experiment.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.commands.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.config import (
     CONFIG_DIR,
     RESUME_MUTABLE,
@@ -57,8 +56,9 @@ from mcrs.experiment.config import (
     register_configs,
     validation_errors,
 )
-from mcrs.experiment.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
-from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs.experiment.run.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
+from mcrs.experiment.training.budget import budget_errors
+from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 
 
 def _is_mutable(name: str) -> bool:
@@ -80,7 +80,7 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
 
     Refuses a directory that is not a run, and a command whose explicit overrides contradict the run.
     """
-    from mcrs.experiment import checkpoint as ckpt  # torch: only once the command is known to be sound
+    from mcrs.experiment.run import checkpoint as ckpt  # torch: only once the command is known to be sound
 
     run_dir = Path(str(cfg.resume)).expanduser()
     saved_path = run_dir / "config.yaml"
@@ -129,7 +129,7 @@ def _first_line(error: BaseException) -> str:
 
 def _read_run_config(path: Path) -> dict[str, Any]:
     """A run's ``config.yaml``, bounded before it is parsed (size, depth, no aliases or interpolations:
-    mcrs.experiment.untrusted) and through OmegaConf's safe loader (a ``!!python`` tag is refused, never
+    mcrs.experiment.util.untrusted) and through OmegaConf's safe loader (a ``!!python`` tag is refused, never
     run); anything unreadable is one :class:`ConfigError` line naming the file."""
     try:
         saved = read_yaml(path, interpolations=False)
@@ -142,8 +142,8 @@ def _read_run_config(path: Path) -> dict[str, Any]:
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> dict[str, float]:
     """Train as configured (or resume ``cfg.resume``) and print where the results are."""
-    from mcrs.experiment.algorithms import UnregisteredAlgorithm
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.algorithms import UnregisteredAlgorithm
+    from mcrs.experiment.training.trainer import Experiment
 
     resume = cfg.resume is not None
     if resume:
@@ -274,8 +274,8 @@ def option_errors(cfg: DictConfig) -> list[str]:
     installed = entry_points(group=ENTRY_POINT_GROUP, name=str(cfg.algo.name))
     if not cfg.algo.get("options") and not installed:
         return []
-    from mcrs.experiment.algorithms import algorithm_class
     from mcrs.experiment.config import as_typed
+    from mcrs.experiment.training.algorithms import algorithm_class
 
     algo = as_typed(cfg).algo
     try:
@@ -313,9 +313,9 @@ def main(cfg: DictConfig) -> float:
         listed = problems[0] if len(problems) == 1 else "\n  - " + "\n  - ".join(problems)
         raise SystemExit(f"mcrs-train: error: invalid config: {listed}")
 
-    from mcrs.experiment import checkpoint as ckpt
-    from mcrs.experiment.collection import CollectorWorkerFailed
-    from mcrs.experiment.interrupt import RunInterrupted, TerminateAsInterrupt
+    from mcrs.experiment.run import checkpoint as ckpt
+    from mcrs.experiment.run.interrupt import RunInterrupted, TerminateAsInterrupt
+    from mcrs.experiment.training.collection import CollectorWorkerFailed
     from mcrs.objectives.gradient import TrainingDiverged
 
     try:

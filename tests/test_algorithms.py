@@ -1,4 +1,4 @@
-"""The algorithm registry (mcrs/experiment/algorithms.py) and EMU's incentive strategies
+"""The algorithm registry (mcrs/experiment/training/algorithms.py) and EMU's incentive strategies
 (mcrs/objectives/incentive.py): every preset has its algorithm, the parts are chosen once and shared, an
 algorithm of one's own registers and trains, and the memory and the curiosity reach the batch one way."""
 
@@ -16,7 +16,9 @@ from torch import nn
 from torchrl.modules.models.multiagent import VDNMixer
 
 from mcrs.env.config import scenario
-from mcrs.experiment.algorithms import (
+from mcrs.experiment.config import ConfigError, compose, validate
+from mcrs.experiment.run.checkpoint import CheckpointError, save_atomic
+from mcrs.experiment.training.algorithms import (
     ALGORITHMS,
     BUILT_IN,
     Algorithm,
@@ -24,11 +26,9 @@ from mcrs.experiment.algorithms import (
     algorithm_for,
     register_algorithm,
 )
-from mcrs.experiment.callbacks import Callback
-from mcrs.experiment.checkpoint import CheckpointError, save_atomic
-from mcrs.experiment.config import ConfigError, compose, validate
-from mcrs.experiment.learner import Learner
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.callbacks import Callback
+from mcrs.experiment.training.learner import Learner
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import EvaluationThreshold, FixedThreshold, Incentive, make_incentive
@@ -172,7 +172,7 @@ def test_a_registered_algorithm_resumes_only_where_it_is_registered(tmp_path: Pa
         Experiment(longer, tmp_path, resume=True)
     assert (
         f"algorithm.class: '{BonusVDN.__module__}.BonusVDN' in the checkpoint, "
-        "'mcrs.experiment.algorithms.Algorithm' in this run: " in str(refused.value)
+        "'mcrs.experiment.training.algorithms.Algorithm' in this run: " in str(refused.value)
     )
     assert "register_algorithm" in str(refused.value)
     register_algorithm("bonus_vdn", BonusVDN)
@@ -216,7 +216,7 @@ from typing import Literal
 
 from omegaconf import MISSING
 
-from mcrs.experiment.algorithms import Algorithm
+from mcrs.experiment.training.algorithms import Algorithm
 from mcrs.models.mixers import make_mixer
 
 
@@ -251,7 +251,7 @@ def _install_plugin(root: Path, entries: str) -> None:
 
 
 DECORATED_PLUGIN = """
-from mcrs.experiment.algorithms import Algorithm, register_algorithm
+from mcrs.experiment.training.algorithms import Algorithm, register_algorithm
 
 
 @register_algorithm("plugin_decorated")  # registered on import too, as docs/API.md's example is

@@ -24,10 +24,10 @@ from typing import Any
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
-from mcrs.experiment.rundir import RunLock
-from mcrs.experiment.untrusted import MAX_YAML_BYTES
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import RunLock
+from mcrs.experiment.util.untrusted import MAX_YAML_BYTES
 from mcrs.train import _read_run_config
 from mcrs_lab.analysis.doc_tables import main as results_main
 from mcrs_lab.analysis.record_schema import RECORD_FORMAT, RECORD_VERSION, RecordError
@@ -936,7 +936,7 @@ def test_the_documented_tool_count_is_the_suites(capsys: pytest.CaptureFixture) 
 @pytest.mark.slow
 def test_resuming_a_finished_run_three_times_leaves_one_final_evaluation_row(tmp_path: Path) -> None:
     """The old code evaluated (and logged a row, and saved) again on every resume of a finished run."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
     run_dir = tmp_path / "run"
     cfg = compose_config("train.total_env_steps=40", "train.eval_interval=40")
@@ -956,7 +956,7 @@ def test_a_foreign_replay_block_is_refused_on_resume(tmp_path: Path) -> None:
     """A replay block copied from another run (here: another seed) under this run's block name."""
     import shutil
 
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
 
     runs = {}
     for seed in (0, 1):

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from mcrs.experiment.callbacks import HOOKS, Callback, UnreadBatchKey, hook_scalars
 from mcrs.experiment.config import compose
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.callbacks import HOOKS, Callback, UnreadBatchKey, hook_scalars
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
 
 

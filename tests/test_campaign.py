@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
 from mcrs_lab.campaign import runner
@@ -676,7 +676,7 @@ def test_a_point_in_use_by_a_live_run_is_not_started_and_the_exit_status_says_so
     tmp_path: Path, capsys
 ) -> None:
     """A refused point is not 'all is well': one line per point, the count, exit status 1 (issue 33)."""
-    from mcrs.experiment.rundir import RunLock
+    from mcrs.experiment.run.rundir import RunLock
 
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS.replace("[0, 2]", "[0]"))

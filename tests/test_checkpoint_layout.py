@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from mcrs.env.config import from_mapping
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.policies.trained import TrainedPolicy
 from mcrs_lab.analysis import horizon
 from tests.train_helpers import compose_config

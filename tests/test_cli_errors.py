@@ -14,8 +14,8 @@ from hydra.errors import HydraException
 from omegaconf.errors import OmegaConfBaseException
 
 import mcrs
-from mcrs.experiment.cli import describe, ranked
 from mcrs.experiment.config import ConfigError
+from mcrs.experiment.util.messages import describe, ranked
 from tests.train_helpers import compose_config
 
 #: Hydra's own report, none of which may reach the user.
@@ -258,7 +258,7 @@ def test_a_refused_command_is_refused_before_torch_loads(
 
 
 def test_budget_errors_name_the_nearest_whole_batches() -> None:
-    from mcrs.experiment.budget import budget_errors, collector_batch
+    from mcrs.experiment.training.budget import budget_errors, collector_batch
 
     cfg = compose_config("train.total_env_steps=4000", "train.eval_interval=800", tiny=False)
     assert collector_batch(cfg) == 1600  # 32 envs x 50 steps (map10, the pymarl preset)
@@ -276,7 +276,7 @@ def test_budget_errors_name_the_nearest_whole_batches() -> None:
 def test_the_schema_choices_are_the_implementations() -> None:
     """The schema writes the choices out (so composing loads no torch); they must stay the modules' own."""
     from mcrs.experiment import config
-    from mcrs.experiment.replay import TIME_LIMITS
+    from mcrs.experiment.training.replay import TIME_LIMITS
     from mcrs.memory.delta import DELTA_RULES
     from mcrs.memory.index import SHAPES
     from mcrs.models.embeddings import EMBEDDINGS
@@ -319,7 +319,7 @@ def test_help_lists_only_the_groups_the_command_accepts(
 
 def test_a_task_key_without_a_task_is_one_line_naming_the_tasks() -> None:
     """``+task._target_=...`` with no ``task=`` used to end in OmegaConf's bare AssertionError."""
-    from mcrs.experiment.cli import command_line_problems
+    from mcrs.experiment.commands.cli import command_line_problems
 
     (problem,) = command_line_problems(["+task._target_=os.system"], tasks=True)
     assert problem.startswith(

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, compose_config
 
@@ -72,7 +72,7 @@ def test_workers_act_with_the_learners_current_weights_and_epsilon(tmp_path: Pat
     trainer = Experiment(cfg, tmp_path)
     initial = copy.deepcopy(trainer.greedy)
     trainer.run()  # shuts its collector down: build a fresh one over the trained policy
-    from mcrs.experiment.collection import TrainingCollector
+    from mcrs.experiment.training.collection import TrainingCollector
 
     collector = TrainingCollector(
         "multiprocess", trainer.env, trainer.exploring, trainer.env_config, 16, 2, trainer.device
@@ -233,7 +233,7 @@ def test_a_wait_on_a_worker_that_dies_ends_instead_of_hanging() -> None:
     import threading
     import time
 
-    from mcrs.experiment.collection import CollectorWorkerFailed, WorkerWatch
+    from mcrs.experiment.training.collection import CollectorWorkerFailed, WorkerWatch
 
     ctx = multiprocessing.get_context("spawn")
     worker = ctx.Process(target=time.sleep, args=(120,), daemon=True)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from tests.train_helpers import TINY, TINY_MEMORY
 
 pytestmark = pytest.mark.slow

@@ -232,7 +232,7 @@ def test_evaluations_started_together_get_their_own_directories(tmp_path: Path) 
 def test_a_trained_runs_evaluation_and_rendering_go_into_the_run(tmp_path: Path) -> None:
     """``policy=<run>`` (or one of its checkpoints): the results stay with the run, not in a stray folder."""
     import mcrs.render_episode  # noqa: F401  (registers the render schema)
-    from mcrs.experiment.rundir import beside_run, register_resolvers
+    from mcrs.experiment.run.rundir import beside_run, register_resolvers
 
     run_dir = tmp_path / "outputs" / "map10" / "qmix" / "run"
     (run_dir / "checkpoints").mkdir(parents=True)

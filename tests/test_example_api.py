@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from mcrs.experiment.logging import read_scalar_rows
+from mcrs.experiment.run.logging import read_scalar_rows
 
 pytestmark = pytest.mark.slow
 

@@ -9,12 +9,12 @@ import pytest
 import torch
 
 import mcrs
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import ALGORITHMS
-from mcrs.experiment.callbacks import Callback, ExperimentView
 from mcrs.experiment.config import AlgoConfig, Config, compose
-from mcrs.experiment.learner import Learner
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.algorithms import ALGORITHMS
+from mcrs.experiment.training.callbacks import Callback, ExperimentView
+from mcrs.experiment.training.learner import Learner
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
 
 pytestmark = pytest.mark.slow

@@ -17,7 +17,7 @@ import torch
 from mcrs.env import scenario
 from mcrs.env.layout import ObservationLayout
 from mcrs.evaluate import evaluate_policy, policy_names
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.export_agent import main as export_main
 from mcrs.policies import export
 from mcrs.policies.trained import GreedyAgentStep, load_trained_agent

@@ -152,7 +152,7 @@ def test_hydras_files_and_logs_stay_in_the_run_directory(
 
 def test_the_allowed_hydra_overrides_still_pass() -> None:
     """Where a run goes, its launcher and its log levels stay the user's; ``null`` keeps no ``.hydra/``."""
-    from mcrs.experiment.cli import command_line_problems
+    from mcrs.experiment.commands.cli import command_line_problems
 
     assert command_line_problems(["hydra.run.dir=/tmp/x", "hydra.output_subdir=null", "hydra/launcher=joblib",
                                   "hydra.output_subdir=meta/hydra", "hydra.job_logging.root.level=WARNING",
@@ -164,8 +164,8 @@ def test_the_allowed_hydra_overrides_still_pass() -> None:
 #: the run directory, the overrides).
 _KILLED_AT = """
 import os, signal, sys
-from mcrs.experiment import run_state
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import run_state
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import compose_config
 
 point, run_dir, *overrides = sys.argv[1:]
@@ -181,7 +181,7 @@ def evaluate(self):  # "window": after the last batch's checkpoint, before the f
     return real_evaluate(self)
 
 def save(self, name="last.pt"):  # "evaluated": the final evaluation logged, not yet saved
-    if point == "evaluated" and self._evaluated_at == total:
+    if point == "evaluated" and self.state.evaluated_at == total:
         kill()
     return real_save(self, name)
 
@@ -213,7 +213,7 @@ def _csv_rows(run_dir: Path) -> dict[str, list[str]]:
 
 @pytest.fixture(scope="module")
 def straight_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import compose_config
 
     run_dir = tmp_path_factory.mktemp("straight") / "run"
@@ -233,8 +233,8 @@ def test_a_run_killed_before_its_final_evaluation_resumes_to_the_straight_runs_r
     import os
     import subprocess
 
-    from mcrs.experiment import checkpoint as ckpt
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.run import checkpoint as ckpt
+    from mcrs.experiment.training.trainer import Experiment
     from mcrs_lab.analysis.records import training_record
     from tests.train_helpers import compose_config
 
@@ -261,7 +261,7 @@ class _Killed(BaseException):
 
 def _without_last_eval_step(run_dir: Path) -> None:
     """``last.pt`` as a checkpoint written before it named its last evaluation's step."""
-    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.run import checkpoint as ckpt
 
     path = ckpt.checkpoint_path(run_dir)
     state = ckpt.load(path)
@@ -279,7 +279,7 @@ def test_a_checkpoint_from_before_last_eval_step_is_judged_by_its_evaluation_log
 ) -> None:
     """Checkpoints users and a running campaign hold today carry no ``last_eval_step``: a finished one
     stays finished (nothing is evaluated or logged again), one killed in the window is evaluated."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import compose_config
 
     run_dir = tmp_path / "run"
@@ -310,7 +310,7 @@ def test_a_checkpoint_from_before_last_eval_step_is_judged_by_its_evaluation_log
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """Two finished 40-step runs of the same config (their checkpoints share a fingerprint)."""
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import compose_config
 
     root = tmp_path_factory.mktemp("runs")
@@ -330,7 +330,7 @@ def _copy(run: Path, tmp_path: Path) -> Path:
 
 def _edit(run_dir: Path, change) -> None:
     """Rewrite ``last.pt`` with ``change`` applied (a consistent file, checksum included)."""
-    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.run import checkpoint as ckpt
 
     path = ckpt.checkpoint_path(run_dir)
     state = ckpt.load(path)
@@ -339,8 +339,8 @@ def _edit(run_dir: Path, change) -> None:
 
 
 def _resume_refused(run_dir: Path) -> str:
-    from mcrs.experiment import checkpoint as ckpt
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.run import checkpoint as ckpt
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import compose_config
 
     cfg = compose_config("train.total_env_steps=80", "train.checkpoint_interval=40")
@@ -369,7 +369,7 @@ def test_a_flipped_byte_in_a_checkpoints_tensor_is_refused(
     """A checkpoint with one byte flipped in a weight resumed with corrupted weights (torch does not check
     a zip member's CRC). Now its checksum refuses it, naming the file and the entry, for a resume and for
     ``mcrs-eval``'s weights file."""
-    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.run import checkpoint as ckpt
 
     run_dir = _copy(two_runs[0], tmp_path)
     last = ckpt.checkpoint_path(run_dir)
@@ -391,8 +391,8 @@ def test_a_checkpoint_without_a_checksum_loads_and_says_so(
     """Checkpoints written before checksums existed (users' and a running campaign's) still resume."""
     import torch
 
-    from mcrs.experiment import checkpoint as ckpt
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.run import checkpoint as ckpt
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import compose_config
 
     run_dir = _copy(two_runs[0], tmp_path)

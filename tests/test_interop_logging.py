@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from mcrs.experiment.config import compose
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import TINY, TINY_MEMORY
 
 pytestmark = pytest.mark.slow

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.interrupt import RunInterrupted, StopSignals, TerminateAsInterrupt, Terminated
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.interrupt import RunInterrupted, StopSignals, TerminateAsInterrupt, Terminated
 from tests.train_helpers import TINY
 
 pytestmark = pytest.mark.slow

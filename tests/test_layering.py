@@ -4,6 +4,10 @@ neither PettingZoo nor anything above. The library and the lab apart: ``mcrs`` n
 (``mcrs_lab``: campaign, analysis) nor the benchmarks (``mcrs_benchmarks``, the root folder benchmarks/);
 they import ``mcrs``, and the same rules hold inside them (layers, cycles, 500 lines).
 
+Inside ``mcrs/experiment/`` the same holds for its rooms (``EXPERIMENT_ROOMS``): the loop (``training``) never
+imports the command line (``commands``), and the config's checks (``schema``, ``config``) import neither the
+loop nor the run on disk.
+
 The imports are read from the source (``ast``), every ``import`` statement counted: at module level,
 inside functions (lazy imports) and under ``if TYPE_CHECKING``. A "package" is a sub-package of
 ``mcrs`` (``mcrs/env/``) or a top-level module (``mcrs/train.py``); ``mcrs/__init__.py`` is ``mcrs``.
@@ -49,6 +53,19 @@ LAYER = {package: level for level, packages in enumerate(LAYERS) for package in 
 #: The lab's packages, bottom to top (the campaign records its runs with the analysis' records).
 LAB_LAYERS: tuple[tuple[str, ...], ...] = (("analysis",), ("campaign",), ("mcrs_lab",))
 LAB_LAYER = {package: level for level, packages in enumerate(LAB_LAYERS) for package in packages}
+
+#: The rooms of mcrs/experiment/ (mcrs/experiment/__init__.py) and the rooms each may import besides itself.
+#: ``config`` is the two modules schema.py and config.py; the package's __init__ is ``experiment``.
+EXPERIMENT_ROOMS: dict[str, frozenset[str]] = {
+    "util": frozenset(),  # small helpers: atomic writes, untrusted text, tables, threads, messages
+    "config": frozenset({"util"}),  # the typed config and the checks of its values: never the loop
+    "run": frozenset({"util", "config"}),  # the run on disk: directory, checkpoints, logs, saved state
+    "training": frozenset({"util", "config", "run"}),  # the loop: never the command line
+    "commands": frozenset({"util", "config", "run"}),  # the command lines' Hydra glue: never the loop
+    "experiment": frozenset(),  # the package's __init__ (a docstring)
+}
+EXPERIMENT = "mcrs.experiment"
+
 
 #: Known imports against the layers, each with the change that removes it (none: the list only shrinks).
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
@@ -104,7 +121,7 @@ def _imports(path: Path, root: Path, top: str | None) -> set[str]:
                 target = ".".join([*base, node.module] if node.module else base)
             else:
                 target = node.module or ""
-            for alias in node.names:  # ``from mcrs.experiment import checkpoint`` imports that module
+            for alias in node.names:  # ``from mcrs.experiment.run import checkpoint`` imports that module
                 submodule = f"{target}.{alias.name}"
                 found.add(submodule if target == _top(root) or _is_module(submodule, root) else target)
     return {m for m in found if top is None or m == top or m.startswith(top + ".")}
@@ -142,7 +159,7 @@ def upward(edges: Iterable[tuple[str, str, str]], layer: dict[str, int] = LAYER)
 
 def module_edges(root: Path = ROOT) -> list[tuple[str, str, str]]:
     """``(file relative to mcrs/, importing module, imported module)`` for every import between two modules
-    of one package (``mcrs.experiment.trainer`` -> ``mcrs.experiment.config``); the benchmarks' modules
+    of one package (``mcrs.experiment.training.trainer`` -> ``mcrs.experiment.config``); the benchmarks' modules
     are one package."""
     flat = _top(root) == "mcrs_benchmarks"
     edges = []
@@ -209,6 +226,30 @@ def cycles(
     for node in sorted(graph):
         if node not in index:
             visit(node)
+    return found
+
+
+def room_of(module: str) -> str | None:
+    """``mcrs.experiment.training.trainer`` -> ``training``; ``mcrs.experiment.config`` -> ``config``;
+    None outside mcrs/experiment/."""
+    parts = module.split(".")
+    if parts[:2] != EXPERIMENT.split("."):
+        return None
+    if len(parts) == 2:
+        return "experiment"
+    return "config" if parts[2] in ("schema", "config") else parts[2]
+
+
+def room_breaches(edges: Iterable[tuple[str, str, str]]) -> list[str]:
+    """The imports between the rooms of mcrs/experiment/ that ``EXPERIMENT_ROOMS`` does not allow, one line
+    each (``edges`` as :func:`module_edges` gives them)."""
+    found = []
+    for file, source, target in edges:
+        here, there = room_of(source), room_of(target)
+        if here is None or there is None or here == there:
+            continue
+        if there not in EXPERIMENT_ROOMS.get(here, frozenset()):
+            found.append(f"{file}: the {here} room imports the {there} room ({target})")
     return found
 
 
@@ -373,3 +414,40 @@ print(json.dumps(loaded))
         ]
         assert above == [] and "pettingzoo" not in loaded[package], package
     assert "pettingzoo" in loaded["adapter"] and "mcrs.env.pettingzoo_env" in loaded["adapter"]
+
+
+def test_every_module_of_experiment_is_in_a_room() -> None:
+    """A new folder or top-level module in mcrs/experiment/ is placed in ``EXPERIMENT_ROOMS`` first."""
+    rooms = {room_of(module_name(path)) for path in (ROOT / "experiment").rglob("*.py")}
+    assert rooms <= set(EXPERIMENT_ROOMS), (
+        f"modules outside the rooms: {sorted(rooms - set(EXPERIMENT_ROOMS))}"
+    )
+
+
+def test_the_rooms_of_experiment_keep_their_order() -> None:
+    """The loop never imports the command line; checking a config never imports the loop (nor the run on
+    disk); lazy imports count."""
+    problems = room_breaches(module_edges())
+    assert not problems, "imports between the rooms of mcrs/experiment/:\n" + "\n".join(problems)
+
+
+def test_the_room_check_catches_the_loop_importing_the_command_line(tmp_path: Path) -> None:
+    """The checker on a small tree: callbacks importing the command line lazily, and config importing the
+    loop, are breaches; the loop importing the run on disk is not."""
+    experiment = tmp_path / "mcrs" / "experiment"
+    for room in ("training", "commands", "run"):
+        (experiment / room).mkdir(parents=True)
+        (experiment / room / "__init__.py").write_text("")
+    (tmp_path / "mcrs" / "__init__.py").write_text("")
+    (experiment / "__init__.py").write_text("")
+    (experiment / "commands" / "cli.py").write_text("")
+    (experiment / "run" / "checkpoint.py").write_text("")
+    (experiment / "training" / "callbacks.py").write_text(
+        "from mcrs.experiment.run import checkpoint\ndef f():\n    from mcrs.experiment.commands.cli import x\n"
+    )
+    (experiment / "config.py").write_text("from .training import callbacks\n")
+    assert room_breaches(module_edges(tmp_path / "mcrs")) == [
+        "experiment/config.py: the config room imports the training room (mcrs.experiment.training.callbacks)",
+        "experiment/training/callbacks.py: the training room imports the commands room "
+        "(mcrs.experiment.commands.cli)",
+    ]

@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from mcrs.env.config import scenario
-from mcrs.experiment.episodic import EpisodicMemoryCallback
+from mcrs.experiment.training.episodic import EpisodicMemoryCallback
 from mcrs.memory.delta import match_tolerance, unit_ball_volume
 from tests.test_episodic_memory import rollout
 from tests.train_helpers import compose_config

@@ -11,10 +11,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
-from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.episodic import EpisodicMemoryCallback
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.train import CONFIG_DIR, resume_config
 from tests.device_helpers import available_devices
 from tests.train_helpers import TINY_MEMORY, compose_config

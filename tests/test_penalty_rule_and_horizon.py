@@ -16,10 +16,10 @@ from train_helpers import compose_config
 from mcrs.env import MCRSEnv
 from mcrs.env.config import EnvConfig, scenario, with_legacy_values
 from mcrs.env.core import N_ACTIONS
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import as_typed, compose, validate
-from mcrs.experiment.learner import Learner
-from mcrs.experiment.replay import episodes_from_rollout
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.learner import Learner
+from mcrs.experiment.training.replay import episodes_from_rollout
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.train import resume_config
 from mcrs_lab.analysis.bound import reading_gains, reward_bound

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs_lab.analysis.evaluations import heuristic_references
 from mcrs_lab.analysis.records import make_record, write_record
 from mcrs_lab.analysis.report import main as report_main

@@ -27,6 +27,7 @@ from mcrs.experiment.config import (
     TrainConfig,
     validate,
 )
+from mcrs.experiment.training.resources import check_buildable
 from tests.train_helpers import compose_config, start_train
 
 POSITIVE = "must be > 0"
@@ -201,7 +202,7 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("env.max_steps=1000|env.evidence_decay=0.9", "evidence_decay=0.9: with max_steps=1000 must be <= 0.0768837"),
     ("algo=cnn_semu|env.evidence_decay=0.01", "env.evidence_decay=0.01: the episodic memory stores integer"),
     # Values that passed the per-field rules and crashed later (issue 14, list 4): refused up front, the
-    # sizes by an estimate of the memory the run needs (mcrs/experiment/resources.py).
+    # sizes by an estimate of the memory the run needs (check_buildable, mcrs/experiment/training/resources.py).
     ("+env.widht=3", "unknown field(s) env.widht"),  # + forces a key past the schema
     ("algo=cnn_semu|algo.memory.capacity=3000000000", "algo.memory.capacity=3000000000: must be <= 2**31 - 1"),
     ("algo=cnn_semu|algo.memory.embedding_batch=200000",
@@ -309,8 +310,8 @@ def _case_id(case: tuple[str, str] | str) -> str:
 @pytest.mark.parametrize(("override", "expected"), BAD_VALUES, ids=[_case_id(c) for c in BAD_VALUES])
 def test_bad_value_is_refused_naming_the_field_and_the_rule(override: str, expected: str) -> None:
     cfg = compose_config(*override.split("|"))
-    with pytest.raises(ConfigError) as info:
-        validate(cfg)
+    with pytest.raises(ConfigError) as info:  # as the Experiment checks it: the values, then the builds
+        check_buildable(cfg, validate(cfg))
     assert expected in str(info.value), str(info.value)
 
 

@@ -9,12 +9,8 @@ from torchrl.collectors import Collector
 from torchrl.envs import TransformedEnv
 
 from mcrs.env import MCRSEnv
-from mcrs.experiment.replay import (
-    episodes_from_rollout,
-    load_replay_state_dict,
-    make_episode_buffer,
-    replay_state_dict,
-)
+from mcrs.experiment.run.replay_store import load_replay_state_dict, replay_state_dict
+from mcrs.experiment.training.replay import episodes_from_rollout, make_episode_buffer
 from mcrs.models.acting import make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent
 

@@ -9,10 +9,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.replay import make_episode_buffer
-from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.replay_store import ReplayStore
+from mcrs.experiment.training.replay import make_episode_buffer
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import compose_config
 
 

@@ -1,4 +1,4 @@
-"""The memory estimate behind the refusal of sizes the machine cannot hold (mcrs/experiment/resources.py)
+"""The memory estimate behind the refusal of sizes the machine cannot hold (mcrs/experiment/training/resources.py)
 measured against the stores a run really allocates."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from mcrs.env.config import from_mapping
-from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.resources import estimate, memory_entry_bytes, replay_step_bytes
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.episodic import EpisodicMemoryCallback
+from mcrs.experiment.training.resources import estimate, memory_entry_bytes, replay_step_bytes
+from mcrs.experiment.training.trainer import Experiment
 from tests.train_helpers import compose_config
 
 

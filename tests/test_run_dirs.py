@@ -23,10 +23,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.rundir import LOCK, RunDirError, RunLock
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import LOCK, RunDirError, RunLock
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config, start_train
 
@@ -236,7 +236,7 @@ def test_the_networks_are_part_of_the_fingerprint(qmix_run: Path, tmp_path: Path
 
 
 def test_first_difference_skips_schema_changes_but_not_network_changes() -> None:
-    from mcrs.experiment.rundir import first_difference
+    from mcrs.experiment.run.rundir import first_difference
 
     run = {"format.version": 1, "algo.name": "qmix", "algo.new_field": 3, "networks.agent.w": [4, 2]}
     assert (

@@ -14,9 +14,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import mcrs.evaluate  # noqa: F401 (registers the mcrs-eval schema)
-from mcrs.experiment import logging as run_logging
-from mcrs.experiment.logging import ANSI, PlainFormatter, PlainProgress, TqdmHandler, log_event, progress_bar
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.commands.console import ANSI, PlainFormatter, TqdmHandler
+from mcrs.experiment.run import logging as run_logging
+from mcrs.experiment.run.logging import PlainProgress, log_event, progress_bar
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.train import CONFIG_DIR
 from tests.train_helpers import compose_config
 

@@ -1,6 +1,6 @@
 """A Hydra sweep says how far it is after each job ("k of n done, ETA") and ends with one table (a row per
 job: overrides, final evaluation reward, no-fly violations, wall time, status) printed and written to
-``<sweep dir>/sweep_summary.md`` (mcrs.experiment.sweep, the ``sweep_progress`` callback of mcrs-train and
+``<sweep dir>/sweep_summary.md`` (mcrs.experiment.commands.sweep, the ``sweep_progress`` callback of mcrs-train and
 mcrs-eval)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from hydra.core.utils import JobStatus
 from hydra.types import RunMode
 from omegaconf import OmegaConf
 
-from mcrs.experiment.sweep import STATE_DIR, SUMMARY, SweepProgress, clock, sweep_size
+from mcrs.experiment.commands.sweep import STATE_DIR, SUMMARY, SweepProgress, clock, sweep_size
 from tests.train_helpers import TINY
 
 

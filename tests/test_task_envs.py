@@ -20,7 +20,7 @@ from pettingzoo import ParallelEnv
 from tensordict.nn import TensorDictModule
 
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.task import check_env, make_task, with_agent_state
+from mcrs.experiment.training.task import check_env, make_task, with_agent_state
 from mcrs.tasks.pettingzoo import PettingZooTask
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::UserWarning")

@@ -1,4 +1,4 @@
-"""The task interface (mcrs.experiment.task): ``Experiment(config, run_dir, task=...)`` trains and evaluates a
+"""The task interface (mcrs.experiment.training.task): ``Experiment(config, run_dir, task=...)`` trains and evaluates a
 task we did not write (the matrix game) through the same loop, checkpoints and logs as MCRS, MCRS through an
 explicit :class:`MCRSTask` is the default run, and what a task cannot run is refused in one line."""
 
@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, compose, validate
-from mcrs.experiment.task import MCRSTask
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.task import MCRSTask
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.tasks import MatrixGameEnv, MatrixGameTask
 from tests.train_helpers import TINY
 

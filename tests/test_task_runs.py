@@ -17,11 +17,11 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, compose
-from mcrs.experiment.replay import episodes_from_rollout
-from mcrs.experiment.task import Task, make_task
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.replay import episodes_from_rollout
+from mcrs.experiment.training.task import Task, make_task
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.policies.task_runs import UniformAllowed, evaluate_task_run, load_task_run
 from mcrs.tasks import MatrixGameTask
 

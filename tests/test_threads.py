@@ -8,7 +8,7 @@ import logging
 import pytest
 import torch
 
-from mcrs.experiment.threads import (
+from mcrs.experiment.util.threads import (
     SpeedCheck,
     auto_threads,
     oversubscription,
@@ -99,7 +99,7 @@ def test_speed_check_measures_once_and_logs_once(caplog) -> None:
         return "the machine is oversubscribed: (test)"
 
     check = SpeedCheck(threads=2, window_s=0.0, decide=decide)
-    with caplog.at_level(logging.WARNING, logger="mcrs.experiment.threads"):
+    with caplog.at_level(logging.WARNING, logger="mcrs.experiment.util.threads"):
         for _ in range(5):
             check.observe()
     assert len(calls) == 1

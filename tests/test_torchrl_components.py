@@ -21,7 +21,7 @@ from torchrl.modules.models.multiagent import VDNMixer
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import QMixerLoss
 
-from mcrs.experiment.replay import episodes_from_rollout
+from mcrs.experiment.training.replay import episodes_from_rollout
 from mcrs.models.acting import AgentStep
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import DMAQMixer, QPLEXMixer, mixer_module

@@ -10,7 +10,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
 from mcrs.experiment.config import ConfigError, as_typed, validate, validation_errors
-from mcrs.experiment.learner import Learner
+from mcrs.experiment.training.learner import Learner
 from tests.train_helpers import compose_config
 
 ENVS, ALGOS, LOGGERS, PRESETS = (
@@ -200,7 +200,7 @@ def test_the_campaigns_background_children_keep_the_bar_off(tmp_path) -> None:
 
 
 def test_a_budget_off_whole_batches_from_a_preset_or_python_is_said_not_rounded_silently() -> None:
-    from mcrs.experiment.budget import rounding_notes
+    from mcrs.experiment.training.budget import rounding_notes
 
     assert rounding_notes(3200, 1_000_000, 9600) == [
         "train.total_env_steps=1000000 is not a whole number of collector batches of 3200 env steps: "
@@ -219,7 +219,7 @@ def test_the_experiment_logs_the_rounding_of_a_python_built_budget(tmp_path, cap
     import logging
 
     from mcrs.experiment.config import compose
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import TINY
 
     with caplog.at_level(logging.INFO, logger="mcrs.run"):
@@ -235,8 +235,8 @@ def test_the_evaluation_note_says_the_steps_the_run_evaluates_at(tmp_path, caplo
     import re
 
     from mcrs.experiment.config import compose
-    from mcrs.experiment.logging import read_scalar_rows, scalar_file
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import TINY
 
     config = compose("algo=qmix", *TINY, "train.total_env_steps=200", "train.eval_interval=60")
@@ -252,7 +252,7 @@ def test_a_run_that_never_updates_says_so(tmp_path, caplog) -> None:
     import logging
 
     from mcrs.experiment.config import compose
-    from mcrs.experiment.trainer import Experiment
+    from mcrs.experiment.training.trainer import Experiment
     from tests.train_helpers import TINY
 
     with caplog.at_level(logging.INFO, logger="mcrs.run"):

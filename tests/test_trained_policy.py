@@ -9,7 +9,7 @@ import torch
 
 from mcrs.env import MCRSEnv, scenario
 from mcrs.evaluate import evaluate_episodes, evaluate_policy
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.models.acting import recurrent_primer
 from mcrs.policies import check_policy, make_policy
 from mcrs.policies.trained import TrainedPolicy
@@ -53,7 +53,7 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
 
 
 def test_a_replay_block_is_named_for_what_it_is(run_dir: Path) -> None:
-    from mcrs.experiment.checkpoint import CheckpointError
+    from mcrs.experiment.run.checkpoint import CheckpointError
 
     block = sorted((run_dir / "checkpoints").glob("replay_*.pt"))[0]
     with pytest.raises(

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.trainer import Experiment, TrainingDiverged
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.trainer import Experiment, TrainingDiverged
 from mcrs.train import resume_config, run
 from tests.train_helpers import TINY, TINY_MEMORY, compose_config
 

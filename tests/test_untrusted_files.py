@@ -21,9 +21,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, validate
-from mcrs.experiment.trainer import Experiment
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.trainer import Experiment
 from mcrs.train import resume_config
 from tests.train_helpers import compose_config
 
@@ -204,7 +204,7 @@ def test_a_tampered_run_config_is_not_executed(good_run: Path, tmp_path: Path) -
 def test_wandb_is_offline_by_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The default logger config sends nothing: even with WANDB_MODE=online in the environment."""
     pytest.importorskip("wandb")
-    from mcrs.experiment.logging import make_logger
+    from mcrs.experiment.run.logging import make_logger
 
     cfg = compose_config("logger=wandb")
     assert cfg.logger.wandb_mode == "offline"

@@ -3,7 +3,7 @@ communication links, no-fly cells and targets (filled once found).
 
 One drawing routine serves three users, so that they show the same thing: the PettingZoo adapter's
 ``render()`` (one state at a time), the episode GIF of ``mcrs-render`` (mcrs.viz.animation) and the
-evaluation video sent to the logger (mcrs.experiment.evaluation). The axis decorations (ticks, labels,
+evaluation video sent to the logger (mcrs.experiment.training.evaluation). The axis decorations (ticks, labels,
 colour bar: most of the drawing time) are drawn once; every frame restores them and redraws only the
 content (blitting), so every frame has the same size, as a video needs.
 """

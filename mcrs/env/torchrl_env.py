@@ -143,7 +143,7 @@ def spec_leaves(config: EnvConfig, num_envs: int, device: str | torch.device) ->
 
     The env wraps them in ``Composite`` specs. On the ``meta`` device nothing is allocated, whatever the
     config's size (TorchRL's ``Composite`` cannot hold a ``Bounded`` spec there, hence the plain dicts):
-    :mod:`mcrs.experiment.resources` sizes a step from them before refusing a config.
+    :mod:`mcrs.experiment.training.resources` sizes a step from them before refusing a config.
     """
     c, E, N, dev = config, num_envs, config.n_uavs, torch.device(device)
     agents: dict[str, Any] = {

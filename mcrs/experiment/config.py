@@ -66,7 +66,7 @@ from mcrs.experiment.schema import (
     register_configs,
     to_container,
 )
-from mcrs.experiment.untrusted import PLAIN_NAME
+from mcrs.experiment.util.untrusted import PLAIN_NAME
 
 __all__ = [
     "CONFIG_DIR",
@@ -178,11 +178,12 @@ def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> 
 
 
 def validation_errors(cfg: Config | DictConfig, deep: bool = True) -> list[str]:
-    """Every problem of a config, one message each (empty when it can run).
+    """Every problem of a config's values, one message each (empty when they are right).
 
-    ``deep=False`` leaves out what needs torch (the memory and CPU the run needs, whether the embedding
-    fits the map; a device other than the CPU is checked either way): the checks a command line makes
-    before it loads the training stack."""
+    ``deep=False`` builds the scenario on the CPU, so that a command line can check its config before it
+    loads the training stack (a device other than the CPU is checked either way). Whether the run's parts
+    fit (the memory it needs, the embedding on the map) is checked where they are built:
+    :func:`mcrs.experiment.training.resources.check_buildable`, which :class:`Experiment` calls."""
     return _problems(as_typed(cfg), deep)[0]
 
 
@@ -227,7 +228,7 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
     for name in ("gamma", "td_lambda"):
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
-    errors += _memory_errors(cfg, env_config if deep else None)
+    errors += _memory_errors(cfg)
     _positive(errors, "model.hidden_dim", m.hidden_dim)
     _positive(errors, "logger.log_interval", lg.log_interval)
     for name in (
@@ -284,19 +285,15 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
             )
     if not math.isfinite(a.incentive_threshold):
         errors.append(f"algo.incentive_threshold={a.incentive_threshold}: must be a finite return")
-    from mcrs.experiment.threads import cpu_count, threads_problem
+    from mcrs.experiment.util.threads import cpu_count, threads_problem
 
     problem = threads_problem(cfg.threads, cpu_count())
     if problem:
         errors.append(f"threads={cfg.threads}: {problem}")
-    if deep and not errors and env_config is not None:  # sizes are sane: has this machine what it needs?
-        from mcrs.experiment.resources import resource_errors
-
-        errors += resource_errors(cfg, env_config)
     return errors, env_config
 
 
-def _memory_errors(cfg: Config, env_config: EnvConfig | None) -> list[str]:
+def _memory_errors(cfg: Config) -> list[str]:
     """Problems of the episodic-memory fields (only checked where they matter)."""
     errors: list[str] = []
     a, mem = cfg.algo, cfg.algo.memory
@@ -353,26 +350,13 @@ def _memory_errors(cfg: Config, env_config: EnvConfig | None) -> list[str]:
         errors.append(
             f"algo.memory.key_dim={mem.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"
         )
-    if mem.enabled and not errors and env_config is not None:
-        errors += _embedding_fit_errors(cfg, env_config)
     return errors
 
 
-def _embedding_fit_errors(cfg: Config, env_config: EnvConfig) -> list[str]:
-    """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
-    from mcrs.experiment.episodic import build_embedding  # here: it imports the models
-
-    try:
-        build_embedding(cfg, env_config)
-    except ValueError as error:
-        return [
-            f"algo.memory.embedding={str(cfg.algo.memory.embedding)!r} does not fit {env_config.name}: {error}"
-        ]
-    return []
-
-
 def validate(cfg: Config | DictConfig) -> EnvConfig:
-    """Raise :class:`ConfigError` listing every problem of ``cfg``; return the env config it runs on."""
+    """Raise :class:`ConfigError` listing every problem of ``cfg``'s values; return the env config it runs
+    on. :class:`~mcrs.experiment.training.trainer.Experiment` then checks that its parts fit
+    (:func:`~mcrs.experiment.training.resources.check_buildable`)."""
     errors, env_config = _problems(as_typed(cfg))
     if errors:
         raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
@@ -390,7 +374,7 @@ def compose(*overrides: str) -> Config:
     from hydra import initialize_config_dir
     from hydra.errors import HydraException
 
-    from mcrs.experiment.cli import describe
+    from mcrs.experiment.util.messages import describe
 
     wrong = [o for o in overrides if not isinstance(o, str)]
     if wrong:  # compose(["algo=qmix"]) would fail deep in Hydra's parser

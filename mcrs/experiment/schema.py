@@ -143,7 +143,7 @@ class AlgoConfig(FieldsOnly):
     curiosity_decay_cycle: int = 100_000  # ... every this many env steps
     curiosity_tau: float = 0.005  # soft target update of the curiosity's VDN learner
     # a registered or installed algorithm's own settings, checked against its Algorithm.Options dataclass
-    # (mcrs.experiment.algorithms): +algo.options.<key>=<value>; a run's config.yaml holds all of them
+    # (mcrs.experiment.training.algorithms): +algo.options.<key>=<value>; a run's config.yaml holds all of them
     options: dict[str, Any] = field(default_factory=dict)
 
 
@@ -249,13 +249,13 @@ def as_typed(cfg: Config | DictConfig) -> Config:
 
 
 #: The entry-point group in which installed packages name their algorithms (``algo.name`` -> class;
-#: :mod:`mcrs.experiment.algorithms` loads them): here, so that a command can tell one is installed before
+#: :mod:`mcrs.experiment.training.algorithms` loads them): here, so that a command can tell one is installed before
 #: torch loads.
 ENTRY_POINT_GROUP = "mcrs.algorithms"
 
 #: The nodes whose keys no schema lists: an algorithm's own settings, checked by the algorithm
-#: (:meth:`mcrs.experiment.algorithms.Algorithm.read_options`), and a task's, checked by its class
-#: (:func:`mcrs.experiment.task.make_task`).
+#: (:meth:`mcrs.experiment.training.algorithms.Algorithm.read_options`), and a task's, checked by its class
+#: (:func:`mcrs.experiment.training.task.make_task`).
 FREE_FORM = ("algo.options.", "task.")
 
 

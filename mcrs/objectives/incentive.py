@@ -11,7 +11,7 @@ callback branches on the incentive's name::
 
 with ``H = H(phi(s_{t+1}))`` the memory's value and ``Q' = Q_tot_target(s_{t+1})`` on memory hits (0 on
 misses). A new incentive subclasses :class:`Incentive` and overrides the two methods (and ``in_keys`` if it
-reads more of the batch); an algorithm hands it to the loss and the memory (``mcrs.experiment.algorithms``).
+reads more of the batch); an algorithm hands it to the loss and the memory (``mcrs.experiment.training.algorithms``).
 """
 
 from __future__ import annotations

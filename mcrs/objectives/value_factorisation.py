@@ -7,7 +7,7 @@ TorchRL :class:`~torchrl.modules.models.multiagent.Mixer` (``VDNMixer``, our ``Q
 the target parameters of :meth:`LossModule.convert_to_functional` (so ``HardUpdate``/``SoftUpdate`` work),
 and the return estimators of :mod:`torchrl.objectives.value.functional`.
 
-Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.replay.episodes_from_rollout`, which
+Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.training.replay.episodes_from_rollout`, which
 turns any TorchRL collector batch into it, splitting episodes that end early). Keys, all renamable with
 :meth:`set_keys`::
 
@@ -35,7 +35,7 @@ A missing key raises a ``KeyError`` naming the key and where it usually comes fr
 
 What an algorithm adds to the batch (EMC's curiosity, the episodic memory) reaches the loss one way: its
 callback writes these keys into the sampled batch in ``on_train_batch``, before the update
-(:mod:`mcrs.experiment.callbacks`); row t describes the transition t -> t+1::
+(:mod:`mcrs.experiment.training.callbacks`); row t describes the transition t -> t+1::
 
     memory_return [B, T+1, 1]        H(phi(s_{t+1})): the highest return stored near s_{t+1}
     memory_hit    [B, T+1]           a stored key lies within delta of phi(s_{t+1})

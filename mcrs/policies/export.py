@@ -37,7 +37,7 @@ import torch
 from mcrs.env.config import EnvConfig, from_mapping
 from mcrs.env.core import MOVES, N_ACTIONS
 from mcrs.env.layout import ObservationLayout
-from mcrs.experiment.untrusted import check_archive
+from mcrs.experiment.util.untrusted import check_archive
 from mcrs.models.agent import RecurrentAgent
 from mcrs.policies.task_runs import load_task_run, task_description, task_node
 from mcrs.policies.trained import (

@@ -1,7 +1,7 @@
 """A task's run, rebuilt by the tools: its task from the run's config, its trained agent, a random baseline.
 
 A run of any task (``task=...``, or ``Experiment(..., task=...)``) keeps how to rebuild its task in its
-config (``task``: an importable class and its settings, :meth:`mcrs.experiment.task.Task.spec`). From it
+config (``task``: an importable class and its settings, :meth:`mcrs.experiment.training.task.Task.spec`). From it
 ``mcrs-eval policy=<run>`` plays the trained agent greedily and, on the same episodes, the random
 baseline (:class:`UniformAllowed`: uniform over each agent's allowed actions), and ``mcrs-export`` writes
 the agent, for any task. MCRS runs (no ``task``) keep their own tools (:mod:`mcrs.policies.trained`).
@@ -17,10 +17,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError
-from mcrs.experiment.evaluation import make_eval_env, rollout_greedy
-from mcrs.experiment.task import Task, make_task
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.evaluation import make_eval_env, rollout_greedy
+from mcrs.experiment.training.task import Task, make_task
 from mcrs.models.acting import make_acting_policy
 from mcrs.models.agent import RecurrentAgent
 
@@ -60,7 +60,7 @@ class TaskRun:
 
 def load_task_run(path: str | Path) -> TaskRun:
     """The agent of the task run or checkpoint ``path``, its task rebuilt from the run's config; refused in
-    one :class:`~mcrs.experiment.checkpoint.CheckpointError` line when the task cannot be rebuilt or the
+    one :class:`~mcrs.experiment.run.checkpoint.CheckpointError` line when the task cannot be rebuilt or the
     agent does not fit it."""
     from mcrs.policies.trained import refuse_replay_block, resolve_checkpoint
 

@@ -17,7 +17,7 @@ from torch import nn
 
 from mcrs.env.config import EnvConfig, from_mapping, with_legacy_values
 from mcrs.env.core import N_ACTIONS
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs.models.agent import RecurrentAgent
 from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
 

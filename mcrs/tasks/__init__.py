@@ -7,7 +7,6 @@ from mcrs.tasks.matrix_game import (
     MatrixGameEnv,
     MatrixGameTask,
     make_matrix_game,
-    train_on_matrix_game,
 )
 from mcrs.tasks.pettingzoo import PettingZooTask
 from mcrs.tasks.vmas import VmasTask
@@ -20,5 +19,4 @@ __all__ = [
     "PettingZooTask",
     "VmasTask",
     "make_matrix_game",
-    "train_on_matrix_game",
 ]

@@ -27,23 +27,16 @@ The env has no ``step_count``: our acting policy needs one, and TorchRL's ``Step
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.data import Binary, Bounded, Categorical, Composite
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
-from torchrl.objectives import HardUpdate
 
-from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
-from mcrs.experiment.task import Task
-from mcrs.models.acting import make_acting_policy, recurrent_primer
-from mcrs.models.agent import RecurrentAgent
-from mcrs.models.mixers import make_mixer
+from mcrs.experiment.training.task import Task
+from mcrs.models.acting import recurrent_primer
 from mcrs.objectives import ValueFactorisationLoss
-from mcrs.objectives.gradient import gradient_step
 
 #: The non-monotonic payoff of QTRAN (Son et al. 2019, table 1) and QPLEX (Wang et al. 2021, table 1).
 PAYOFF = torch.tensor([[8.0, -12.0, -12.0], [-12.0, 0.0, 0.0], [-12.0, 0.0, 0.0]])
@@ -161,7 +154,7 @@ class MatrixGameEnv(EnvBase):
 
 
 class MatrixGameTask(Task):
-    """The matrix game as a :class:`~mcrs.experiment.task.Task`: ``Experiment(config, run_dir,
+    """The matrix game as a :class:`~mcrs.experiment.training.task.Task`: ``Experiment(config, run_dir,
     task=MatrixGameTask())`` trains and evaluates any of our value-factorisation learners on it through the
     experiment's loop, checkpoints and logs. Its metric is the episode reward: the payoff of the joint
     action (greedy evaluation: the learned joint action's payoff, 8 at the optimum (0, 0)).
@@ -218,92 +211,3 @@ def joint_action_values(loss: ValueFactorisationLoss, episodes: TensorDictBase) 
         best = q.max(-1).values.expand(A**N, N)
         state = episodes.get(loss.tensor_keys.state)[0, 0].expand(A**N, -1)
         return loss.mix(chosen, state, joint, best).view((A,) * N)
-
-
-def train_on_matrix_game(
-    mixer: str = "qplex",
-    updates: int = 800,
-    seed: int = 0,
-    *,
-    mixer_kwargs: dict[str, Any] | None = None,
-    num_envs: int = 32,
-    batch_episodes: int = 128,
-    updates_per_batch: int = 4,
-    lr: float = 5e-3,
-    grad_clip: float = 10.0,
-    hidden_dim: int = 32,
-    target_update_interval: int = 50,
-    device: str | torch.device = "cpu",
-) -> dict[str, Any]:
-    """Train a value-factorisation learner on the matrix game with uniformly random exploration.
-
-    The whole MCRS pipeline, pointed at other keys: TorchRL ``Collector`` with our acting policy (group
-    ``"players"``, epsilon 1 throughout, the standard protocol for this game), :func:`episodes_from_rollout`,
-    a TorchRL replay buffer, :class:`ValueFactorisationLoss` with :meth:`~LossModule.set_keys`, ``HardUpdate``.
-    ``mixer_kwargs`` go to :func:`~mcrs.models.mixers.make_mixer` (e.g. :data:`QPLEX_MATRIX_GAME`).
-
-    Returns a dict with the greedy joint action of the trained agents (``greedy_action``), its ``Q_tot``
-    (``greedy_q_tot``) and payoff (``greedy_payoff``), the whole ``q_tot`` table, its mean squared error to
-    the payoff (``table_mse``: what uniform exploration makes the loss estimate), the last batch's ``loss``
-    and the wall-clock ``seconds``.
-    """
-    start = time.perf_counter()
-    torch.manual_seed(seed)
-    env = make_matrix_game(num_envs, hidden_dim, device=device)
-    base: MatrixGameEnv = env.base_env
-    N, A = base.n_players, base.n_actions
-    agent = RecurrentAgent(N, A, N, hidden_dim, agent_id=False, last_action=True).to(device)  # obs = id
-    state_shape = base.observation_spec[STATE_KEY].shape[1:]
-    mix = make_mixer(mixer, N, state_shape, A, device=device, **(mixer_kwargs or {}))
-    loss = ValueFactorisationLoss(agent, mix, gamma=0.99, td_lambda=0.0, double_q=True)
-    loss.set_keys(
-        observation=(GROUP, "observation"),
-        action=(GROUP, "action"),
-        action_mask=(GROUP, "action_mask"),
-        state=STATE_KEY,
-    )
-    greedy, exploring, _ = make_acting_policy(agent, A, eps_start=1.0, eps_end=1.0, group=GROUP)
-    params = [*agent.parameters(), *mix.parameters()]
-    optimizer = torch.optim.Adam(params, lr=lr)
-    target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval)
-    replay = make_episode_buffer(capacity=4096, batch_size=batch_episodes, device=device)
-    collector = Collector(
-        env,
-        exploring,
-        frames_per_batch=num_envs,  # one step per env: every batch row is one whole episode
-        total_frames=-1,
-        device=device,
-        trust_policy=True,
-        auto_register_policy_transforms=False,
-    )
-
-    def to_episodes(batch: TensorDictBase) -> TensorDictBase:
-        return episodes_from_rollout(batch, step_keys=STEP_KEYS, action_key=(GROUP, "action"))
-
-    last = torch.tensor(float("nan"))
-    try:
-        batches = iter(collector)
-        for update in range(updates):
-            if update % updates_per_batch == 0:
-                replay.extend(to_episodes(next(batches)))
-            out = loss(replay.sample())
-            gradient_step(out["loss"], optimizer, params, grad_clip, step=update)
-            target_updater.step()
-            last = out["loss"].detach()
-    finally:
-        collector.shutdown()
-
-    with torch.no_grad():
-        rollout = env.rollout(1, greedy)  # [E, 1]: the trained agents' greedy move
-    q_tot = joint_action_values(loss, to_episodes(rollout))
-    greedy_action = tuple(rollout.get((GROUP, "action"))[0, 0].tolist())
-    return {
-        "mixer": mixer,
-        "greedy_action": greedy_action,
-        "greedy_q_tot": float(q_tot[greedy_action]),
-        "greedy_payoff": float(base.payoff[greedy_action]),
-        "q_tot": q_tot,
-        "table_mse": float((q_tot - base.payoff).pow(2).mean()),
-        "loss": float(last),
-        "seconds": time.perf_counter() - start,
-    }

@@ -1,4 +1,4 @@
-"""Any PettingZoo ``ParallelEnv`` with discrete actions as a :class:`~mcrs.experiment.task.Task`
+"""Any PettingZoo ``ParallelEnv`` with discrete actions as a :class:`~mcrs.experiment.training.task.Task`
 (``task=simple_spread``; ``PettingZooTask("mpe2.simple_spread_v3", 25, {"N": 3})`` in Python).
 
 A PettingZoo env is one environment of Python objects; :class:`PettingZooBatchEnv` steps ``num_envs`` of
@@ -31,7 +31,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from mcrs.experiment.task import Task
+from mcrs.experiment.training.task import Task
 
 GROUP = "agents"
 REWARDS = ("sum", "mean")

@@ -1,4 +1,4 @@
-"""VMAS scenarios with discrete actions as a :class:`~mcrs.experiment.task.Task` (``task=vmas_navigation``).
+"""VMAS scenarios with discrete actions as a :class:`~mcrs.experiment.training.task.Task` (``task=vmas_navigation``).
 
 VMAS (``pip install "mcrs[vmas]"``) is a vectorised multi-robot simulator: one ``VmasEnv`` (TorchRL's
 wrapper) steps all ``num_envs`` environments as batched tensors. :class:`VmasTask` puts it in the
@@ -28,7 +28,7 @@ from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from torchrl.envs.transforms import Transform
 
-from mcrs.experiment.task import Task, first_episode_sum
+from mcrs.experiment.training.task import Task, first_episode_sum
 
 GROUP = "agents"
 

@@ -19,8 +19,8 @@ import numpy as np
 import yaml
 from scipy import stats
 
-from mcrs.experiment.tables import markdown
-from mcrs.experiment.untrusted import UntrustedInput, check_yaml_text, read_yaml_text
+from mcrs.experiment.util.tables import markdown
+from mcrs.experiment.util.untrusted import UntrustedInput, check_yaml_text, read_yaml_text
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
 from mcrs_lab.analysis.runs import EvaluationRow

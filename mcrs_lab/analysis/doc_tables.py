@@ -38,8 +38,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcrs.experiment.atomic import ChangedSinceRead, write_bytes_atomic, write_if_unchanged
-from mcrs.experiment.untrusted import UntrustedInput, confined
+from mcrs.experiment.util.atomic import ChangedSinceRead, write_bytes_atomic, write_if_unchanged
+from mcrs.experiment.util.untrusted import UntrustedInput, confined
 from mcrs_lab.analysis import report
 
 BLOCK = re.compile(

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 
 
 @dataclass(frozen=True)

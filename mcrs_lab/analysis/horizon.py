@@ -26,11 +26,11 @@ from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from torchrl.objectives.value.functional import reward2go
 
-from mcrs.experiment import checkpoint as ckpt
 from mcrs.experiment.config import ConfigError, as_typed, validate
-from mcrs.experiment.learner import Learner
-from mcrs.experiment.replay import make_episode_buffer
-from mcrs.experiment.replay_store import ReplayStore
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.replay_store import ReplayStore
+from mcrs.experiment.training.learner import Learner
+from mcrs.experiment.training.replay import make_episode_buffer
 
 #: Time steps shown one by one at the end of the episode (the rest in buckets of ten).
 LAST_STEPS = 5

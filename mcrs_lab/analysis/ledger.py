@@ -38,8 +38,8 @@ from mcrs.env.config import PRESETS, EnvConfig
 from mcrs.env.core import MOVES
 from mcrs.env.layout import ObservationLayout, StateLayout
 from mcrs.env.torchrl_env import MCRSEnv
-from mcrs.experiment.checkpoint import CheckpointError
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.run.checkpoint import CheckpointError
+from mcrs.experiment.util.tables import markdown
 from mcrs.policies import POLICIES, make_policy, policy_env
 from mcrs.policies.base import ACTION, ACTION_MASK, OBSERVATION
 from mcrs_lab.analysis.env_fields import scenario_with

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mcrs.env.core import METRICS
-from mcrs.experiment.atomic import write_text_atomic
+from mcrs.experiment.util.atomic import write_text_atomic
 from mcrs_lab.analysis.runs import TrainingRun, run_labels
 
 ENVIRONMENT = "mcrs"

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 from mcrs.policies.export import ExportError, read_description
 from mcrs.policies.trained import EXPORTED_SUFFIX
 from mcrs_lab.analysis.runs import is_heuristic_policy

@@ -19,7 +19,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, depth_of, finite_number, plain_name
+from mcrs.experiment.util.untrusted import MAX_DEPTH, UntrustedInput, depth_of, finite_number, plain_name
 
 #: The marker and version of a record file (the first key of its JSON, so it is recognised cheaply).
 RECORD_FORMAT = "mcrs-record"

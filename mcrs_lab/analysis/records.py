@@ -23,10 +23,17 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.atomic import ChangedSinceRead, write_if_unchanged
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs.experiment.schema import CONFIG_DIR
-from mcrs.experiment.untrusted import MAX_DEPTH, UntrustedInput, confined, depth_of, plain_name, read_yaml
+from mcrs.experiment.util.atomic import ChangedSinceRead, write_if_unchanged
+from mcrs.experiment.util.untrusted import (
+    MAX_DEPTH,
+    UntrustedInput,
+    confined,
+    depth_of,
+    plain_name,
+    read_yaml,
+)
 from mcrs_lab.analysis.curves import Q_TOT
 from mcrs_lab.analysis.policy_identity import policy_label, trained_run_id
 from mcrs_lab.analysis.record_schema import RecordError
@@ -267,7 +274,7 @@ def evaluation_record(eval_dir: Path) -> dict[str, Any]:
         reasons = "; ".join(s.reason for s in runs.skipped) or "no metrics.csv"
         raise RecordError(f"{eval_dir}: not an mcrs-eval result ({reasons})")
     hydra_dir = eval_dir / ".hydra"
-    try:  # bounded before parsing (mcrs.experiment.untrusted); Hydra's files keep their interpolations
+    try:  # bounded before parsing (mcrs.experiment.util.untrusted); Hydra's files keep their interpolations
         config = read_yaml(hydra_dir / "config.yaml") if hydra_dir.is_dir() else {}
         hydra = read_yaml(hydra_dir / "hydra.yaml") if (hydra_dir / "hydra.yaml").is_file() else {}
     except UntrustedInput as error:

@@ -46,9 +46,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.experiment.checkpoint import CheckpointError
-from mcrs.experiment.rundir import describe_os_error
-from mcrs.experiment.tables import markdown, write_csv
+from mcrs.experiment.run.checkpoint import CheckpointError
+from mcrs.experiment.run.rundir import describe_os_error
+from mcrs.experiment.util.tables import markdown, write_csv
 from mcrs_lab.analysis import comm_range as cr
 from mcrs_lab.analysis import tsne
 from mcrs_lab.analysis.claims import ClaimsError, claims_table, default_claims_path, load_claims

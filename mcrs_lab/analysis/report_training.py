@@ -4,7 +4,7 @@ Q_tot (figures 6-8, 10-12)."""
 
 from __future__ import annotations
 
-from mcrs.experiment.tables import markdown, mean_std, write_csv
+from mcrs.experiment.util.tables import markdown, mean_std, write_csv
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
 from mcrs_lab.analysis.claims import CLAIM_Q_TOT, claims_table
 from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_steps, milestone_values

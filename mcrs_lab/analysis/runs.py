@@ -28,12 +28,12 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from mcrs.experiment.checkpoint import current_config, legacy_values
-from mcrs.experiment.logging import ScalarFileError, flatten_config, scalar_file
-from mcrs.experiment.logging import read_scalar_rows as logged_rows
-from mcrs.experiment.logging import sorted_points as _sorted_points
+from mcrs.experiment.run.checkpoint import current_config, legacy_values
+from mcrs.experiment.run.logging import ScalarFileError, flatten_config, scalar_file
+from mcrs.experiment.run.logging import read_scalar_rows as logged_rows
+from mcrs.experiment.run.logging import sorted_points as _sorted_points
 from mcrs.experiment.schema import CONFIG_DIR
-from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 from mcrs_lab.analysis.evaluation_rows import (  # noqa: F401 (EvaluationRow: read from here by the tools)
     EvaluationRow,
     env_node,
@@ -143,7 +143,7 @@ class Runs:
 
 
 def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
-    """The ``step,value`` rows of a CSV-logger file in the order written (:func:`mcrs.experiment.logging.
+    """The ``step,value`` rows of a CSV-logger file in the order written (:func:`mcrs.experiment.run.logging.
     read_scalar_rows`); a bad row is refused as a :class:`RecordError`."""
     try:
         return logged_rows(path)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mcrs.env.config import from_mapping, with_legacy_values
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.util.tables import markdown
 from mcrs.policies import POLICIES
 from mcrs_lab.analysis.bound import reward_bound
 from mcrs_lab.analysis.runs import EvaluationRow

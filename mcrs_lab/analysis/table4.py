@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from mcrs.experiment.tables import markdown, mean_std
+from mcrs.experiment.util.tables import markdown, mean_std
 from mcrs_lab.analysis.step_notation import step_labels
 
 #: The map of the paper's hyperparameter study (section 6.3: "using a 20 x 20 map as an example").

@@ -17,8 +17,8 @@ import torch
 from omegaconf import OmegaConf
 
 from mcrs.env.config import from_mapping
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.episodic import build_embedding
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.training.episodic import build_embedding
 from mcrs.memory.codec import StateCodec
 from mcrs.models.embeddings import make_embedding
 from mcrs_lab.analysis.runs import TrainingRun

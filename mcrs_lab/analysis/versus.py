@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mcrs.env.metrics import METRIC_BETTER, METRIC_LABELS, METRICS
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.util.tables import markdown
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import END_FRACTION, Samples, compare, window_samples
 from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples

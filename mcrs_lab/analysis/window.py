@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.util.tables import markdown
 from mcrs_lab.analysis.records import RecordError
 from mcrs_lab.analysis.runs import TrainingRun, find_runs, run_labels
 

@@ -21,9 +21,9 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.rundir import describe_os_error
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import describe_os_error
+from mcrs.experiment.util.tables import markdown
 from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs.experiment.schema import MAX_EVAL_EPISODES
-from mcrs.experiment.untrusted import UntrustedInput, confined
+from mcrs.experiment.util.untrusted import UntrustedInput, confined
 from mcrs_lab.analysis.records import (
     RecordError,
     evaluation_record_name,

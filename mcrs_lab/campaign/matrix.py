@@ -15,9 +15,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mcrs.experiment.cli import file_override_problem
+from mcrs.experiment.commands.cli import file_override_problem
 from mcrs.experiment.schema import CONFIG_DIR
-from mcrs.experiment.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
+from mcrs.experiment.util.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
 from mcrs_lab.analysis.records import point_name, swept_fields
 
 #: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
@@ -167,7 +167,7 @@ TRAIN_KEYS = ("experiment", "budget", "env", "algo", "seed", "threads")
 def check_overrides(overrides: Any, where: str, reserved: tuple[str, ...]) -> tuple[str, ...]:
     """``overrides`` (a list of ``key=value``) as a tuple, each one a config value the tool may pass on:
     no Hydra setting, no ``resume``/``overwrite``, none of ``reserved``, no path (``file_override_problem``
-    in mcrs.experiment.cli), else MatrixError naming ``where`` and the override."""
+    in mcrs.experiment.commands.cli), else MatrixError naming ``where`` and the override."""
     out = []
     for override in _as_list(overrides):
         problem = file_override_problem(override, reserved)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcrs.experiment import checkpoint as ckpt
+from mcrs.experiment.run import checkpoint as ckpt
 from mcrs_lab.analysis.runs import read_record
 from mcrs_lab.campaign.matrix import Point
 

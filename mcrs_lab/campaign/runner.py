@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.rundir import lock_holder
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import lock_holder
 from mcrs_lab.analysis.records import (
     SESSIONS,
     RecordError,

@@ -9,20 +9,65 @@ files of every block, the buffer's length and writer state) instead of the episo
 Crash safety: a save writes its new block files under new names (the generation), then the caller
 writes ``last.pt`` atomically, then :meth:`ReplayStore.commit` deletes the files no longer referenced.
 A crash at any point leaves the previous ``last.pt`` with all the files it names.
+
+Also here: the replay as plain tensors (:func:`flat_episodes`, :func:`replay_state_dict`), the form every
+checkpoint stores it in, inline or in blocks.
 """
 
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import ReplayBuffer
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.replay import episodes_from_flat, flat_episodes
+from mcrs.experiment.run import checkpoint as ckpt
+
+#: How nested keys are written in a saved replay: ``("agents", "observation")`` as ``"agents/observation"``.
+KEY_SEPARATOR = "/"
+
+
+def flat_episodes(episodes: TensorDictBase) -> dict[str, torch.Tensor]:
+    """``episodes`` as a flat ``{"agents/observation": tensor, ...}`` dict: what a checkpoint stores
+    (plain tensors under string keys, read back with ``weights_only=True``). Only the episodes given are
+    written: TorchRL's ``ReplayBuffer.state_dict()`` would write the whole allocated storage
+    (docs/PERFORMANCE.md, "Saving the replay")."""
+    return dict(episodes.flatten_keys(KEY_SEPARATOR).items())
+
+
+def episodes_from_flat(flat: dict[str, torch.Tensor], batch_size: Sequence[int]) -> TensorDict:
+    """The inverse of :func:`flat_episodes`."""
+    return TensorDict(flat, batch_size=list(batch_size)).unflatten_keys(KEY_SEPARATOR)
+
+
+def replay_state_dict(buffer: ReplayBuffer) -> dict:
+    """The stored episodes (only the filled part, not the whole capacity) and the writer's position."""
+    n = len(buffer)
+    state: dict = {"length": n, "writer": buffer.writer.state_dict()}
+    if n:
+        episodes = buffer.storage.get(torch.arange(n))
+        state["batch_size"] = list(episodes.batch_size)
+        state["episodes"] = flat_episodes(episodes)
+    return state
+
+
+def load_replay_state_dict(buffer: ReplayBuffer, state: dict) -> None:
+    """Refill an empty buffer from :func:`replay_state_dict`: same slots, same next write position."""
+    if len(buffer):
+        raise ValueError("load_replay_state_dict needs an empty buffer")
+    n = int(state["length"])
+    if n:
+        if n > len(buffer.storage) and buffer.storage.max_size < n:
+            raise ValueError(f"the saved replay holds {n} episodes, more than this buffer's capacity")
+        episodes = episodes_from_flat(state["episodes"], state["batch_size"])
+        buffer.extend(episodes.to(buffer.storage.device) if buffer.storage.device is not None else episodes)
+    buffer.writer.load_state_dict(state["writer"])
+
 
 BLOCK_EPISODES = 100  # slots per block file (map20: about 66 MB)
 _BLOCK_FILE = re.compile(r"^replay_\d+_\d+\.pt$")
@@ -102,7 +147,7 @@ class ReplayStore:
         """Refill an empty ``buffer`` from a manifest: same slots, same next write position. Each block
         must be the one the manifest names (its index) and, when the manifest says its blocks carry
         fingerprints, carry ``fingerprint`` (checked like ``last.pt``'s)."""
-        from mcrs.experiment.rundir import first_difference
+        from mcrs.experiment.run.rundir import first_difference
 
         if len(buffer):
             raise ValueError("ReplayStore.load needs an empty buffer")

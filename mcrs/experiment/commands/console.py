@@ -1,6 +1,6 @@
 """The handler and formatter of the commands' text log (``conf/hydra/job_logging/mcrs.yaml``).
 
-Apart from :mod:`mcrs.experiment.logging` (TorchRL's loggers) because Hydra builds them before the command
+Apart from :mod:`mcrs.experiment.run.logging` (TorchRL's loggers) because Hydra builds them before the command
 runs: importing them must not load torch, so that a refused command is refused at once.
 """
 

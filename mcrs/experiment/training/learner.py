@@ -2,9 +2,9 @@
 
 One :meth:`Learner.update` per sampled batch of episodes. Everything an algorithm adds on top (the episodic
 memory's look-ups, EMC's intrinsic reward) arrives as keys of the batch, written before the update by the
-experiment's callbacks (:mod:`mcrs.experiment.callbacks`), so the learner is the same for every algorithm;
+experiment's callbacks (:mod:`mcrs.experiment.training.callbacks`), so the learner is the same for every algorithm;
 what differs (the mixer, EMU's incentive) is handed to it by the algorithm
-(:mod:`mcrs.experiment.algorithms`).
+(:mod:`mcrs.experiment.training.algorithms`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from torchrl.objectives import HardUpdate
 
 from mcrs.env.config import EnvConfig
 from mcrs.experiment.schema import AlgoConfig, ModelConfig, TrainConfig
-from mcrs.experiment.task import Task, as_task
+from mcrs.experiment.training.task import Task, as_task
 from mcrs.models.agent import RecurrentAgent
 from mcrs.models.mixers import make_mixer
 from mcrs.objectives import ValueFactorisationLoss
@@ -88,7 +88,7 @@ class Learner:
     Args:
         algo, model, train: the config nodes it reads (the mixer and TD target; the agent; the optimiser).
         env_config: the map, which fixes the observation, state and team sizes (or a
-            :class:`~mcrs.experiment.task.Task`, which also fixes the keys the loss reads).
+            :class:`~mcrs.experiment.training.task.Task`, which also fixes the keys the loss reads).
         device: where the networks live.
         mixer: builds the mixer from the task, right after the agent (so the networks draw their
             initial weights in that order); default :func:`build_mixer` of ``algo``.
@@ -97,8 +97,8 @@ class Learner:
             :class:`~mcrs.objectives.ValueFactorisationLoss` (or a subclass: its keys are set from the
             task, and the optimiser and the target updates are built around it); default
             :func:`build_loss` of ``algo`` with ``incentive``.
-            The :class:`~mcrs.experiment.algorithms.Algorithm` of a run passes all three
-            (:meth:`~mcrs.experiment.algorithms.Algorithm.learner`).
+            The :class:`~mcrs.experiment.training.algorithms.Algorithm` of a run passes all three
+            (:meth:`~mcrs.experiment.training.algorithms.Algorithm.learner`).
     """
 
     def __init__(

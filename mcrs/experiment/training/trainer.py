@@ -2,16 +2,14 @@
 
     collector (TorchRL, masked epsilon-greedy)  ->  whole episodes  ->  replay buffer (TorchRL)
         ->  ValueFactorisationLoss (TorchRL LossModule, TorchRL mixers)  ->  optimiser, HardUpdate
-    what an algorithm adds comes in through callbacks (mcrs.experiment.callbacks): the episodic memory
+    what an algorithm adds comes in through callbacks (training.callbacks): the episodic memory
         (Algorithm 1 on every collected batch, phi every t_emb env steps, H(phi(s')) on every sampled
         batch) and EMC's curiosity (an intrinsic reward on every sampled batch)
     every eval_interval env steps: greedy evaluation on fixed-seed environments
-    on Ctrl-C or SIGTERM: the batch in progress ends, a checkpoint, RunInterrupted (mcrs.experiment.interrupt)
+    on Ctrl-C or SIGTERM: the batch in progress ends, a checkpoint, RunInterrupted (run.interrupt)
     every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
-        checkpoint of everything; the replay goes into block files beside it, and a checkpoint rewrites
-        only the blocks with episodes added since the previous one (mcrs.experiment.replay_store); the
-        newest keep_checkpoints weight files model_<steps>.pt are kept (what a checkpoint holds, how it is
-        written and restored: mcrs.experiment.run_state, a base class of Experiment)
+        checkpoint of everything, the replay in block files beside it (run.replay_store), the newest
+        keep_checkpoints weight files model_<steps>.pt kept; the run's state (run.run_state) writes it
 
     Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run").run()
     Experiment(compose("algo=qplex"), "outputs/game", task=MatrixGameTask()).run()   # any Task
@@ -27,33 +25,16 @@ import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.algorithms import (
-    ALGORITHMS,
-    Algorithm,
-    UnregisteredAlgorithm,
-    algorithm_class,
-    unregistered,
-)
-from mcrs.experiment.budget import rounding_notes
-from mcrs.experiment.callbacks import (
-    Callback,
-    UnreadBatchKey,
-    append_scalar,
-    check_names,
-    hook_scalars,
-    unread_batch_keys,
-)
-from mcrs.experiment.collection import CollectorWorkerFailed, TrainingCollector
-from mcrs.experiment.config import Config, as_dictconfig, as_typed, to_container, validate
-from mcrs.experiment.counters import Counters, batch_seed
-from mcrs.experiment.evaluation import EvaluationVideo, evaluate, make_eval_env
-from mcrs.experiment.interrupt import RunInterrupted, StopSignals
-from mcrs.experiment.logging import (
+from mcrs.experiment.config import Config, as_typed, to_container, validate
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.counters import Counters, batch_seed
+from mcrs.experiment.run.interrupt import RunInterrupted, StopSignals
+from mcrs.experiment.run.logging import (
     close_log_files,
     log_event,
     log_scalars,
@@ -62,11 +43,30 @@ from mcrs.experiment.logging import (
     progress_bar,
     quiet_torchrl,
 )
-from mcrs.experiment.replay import episodes_from_rollout, make_episode_buffer
-from mcrs.experiment.replay_store import ReplayStore
-from mcrs.experiment.run_state import RunState
-from mcrs.experiment.rundir import RunDirError, RunLock, describe_os_error, io_errors, prepare_fresh
-from mcrs.experiment.task import (
+from mcrs.experiment.run.replay_store import ReplayStore
+from mcrs.experiment.run.run_state import RunState
+from mcrs.experiment.run.rundir import RunDirError, RunLock, describe_os_error, prepare_fresh
+from mcrs.experiment.training.algorithms import (
+    ALGORITHMS,
+    Algorithm,
+    UnregisteredAlgorithm,
+    algorithm_class,
+    unregistered,
+)
+from mcrs.experiment.training.budget import rounding_notes
+from mcrs.experiment.training.callbacks import (
+    Callback,
+    UnreadBatchKey,
+    append_scalar,
+    check_names,
+    hook_scalars,
+    unread_batch_keys,
+)
+from mcrs.experiment.training.collection import CollectorWorkerFailed, TrainingCollector
+from mcrs.experiment.training.evaluation import EvaluationVideo, evaluate, make_eval_env
+from mcrs.experiment.training.replay import episodes_from_rollout, make_episode_buffer
+from mcrs.experiment.training.resources import check_buildable
+from mcrs.experiment.training.task import (
     MCRSTask,
     Task,
     check_env,
@@ -74,33 +74,27 @@ from mcrs.experiment.task import (
     make_task,
     with_agent_state,
 )
-from mcrs.experiment.threads import SpeedCheck, apply_threads
+from mcrs.experiment.util.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
 
 __all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
 
 
-def _saved(cfg: Config) -> DictConfig:
-    """What ``config.yaml`` holds: the config, without the ``task`` key of an MCRS run (as before tasks)."""
-    node = as_dictconfig(cfg)
-    return node if cfg.task is not None else OmegaConf.masked_copy(node, [k for k in node if k != "task"])
-
-
-class Experiment(RunState):
+class Experiment:
     """A training run built from a config; :meth:`run` trains it, :meth:`evaluate` evaluates the greedy
-    policy, :meth:`state_dict` is everything a checkpoint holds (the checkpoint half, :meth:`save`,
-    :meth:`load_state_dict` and :meth:`fingerprint` included, is :class:`~mcrs.experiment.run_state.RunState`).
+    policy, :meth:`state_dict` is everything a checkpoint holds. The run's bookkeeping and checkpoints are
+    its :attr:`state` (:class:`~mcrs.experiment.run.run_state.RunState`), which reads the parts built here.
 
     Args:
         config: the typed :class:`~mcrs.experiment.config.Config` (or the Hydra ``DictConfig`` it is
             composed into; :func:`mcrs.experiment.config.compose` builds one from overrides).
         run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
         resume: continue from ``run_dir/checkpoints/last.pt``.
-        callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.callbacks`).
-        task: the environment (:class:`~mcrs.experiment.task.Task`); default: the one ``config.task``
+        callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.training.callbacks`).
+        task: the environment (:class:`~mcrs.experiment.training.task.Task`); default: the one ``config.task``
             describes (``task=...`` on the command line), else MCRS on ``config.env``. The run's
-            ``config.yaml`` keeps how to rebuild it (``task``: :meth:`~mcrs.experiment.task.Task.spec`).
+            ``config.yaml`` keeps how to rebuild it (``task``: :meth:`~mcrs.experiment.training.task.Task.spec`).
     """
 
     def __init__(
@@ -114,6 +108,7 @@ class Experiment(RunState):
         check_names(list(callbacks or []))  # before anything is built or written
         self.config = as_typed(config)
         self.env_config = validate(self.config)  # the one validation of the run; the env is built from it
+        check_buildable(self.config, self.env_config)  # the embedding fits the map, the run the machine
         if task is None and self.config.task is not None:  # task=... on the command line, or a resume
             task = make_task(self.config.task)
         self.task = MCRSTask(self.env_config) if task is None else task
@@ -141,14 +136,43 @@ class Experiment(RunState):
             raise
 
     @property
-    def cfg(self) -> Config:
-        """The typed config (the name the builders' docstrings use)."""
-        return self.config
-
-    @property
     def seconds(self) -> dict[str, float]:
         """This session's wall seconds by part (``collect``, ``update``, ``eval`` and each callback)."""
         return dict(self._timer)
+
+    # ------------------------------------------------------------------ the run's state (RunState)
+    @property
+    def counters(self) -> Counters:
+        """The run's progress: env steps, episodes, updates, when the next evaluation is due, ..."""
+        return self.state.counters
+
+    @property
+    def last_eval(self) -> dict[str, float]:
+        """The latest greedy evaluation's means (empty before the first)."""
+        return self.state.last_eval
+
+    @property
+    def replay_store(self) -> ReplayStore:
+        """The replay's block files beside ``last.pt``."""
+        return self.state.replay_store
+
+    def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
+        """Everything a checkpoint holds (:meth:`RunState.state_dict`)."""
+        return self.state.state_dict(replay_inline)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint's state (:meth:`RunState.load_state_dict`)."""
+        self.state.load_state_dict(state)
+
+    def fingerprint(
+        self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
+    ) -> dict:
+        """What a checkpoint must share with this run (:meth:`RunState.fingerprint`)."""
+        return self.state.fingerprint(config, learner)
+
+    def save(self, name: str = ckpt.LAST) -> Path:
+        """Write a checkpoint (``checkpoints/last.pt``, or ``name``) and the weights at this step."""
+        return self.state.save(name)
 
     def close(self) -> None:
         """Close the log files and release the run directory (done by :meth:`run`; the process's exit
@@ -164,7 +188,6 @@ class Experiment(RunState):
         quiet_torchrl()  # before the replay is built or loaded: TorchRL prints an INFO line for it
         if not resume:  # a fresh run never mixes its files with another run's
             prepare_fresh(self.run_dir, cfg.overwrite)
-        self._log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
         self.threads = apply_threads(cfg.threads)  # auto: the cores the load leaves free
         self.device = torch.device(self.env_config.device)
         torch.manual_seed(int(cfg.seed))
@@ -190,23 +213,17 @@ class Experiment(RunState):
         self.eval_env = make_eval_env(task, t.eval_episodes, hidden, self.device)
         self.video = EvaluationVideo(self.env_config, hidden, self.device, int(t.eval_seed))  # MCRS only
         self.replay = make_episode_buffer(t.replay_episodes, t.batch_episodes, device=self.device)
-        self.replay_store = ReplayStore(ckpt.checkpoint_path(self.run_dir).parent)
-        self.counters = Counters(
-            next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes
+        self.state = RunState(
+            self, Counters(next_checkpoint=t.checkpoint_interval, next_target_update=t.target_update_episodes)
         )
-        self.last_eval: dict[str, float] = {}
-        self._last_eval_step: int | None = None  # the env step of last_eval (saved in checkpoints)
-        self._evaluated_at: int | None = None  # the env step of this process's last evaluation
         self._batch_keys_checked = False  # the callbacks' batch keys are checked on the first update
         self._timer = {"collect": 0.0, "update": 0.0, "eval": 0.0, **{cb.name: 0.0 for cb in self.callbacks}}
         for callback in self.callbacks:
             callback.on_setup(self)
         if resume:
-            self._load(ckpt.checkpoint_path(self.run_dir))
+            self.state.load(ckpt.checkpoint_path(self.run_dir))
         else:
-            with io_errors(f"write {self.run_dir / 'config.yaml'}"):
-                self.run_dir.mkdir(parents=True, exist_ok=True)
-                (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(_saved(cfg), resolve=True))
+            self.state.write_config()
         lg = cfg.logger
         self.logger = make_logger(
             str(lg.backend), self.run_dir, to_container(cfg), lg.project, str(lg.wandb_mode)
@@ -222,7 +239,7 @@ class Experiment(RunState):
             t.num_envs,
         )
         if resume:  # last: building the collector may draw random numbers
-            self._restore_rng()
+            self.state.restore_rng()
         log_event(f"{'resuming' if resume else 'training'} {cfg.algo.name} on {self.task.name}")
         if self.algorithm_note:  # a label of one's own, or a misspelt name: said, not refused
             log_event(self.algorithm_note)
@@ -256,7 +273,8 @@ class Experiment(RunState):
         """Whether the run is complete: at ``train.total_env_steps`` with its final evaluation written (a
         run killed between its last checkpoint and its final evaluation is not)."""
         return (
-            self.counters.env_steps >= self.config.train.total_env_steps and self.final_evaluation_written()
+            self.counters.env_steps >= self.config.train.total_env_steps
+            and self.state.final_evaluation_written()
         )
 
     def run(self) -> dict[str, float]:
@@ -265,7 +283,7 @@ class Experiment(RunState):
         self._session_start_steps = c.env_steps
         if self.finished:  # a resumed run that had finished
             log_event(f"the run is finished at env step {c.env_steps}: nothing to train, evaluate or save")
-            self._evaluated_at = c.env_steps  # its final evaluation is logged at this step
+            self.state.evaluated_at = c.env_steps  # its final evaluation is logged at this step
             self.collector.shutdown()
             self.close()
             return dict(self.last_eval)  # its final evaluation is logged once, by the session that ended it
@@ -277,7 +295,7 @@ class Experiment(RunState):
         )
         self._timer = dict.fromkeys(self._timer, 0.0)  # this session's clock
         collector_iter = iter(self.collector)
-        self._last_save = time.monotonic()
+        self.state.last_save = time.monotonic()
         self._speed = SpeedCheck(self.threads, str(t.collector) == "single")
         stats: dict[str, list[torch.Tensor]] = {}
         with StopSignals() as stop:  # a signal: a checkpoint after this batch; more signals are ignored
@@ -308,10 +326,10 @@ class Experiment(RunState):
                 self.save()
             except OSError as error:  # a full disk or a vanished directory: one line, not a trace
                 raise RunDirError(
-                    f"cannot continue the run: {describe_os_error(error)}{self._intact()}"
+                    f"cannot continue the run: {describe_os_error(error)}{self.state.intact()}"
                 ) from None
             except CollectorWorkerFailed as error:  # the batch is lost; the last checkpoint is a whole state
-                raise CollectorWorkerFailed(f"{error}{self._intact('')}") from None
+                raise CollectorWorkerFailed(f"{error}{self.state.intact('')}") from None
             finally:
                 progress.close()
                 self.collector.shutdown()
@@ -338,7 +356,7 @@ class Experiment(RunState):
         )
         episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
         episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
-        self.replay_store.mark_written(self.replay.extend(episodes))
+        self.state.replay_store.mark_written(self.replay.extend(episodes))
         for name, values in task.episode_metrics(batch).items():
             append_scalar(stats, f"train/{name}", values.mean())
         c.iteration += 1
@@ -405,7 +423,7 @@ class Experiment(RunState):
         t, c = self.config.train, self.counters
         due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
         due_by_time = (
-            t.checkpoint_minutes > 0 and time.monotonic() - self._last_save >= 60 * t.checkpoint_minutes
+            t.checkpoint_minutes > 0 and time.monotonic() - self.state.last_save >= 60 * t.checkpoint_minutes
         )
         if due_by_steps:
             c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
@@ -432,9 +450,11 @@ class Experiment(RunState):
         returns the metrics without a second row at that step or a second ``on_evaluation_end`` (EMU-change
         would move its threshold twice)."""
         start = time.perf_counter()
-        self.last_eval = evaluate(self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task)
-        self._last_eval_step = self.counters.env_steps
-        if self._evaluated_at == self.counters.env_steps:
+        self.state.last_eval = evaluate(
+            self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task
+        )
+        self.state.last_eval_step = self.counters.env_steps
+        if self.state.evaluated_at == self.counters.env_steps:
             self._timer["eval"] += time.perf_counter() - start
             return dict(self.last_eval)
         if self.config.logger.video:  # one more greedy episode, drawn frame by frame: eval/video
@@ -444,7 +464,7 @@ class Experiment(RunState):
         log_event(f"evaluation at env step {self.counters.env_steps}: {metrics_line(self.last_eval)}")
         for callback in self.callbacks:
             callback.on_evaluation_end(self.last_eval)
-        self._evaluated_at = self.counters.env_steps
+        self.state.evaluated_at = self.counters.env_steps
         return dict(self.last_eval)
 
     def _log_train(self, stats: dict[str, list[torch.Tensor]]) -> None:
@@ -467,7 +487,7 @@ class Experiment(RunState):
         """Log and count the rows of each metric, so that a resume can drop rows logged after its checkpoint."""
         log_scalars(self.logger, values, step)
         for name in values:
-            self._log_rows[name] = self._log_rows.get(name, 0) + 1
+            self.state.log_rows[name] = self.state.log_rows.get(name, 0) + 1
 
     def _postfix(self) -> dict[str, str]:
         post = {"eps": f"{float(self.epsilon.eps):.3f}"}

@@ -39,13 +39,13 @@ from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from mcrs.env.config import EnvConfig
-from mcrs.experiment.task import Task, as_task, with_agent_state
+from mcrs.experiment.training.task import Task, as_task, with_agent_state
 
 
 @contextlib.contextmanager
 def _workers_ignore_sigint() -> Iterator[None]:
     """Start worker processes with SIGINT ignored (they inherit it): Ctrl-C in a terminal reaches the whole
-    process group, and the trainer, not its workers, decides how to stop (mcrs.experiment.interrupt: the
+    process group, and the trainer, not its workers, decides how to stop (mcrs.experiment.run.interrupt: the
     batch in progress ends, then a checkpoint). Outside the main thread nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield

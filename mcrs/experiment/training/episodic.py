@@ -19,8 +19,8 @@ import torch
 from tensordict import TensorDictBase
 
 from mcrs.env.config import EnvConfig
-from mcrs.experiment.callbacks import Callback, Scalars
 from mcrs.experiment.schema import Config
+from mcrs.experiment.training.callbacks import Callback, Scalars
 from mcrs.memory.codec import StateCodec
 from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory

@@ -28,7 +28,7 @@ LOCK = ".mcrs.lock"
 #: What ``mcrs-train`` writes into a run directory, with ``mcrs-eval``'s and ``mcrs-render``'s results of
 #: the run (``overwrite=true`` removes exactly these).
 RUN_ARTEFACTS = ("config.yaml", "checkpoints", "logs", "wandb", "videos", "report", "eval", "render")
-#: What a run directory must hold to be resumed (:func:`mcrs.experiment.checkpoint.checkpoint_path`).
+#: What a run directory must hold to be resumed (:func:`mcrs.experiment.run.checkpoint.checkpoint_path`).
 LAST_CHECKPOINT = "checkpoints/last.pt"
 #: What may be in a fresh run directory before the run writes: Hydra's own files and our lock.
 FRESH_ALLOWED = (".hydra", LOCK)
@@ -104,7 +104,7 @@ def resumed_run_dir(resume: Any, fresh: str) -> str:
 def resume_problem(resume: Any) -> str | None:
     """Why ``resume=<dir>`` cannot be resumed (not a directory, not an ``mcrs-train`` run), or None.
 
-    Checked before Hydra makes or writes anything (:class:`mcrs.experiment.cli.RunDirCheck`): a mistyped
+    Checked before Hydra makes or writes anything (:class:`mcrs.experiment.commands.cli.RunDirCheck`): a mistyped
     path is one line, not a new empty directory."""
     run_dir = Path(str(resume)).expanduser()
     if not run_dir.is_dir():
@@ -233,7 +233,7 @@ def _fresh_entries(run_dir: Path) -> list[str]:
 
 def fresh_problem(run_dir: Path, overwrite: bool) -> str | None:
     """Why a fresh run may not start in ``run_dir`` (:func:`prepare_fresh`), or None (also when it does
-    not exist). :class:`mcrs.experiment.cli.RunDirCheck` asks before Hydra writes its ``.hydra/`` files
+    not exist). :class:`mcrs.experiment.commands.cli.RunDirCheck` asks before Hydra writes its ``.hydra/`` files
     there, so that a refused command leaves an existing run as it was."""
     if not run_dir.is_dir():
         return None

@@ -1,7 +1,7 @@
 """Evaluation: episodes of a policy on separate, fixed-seed environments, and their metrics.
 
 :func:`summarize` gives mean and std over episodes for every evaluation; the episodes come from one of two
-runs: :func:`evaluate` (the trainer's greedy agent on any :class:`~mcrs.experiment.task.Task`) keeps the
+runs: :func:`evaluate` (the trainer's greedy agent on any :class:`~mcrs.experiment.training.task.Task`) keeps the
 whole rollout, because a task's metrics may need every step (the default sums the rewards);
 :func:`final_metrics` (``mcrs-eval``'s heuristics and checkpoints on MCRS-LCR, whose metrics are running
 totals) keeps only the last step, so nothing is stacked. The std convention is an explicit argument,
@@ -24,8 +24,8 @@ from torchrl.record.loggers import Logger
 
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS
-from mcrs.experiment.logging import log_video
-from mcrs.experiment.task import MCRSTask, Task, as_task, with_agent_state
+from mcrs.experiment.run.logging import log_video
+from mcrs.experiment.training.task import MCRSTask, Task, as_task, with_agent_state
 
 
 def make_eval_env(

@@ -2,11 +2,8 @@
 
 Hydra reports a misspelled key as ``Could not override 'env.comm_rage'. To append to your config use
 +env.comm_rage=3`` followed by the schema's internals and a ``HYDRA_FULL_ERROR`` hint, and an unknown
-option with its config search path. :func:`describe` turns each composition error into one line that names
-the key, group or override and lists what is allowed, closest match first::
-
-    env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_budget, comm_delay, ...
-    algo=qmx: no such option of algo; allowed (closest first): qmix, cnn_semu, emc, ...
+option with its config search path. :func:`~mcrs.experiment.util.messages.describe` turns each
+composition error into one line that names the key, group or override and lists what is allowed.
 
 :func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
 ``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
@@ -16,7 +13,6 @@ Hydra does, refusing an unwritable one in one line, and remembers the directorie
 
 from __future__ import annotations
 
-import difflib
 import functools
 import os
 import shutil
@@ -27,12 +23,13 @@ from typing import Any, TypeVar
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, OverrideType
-from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from hydra.errors import HydraException
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
+from omegaconf.errors import OmegaConfBaseException
 
-from mcrs.experiment.rundir import (
+from mcrs.experiment.commands.sweep import sweep_jobs
+from mcrs.experiment.run.rundir import (
     LOCK,
     RunDirError,
     claim_run_dir,
@@ -43,121 +40,13 @@ from mcrs.experiment.rundir import (
     resume_problem,
 )
 from mcrs.experiment.schema import CONFIG_DIR
-from mcrs.experiment.sweep import sweep_jobs
-from mcrs.experiment.untrusted import PLAIN_NAME
+from mcrs.experiment.util.messages import GRAMMAR, describe
+from mcrs.experiment.util.untrusted import PLAIN_NAME
 
 F = TypeVar("F", bound=Callable[..., Any])
-#: Files Hydra (and the sweep's progress, mcrs.experiment.sweep) writes into a run or sweep directory before
+#: Files Hydra (and the sweep's progress, mcrs.experiment.commands.sweep) writes into a run or sweep directory before
 #: the task runs: they do not make it a run.
 HYDRA_FILES = (".hydra", "multirun.yaml", ".sweep")
-#: OmegaConf's "Value 'abc' of type 'str' could not be converted to Float", said as what is wanted.
-TYPE_NAMES = {
-    "Float": "a number",
-    "Integer": "an integer",
-    "Boolean": "true or false",
-    "Bool": "true or false",
-    "String": "a string",
-}
-CLOSE = 0.6  # difflib ratio from which a key or option counts as a likely meant one
-GRAMMAR = "https://hydra.cc/docs/advanced/override_grammar/basic/"
-
-
-# --------------------------------------------------------------------------------------- messages
-def ranked(name: str, allowed: Sequence[str]) -> list[str]:
-    """``allowed`` with the close matches of ``name`` first (best first), the rest in their order; case
-    does not count (``QMIX`` is closest to ``qmix``)."""
-    score = {a: _similarity(name, a) for a in allowed}
-    close = sorted(
-        (a for a in allowed if score[a] >= CLOSE), key=lambda a: -score[a]
-    )  # stable: ties keep order
-    return close + [a for a in allowed if a not in close]
-
-
-def _similarity(name: str, other: str) -> float:
-    return difflib.SequenceMatcher(None, name.lower(), other.lower()).ratio()
-
-
-def listing(name: str, allowed: Sequence[str]) -> str:
-    """``" (closest first): comm_range, comm_budget, ..."`` (every allowed name), or ``": a, b"`` when none is close."""
-    order = ranked(name, allowed)
-    close = _similarity(name, order[0]) >= CLOSE if order else False
-    return f"{' (closest first)' if close else ''}: {', '.join(order)}"
-
-
-def describe(error: BaseException) -> str:
-    """One line for an error Hydra or OmegaConf raised while composing a config."""
-    cause = error.__cause__
-    if isinstance(error, OverrideParseException):
-        reason = _lines(error.message)[0] if _lines(error.message) else "not an override"
-        return f"cannot read the override {error.override!r}: {reason} (the syntax: {GRAMMAR})"
-    if isinstance(error, MissingConfigException) and error.missing_cfg_file and error.options:
-        group, _, option = str(error.missing_cfg_file).rpartition("/")
-        return f"{group}={option}: no such option of {group}; allowed{listing(option, sorted(error.options))}"
-    if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and getattr(cause, "full_key", None):
-        return _unknown_key(str(cause.full_key), cause)
-    if isinstance(cause, ValidationError) and getattr(cause, "full_key", None):
-        return _bad_value(str(error), cause)
-    if isinstance(error, (ConfigKeyError, ConfigAttributeError)) and getattr(error, "full_key", None):
-        return _unknown_key(str(error.full_key), error)
-    lines = _lines(str(error)) + (_lines(str(cause)) if cause is not None else [])
-    return "; ".join(lines) or type(error).__name__
-
-
-#: The env's runtime fields (``EnvConfig.num_envs``, ``device``): not scenario keys, set by each command.
-RUNTIME_KEYS = {
-    "env.num_envs": "train.num_envs (mcrs-train) or episodes (mcrs-eval)",
-    "env.device": "device",
-}
-
-
-def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
-    if full_key in RUNTIME_KEYS:
-        return (
-            f"{full_key}: not a scenario key (how the env runs, not the task): set {RUNTIME_KEYS[full_key]}"
-        )
-    parent, _, key = full_key.rpartition(".")
-    node = getattr(error, "parent_node", None)
-    keys = [str(k) for k in node if str(k) != "hydra"] if isinstance(node, DictConfig) else []
-    if full_key.startswith("algo.options."):  # an algorithm's own settings: no schema lists them
-        given = f"; the keys given: {', '.join(keys)}" if keys else ""
-        return f"{full_key}: not in the config; add an algorithm's own setting with a '+': +{full_key}=<value>{given}"
-    if not keys:
-        return f"{full_key}: unknown key"
-    where = f"the keys of {parent}" if parent else "the top-level keys"
-    sections = (
-        [k for k in keys if isinstance(node.get(k), DictConfig) and key in node.get(k)] if not parent else []
-    )
-    hint = f" (did you mean {' or '.join(f'{k}.{key}' for k in sections)}?)" if sections else ""
-    return f"{full_key}: unknown key{hint}; {where}{listing(key, keys)}"
-
-
-def _bad_value(message: str, cause: ValidationError) -> str:
-    """``algo.mixer=qtran: allowed values are qmix, vdn, qplex`` / ``train.lr=abc: not a float``."""
-    prefix = "Error merging override "
-    override = message.split("\n")[0][len(prefix) :] if message.startswith(prefix) else str(cause.full_key)
-    reason = _lines(str(cause))[0]
-    if "expected one of [" in reason:
-        allowed = reason.split("expected one of [", 1)[1].rstrip("]").split(", ")
-        value = override.split("=", 1)[-1]
-        return f"{override}: allowed values{listing(value, allowed)}"
-    for kind, wanted in TYPE_NAMES.items():
-        if reason.endswith(f"could not be converted to {kind}") or f"is not a valid {kind.lower()}" in reason:
-            return f"{override}: must be {wanted}"
-    return f"{override}: {reason}"
-
-
-def _lines(text: str) -> list[str]:
-    """The lines of Hydra's report that say what is wrong (not its hints, search path or internals)."""
-    noise = ("Set the environment variable", "Config search path", "provider=", "See https://",
-             "To append to your config", "full_key:", "reference_type=", "object_type=")  # fmt: skip
-    out = []
-    for line in text.splitlines():
-        line = line.strip()
-        if line.startswith("In '") and "': " in line:
-            line = line.split("': ", 1)[1]  # "In 'config': Could not find ...": the provenance goes
-        if line and not line.startswith(noise):
-            out.append(line)
-    return out
 
 
 def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F], F]:
@@ -428,7 +317,7 @@ class RunDirCheck(Callback):
 
 
 def _in_use(run_dir: Path) -> str | None:
-    """The refusal :class:`mcrs.experiment.rundir.RunLock` would give, said before anything is written."""
+    """The refusal :class:`mcrs.experiment.run.rundir.RunLock` would give, said before anything is written."""
     holder = lock_holder(run_dir)
     if holder is None:
         return None

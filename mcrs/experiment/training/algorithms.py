@@ -42,7 +42,7 @@ An installed package can name its algorithms in the entry-point group ``mcrs.alg
 ``pyproject.toml``: ``[project.entry-points."mcrs.algorithms"]`` ``my_algo = "my_pkg.algos:MyAlgorithm"``):
 ``algo.name=my_algo`` then finds it from ``mcrs-train``, a sweep's launcher or a resume, without an import.
 
-:func:`algorithm_class` is the one place that reads ``algo.name`` (an :class:`~mcrs.experiment.trainer.Experiment`
+:func:`algorithm_class` is the one place that reads ``algo.name`` (an :class:`~mcrs.experiment.training.trainer.Experiment`
 calls it once); a name nobody registered or installed (a label of one's own) gets the built-in :class:`Algorithm`.
 """
 
@@ -58,10 +58,6 @@ from omegaconf.errors import OmegaConfBaseException
 from torch import nn
 
 from mcrs.env.config import EnvConfig
-from mcrs.experiment.callbacks import Callback, CuriosityCallback
-from mcrs.experiment.cli import listing
-from mcrs.experiment.episodic import EpisodicMemoryCallback
-from mcrs.experiment.learner import Learner, build_loss, build_mixer
 from mcrs.experiment.schema import (
     ENTRY_POINT_GROUP,
     AlgoConfig,
@@ -70,7 +66,11 @@ from mcrs.experiment.schema import (
     ModelConfig,
     TrainConfig,
 )
-from mcrs.experiment.task import Task
+from mcrs.experiment.training.callbacks import Callback, CuriosityCallback
+from mcrs.experiment.training.episodic import EpisodicMemoryCallback
+from mcrs.experiment.training.learner import Learner, build_loss, build_mixer
+from mcrs.experiment.training.task import Task
+from mcrs.experiment.util.messages import listing
 from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.incentive import Incentive, make_incentive
 

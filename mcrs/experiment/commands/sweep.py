@@ -25,8 +25,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from mcrs.experiment.atomic import write_text_atomic
-from mcrs.experiment.tables import markdown
+from mcrs.experiment.util.atomic import write_text_atomic
+from mcrs.experiment.util.tables import markdown
 
 #: Where the rows live inside the sweep directory, and the table's file.
 STATE_DIR = ".sweep"

@@ -13,8 +13,8 @@ moviepy 1.x), which nothing else here needs.
 
 The text log is Python's ``logging``: the trainer says what it did (each evaluation, each checkpoint) at
 INFO through :func:`log_event` (logger ``mcrs.run``). The commands' Hydra job-logging config (``conf/hydra/job_logging/mcrs.yaml``) writes every record to
-``<run dir>/train.log`` (``evaluate.log`` for ``mcrs-eval``) through :class:`PlainFormatter` (no colour
-codes), and warnings to the console through :class:`TqdmHandler` (above the progress bar, not through it).
+``<run dir>/train.log`` (``evaluate.log`` for ``mcrs-eval``) through :class:`~mcrs.experiment.commands.console.PlainFormatter`
+(no colour codes), and warnings to the console through :class:`~mcrs.experiment.commands.console.TqdmHandler` (above the progress bar, not through it).
 TorchRL's own logger prints an INFO line in colour when the replay storage is built; :func:`quiet_torchrl`
 keeps it to warnings unless ``RL_LOGGING_LEVEL`` (TorchRL's own setting) asks otherwise.
 """
@@ -34,8 +34,6 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
-
-from mcrs.experiment.console import ANSI, PlainFormatter, TqdmHandler  # noqa: F401  (the log's handlers)
 
 
 def make_logger(

@@ -1,6 +1,6 @@
 """Callbacks: how an algorithm adds to the training loop without branching it (BenchMARL's shape).
 
-The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in order:
+The :class:`~mcrs.experiment.training.trainer.Experiment` calls every callback's hooks in order:
 
     on_setup(experiment)                 once, after everything is built (before a checkpoint is loaded)
     on_batch_collected(batch, ids)       after each collection: the episodes ``[E, T]`` and their ids ``[E]``
@@ -13,8 +13,8 @@ The :class:`~mcrs.experiment.trainer.Experiment` calls every callback's hooks in
 
 Hooks return scalars to log (averaged over the log interval), or nothing; ``name`` keys the checkpoint state and the
 ``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
-:class:`~mcrs.experiment.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
-the run's :class:`~mcrs.experiment.algorithms.Algorithm` builds the ones its ``algo`` config asks for. A
+:class:`~mcrs.experiment.training.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
+the run's :class:`~mcrs.experiment.training.algorithms.Algorithm` builds the ones its ``algo`` config asks for. A
 user's own callback (a scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
 """
 
@@ -28,23 +28,23 @@ from typing import TYPE_CHECKING, Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
-from mcrs.experiment.cli import ranked
-from mcrs.experiment.learner import make_optimizer
 from mcrs.experiment.schema import Config
+from mcrs.experiment.training.learner import make_optimizer
+from mcrs.experiment.util.messages import ranked
 from mcrs.objectives.curiosity import EMCCuriosity
 
 if TYPE_CHECKING:
     from torchrl.data import ReplayBuffer
 
     from mcrs.env.config import EnvConfig
-    from mcrs.experiment.counters import Counters
-    from mcrs.experiment.learner import Learner
+    from mcrs.experiment.run.counters import Counters
+    from mcrs.experiment.training.learner import Learner
 
 Scalars = dict[str, float | torch.Tensor]
 
 
 class ExperimentView(Protocol):
-    """What a callback sees of the :class:`~mcrs.experiment.trainer.Experiment` that runs it.
+    """What a callback sees of the :class:`~mcrs.experiment.training.trainer.Experiment` that runs it.
 
     A Protocol, so that callbacks depend on the experiment's interface and not on the trainer module, which
     imports the callbacks (tests/test_layering.py refuses import cycles between modules)."""
@@ -53,7 +53,7 @@ class ExperimentView(Protocol):
     env_config: EnvConfig
     run_dir: Path
     device: torch.device
-    counters: Counters  # env_steps, episodes, updates, ... (mcrs.experiment.counters)
+    counters: Counters  # env_steps, episodes, updates, ... (mcrs.experiment.run.counters)
     learner: Learner
     replay: ReplayBuffer  # the episode replay (batches reach callbacks through on_train_batch)
     last_eval: dict[str, float]  # the latest greedy evaluation's means (empty before the first)

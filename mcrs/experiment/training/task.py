@@ -1,4 +1,4 @@
-"""A task: what an :class:`~mcrs.experiment.trainer.Experiment` needs from an environment (BenchMARL's
+"""A task: what an :class:`~mcrs.experiment.training.trainer.Experiment` needs from an environment (BenchMARL's
 ``Task`` is the model).
 
 The experiment builds every environment it uses (training, the collector's workers, evaluation) from the
@@ -54,6 +54,7 @@ from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from mcrs.env.config import EnvConfig
 from mcrs.env.core import METRICS, N_ACTIONS
 from mcrs.env.torchrl_env import MCRSEnv
+from mcrs.experiment.run.history import class_path
 from mcrs.experiment.schema import Config, ConfigError
 from mcrs.models.acting import recurrent_primer
 
@@ -103,7 +104,7 @@ class Task(ABC):
         """What identifies the task in a checkpoint (a resume on another task is refused): plain values.
         A checkpoint written before tasks has none of these fields and resumes as MCRS. (The settings are
         in the fingerprint too, as the config's ``task`` node.)"""
-        return {"task.name": self.name, "task.class": f"{type(self).__module__}.{type(self).__qualname__}"}
+        return {"task.name": self.name, "task.class": class_path(type(self))}
 
     # ------------------------------------------------------------------ derived: keys
     @property
@@ -120,7 +121,7 @@ class Task(ABC):
 
     @property
     def step_keys(self) -> tuple[NestedKey, ...]:
-        """What the replay keeps at every step (:func:`~mcrs.experiment.replay.episodes_from_rollout`)."""
+        """What the replay keeps at every step (:func:`~mcrs.experiment.training.replay.episodes_from_rollout`)."""
         return (self.observation_key, self.action_mask_key, self.state_key)
 
     def loss_keys(self) -> dict[str, NestedKey]:

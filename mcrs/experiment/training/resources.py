@@ -4,7 +4,10 @@ A value that passes the per-field rules can still be more than the machine can h
 of ten million, ``env.max_steps`` of a billion): :func:`resource_errors` adds up the big stores (replay,
 collector batch, evaluation batch, episodic memory, networks with their targets and optimiser state, one
 learner batch) and refuses a config whose estimate exceeds the memory of the device it runs on, naming
-the fields of the largest store. It also checks the device and the thread count against the machine.
+the fields of the largest store. :func:`check_buildable` adds the embedding: one that does not fit the
+map is refused before any compute. Both build parts on the ``meta`` device or at a small size, so they
+live beside the builders and not in the config's checks (:mod:`mcrs.experiment.config`), which import
+nothing of the training loop.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import torch
 from tensordict.utils import NestedKey
 
 from mcrs.env.config import EnvConfig
+from mcrs.experiment.schema import ConfigError
 
 if TYPE_CHECKING:
     from mcrs.experiment.schema import Config
@@ -60,11 +64,11 @@ def _leaf(specs: dict[str, Any], key: NestedKey) -> Any:
 
 
 def replay_step_bytes(env: EnvConfig) -> int:
-    """Bytes of one step of a stored episode (``mcrs.experiment.replay`` layout), from the env's specs:
+    """Bytes of one step of a stored episode (``mcrs.experiment.training.replay`` layout), from the env's specs:
     the step keys (observations, action masks, the state), the action, reward, done and terminated, plus
     the ``filled`` flag and the episode's id (int64, which the trainer adds for the episodic memory's
     foreign-hit rate)."""
-    from mcrs.experiment.replay import STEP_KEYS
+    from mcrs.experiment.training.replay import STEP_KEYS
 
     specs = _step_specs(env)
     kept = [_leaf(specs["observation"], key) for key in STEP_KEYS]
@@ -92,7 +96,7 @@ def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
 def network_bytes(cfg: Config, env: EnvConfig) -> tuple[int, str]:
     """Parameters (built on the ``meta`` device: nothing is allocated) times five: the weights, the target
     copy, the gradient and two optimiser moments. Returns the bytes and a problem, if they cannot be built."""
-    from mcrs.experiment.learner import build_agent, build_mixer
+    from mcrs.experiment.training.learner import build_agent, build_mixer
 
     try:
         with torch.device("meta"):
@@ -171,3 +175,29 @@ def resource_errors(cfg: Config, env: EnvConfig) -> list[str]:
             f"{what} ({limit / GiB:,.1f} GiB): lower it"
         )
     return errors
+
+
+def embedding_fit_errors(cfg: Config, env: EnvConfig) -> list[str]:
+    """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
+    from mcrs.experiment.training.episodic import build_embedding
+
+    try:
+        build_embedding(cfg, env)
+    except ValueError as error:
+        return [f"algo.memory.embedding={str(cfg.algo.memory.embedding)!r} does not fit {env.name}: {error}"]
+    return []
+
+
+def buildable_errors(cfg: Config, env: EnvConfig) -> list[str]:
+    """Problems of a config with right values (:func:`mcrs.experiment.config.validate`) that only building
+    its parts shows: the embedding against the map, then the memory the run needs against the machine."""
+    errors = embedding_fit_errors(cfg, env) if cfg.algo.memory.enabled else []
+    return errors or resource_errors(cfg, env)
+
+
+def check_buildable(cfg: Config, env: EnvConfig) -> None:
+    """Raise :class:`ConfigError` (the form :func:`~mcrs.experiment.config.validate` raises) when the
+    run's parts do not fit the map or the machine."""
+    errors = buildable_errors(cfg, env)
+    if errors:
+        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 
 from mcrs.env.config import with_legacy_values
-from mcrs.experiment.untrusted import check_archive
+from mcrs.experiment.util.untrusted import check_archive
 
 FORMAT = "mcrs-checkpoint"
 VERSION = 1
@@ -255,7 +255,9 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
     state["pruned"] = {"dropped": dropped, "bytes_before": before}
     state = {k: v for k, v in state.items() if k not in ("format", "version", "checksum")}
     save_atomic(state, path)
-    if "replay_blocks" in dropped:  # the replay's block files beside last.pt (mcrs.experiment.replay_store)
+    if (
+        "replay_blocks" in dropped
+    ):  # the replay's block files beside last.pt (mcrs.experiment.run.replay_store)
         for block in path.parent.glob("replay_*_*.pt"):
             block.unlink(missing_ok=True)
     return before, path.stat().st_size
@@ -344,7 +346,7 @@ def load_resumable(
     ``fingerprint_of(config, learner)`` derives a fingerprint for checkpoints written before they carried one;
     ``advice[field]`` ends the refusal of a checkpoint that differs first in ``field``.
     """
-    from mcrs.experiment.rundir import first_difference
+    from mcrs.experiment.run.rundir import first_difference
 
     state = refuse_pre_release(load(path, map_location=map_location), path)
     saved = state.get("fingerprint")

@@ -1,10 +1,12 @@
-"""The run's state in checkpoints: what :class:`~mcrs.experiment.trainer.Experiment` saves, checks and restores.
+"""The run's state in checkpoints: what :class:`~mcrs.experiment.training.trainer.Experiment` saves, checks
+and restores.
 
 Apart from the loop because it is the other half of a run's life: the loop changes the state, this module
 writes it (``last.pt`` with the replay's block files, the weights at each step, ``last_good.pt`` inline),
 judges a checkpoint against the run (the fingerprint) and puts it back, the random state last. The file
-formats are :mod:`mcrs.experiment.checkpoint`'s; :class:`RunState` is a base class of ``Experiment`` and
-reads the attributes ``Experiment`` builds (config, task, learner, replay, callbacks, counters, ...).
+formats are :mod:`mcrs.experiment.run.checkpoint`'s. :class:`RunState` owns the run's bookkeeping (the
+counters, the last evaluation, the rows logged) and reads the parts the experiment built through the
+declared interface :class:`RunParts`.
 """
 
 from __future__ import annotations
@@ -13,18 +15,22 @@ import math
 import time
 from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
+from omegaconf import OmegaConf
+from torchrl.data import ReplayBuffer
 
-from mcrs.experiment import checkpoint as ckpt
-from mcrs.experiment.config import to_container
-from mcrs.experiment.counters import Counters
-from mcrs.experiment.logging import log_event
-from mcrs.experiment.replay import load_replay_state_dict, replay_state_dict
-from mcrs.experiment.rundir import fingerprint, io_errors, truncate_csv_logs
+from mcrs.experiment.config import RESUME_MUTABLE, as_dictconfig, to_container
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.counters import Counters
+from mcrs.experiment.run.history import LEGACY_EVAL_STEP, class_path
+from mcrs.experiment.run.logging import log_event
+from mcrs.experiment.run.replay_store import ReplayStore, load_replay_state_dict, replay_state_dict
+from mcrs.experiment.run.rundir import fingerprint, io_errors, truncate_csv_logs
+from mcrs.experiment.schema import Config
 
-__all__ = ["RESUME_ADVICE", "RunState"]
+__all__ = ["RESUME_ADVICE", "RunParts", "RunState"]
 
 #: What a resume refused for a fingerprint field adds to its one line.
 RESUME_ADVICE = {
@@ -100,55 +106,116 @@ def check_resume_state(state: dict[str, Any], path: Path) -> None:
         refuse("logs.rows", rows, "is not a mapping of log names to row counts >= 0")
 
 
-#: ``last_eval_step`` of a checkpoint written before it was saved: the step is read from the eval log.
-LEGACY_EVAL_STEP = -1
+class Saved(Protocol):
+    """A part whose state a checkpoint holds (the learner, a callback)."""
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class SavedCallback(Saved, Protocol):
+    name: str
+
+
+class SavedLearner(Saved, Protocol):
+    def weights(self) -> dict[str, Any]: ...
+
+
+class IdentifiedTask(Protocol):
+    def fingerprint(self) -> dict[str, Any]: ...
+
+
+class Schedule(Protocol):
+    def set_env_steps(self, env_steps: int) -> None: ...
+
+
+class RunParts(Protocol):
+    """What the run's state reads of the experiment it saves: the parts built from the config."""
+
+    config: Config
+    run_dir: Path
+    device: torch.device
+    task: IdentifiedTask
+    algorithm: object  # its class is part of the fingerprint
+    learner: SavedLearner
+    replay: ReplayBuffer
+    callbacks: list[SavedCallback]
+    epsilon: Schedule  # the exploration schedule, set to the restored step
 
 
 class RunState:
-    """The checkpoint half of :class:`~mcrs.experiment.trainer.Experiment`: :meth:`state_dict`,
-    :meth:`load_state_dict`, :meth:`save`, :meth:`fingerprint` and the resume's random state."""
+    """The run's bookkeeping and its checkpoints: :meth:`state_dict`, :meth:`load_state_dict`, :meth:`save`,
+    :meth:`fingerprint` and the resume's random state.
+
+    Args:
+        parts: the experiment's parts (:class:`RunParts`), read when a checkpoint is written or loaded.
+        counters: the run's counters at its start.
+    """
+
+    def __init__(self, parts: RunParts, counters: Counters) -> None:
+        self.parts = parts
+        self.counters = counters
+        self.replay_store = ReplayStore(ckpt.checkpoint_path(parts.run_dir).parent)
+        self.last_eval: dict[str, float] = {}
+        self.last_eval_step: int | None = None  # the env step of last_eval (saved in checkpoints)
+        self.evaluated_at: int | None = None  # the env step of this process's last evaluation
+        self.log_rows: dict[str, int] = {}  # rows written to each log (kept in checkpoints)
+        self.last_save = time.monotonic()  # when the last checkpoint was written (checkpoint_minutes)
+        self._resume_rng: dict[str, Any] | None = None  # a loaded checkpoint's random state, put back last
+
+    @property
+    def run_dir(self) -> Path:
+        return self.parts.run_dir
+
+    def write_config(self) -> None:
+        """Write ``config.yaml``: the config, without the ``task`` key of an MCRS run (as before tasks)."""
+        config = self.parts.config
+        node = as_dictconfig(config)
+        if config.task is None:
+            node = OmegaConf.masked_copy(node, [k for k in node if k != "task"])
+        with io_errors(f"write {self.run_dir / 'config.yaml'}"):
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(node, resolve=True))
 
     def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
         """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
         block files that :meth:`save` writes for ``last.pt``."""
         state = {
-            "config": to_container(self.config),
+            "config": to_container(self.parts.config),
             "fingerprint": self.fingerprint(),
-            "logs": {"rows": dict(self._log_rows)},
+            "logs": {"rows": dict(self.log_rows)},
             "counters": asdict(self.counters),
-            "learner": self.learner.state_dict(),
-            "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
+            "learner": self.parts.learner.state_dict(),
+            "callbacks": {cb.name: cb.state_dict() for cb in self.parts.callbacks},
             "last_eval": dict(self.last_eval),
-            "last_eval_step": self._last_eval_step,  # a run is finished once it is its final step
+            "last_eval_step": self.last_eval_step,  # a run is finished once it is its final step
             "rng": {"torch": torch.get_rng_state()},
         }
         if torch.cuda.is_available():
             state["rng"]["cuda"] = torch.cuda.get_rng_state_all()
-        if self.config.train.save_replay:
+        if self.parts.config.train.save_replay:
             if replay_inline:
-                state["replay"] = replay_state_dict(self.replay)
+                state["replay"] = replay_state_dict(self.parts.replay)
             else:
-                state["replay_blocks"] = self.replay_store.save(self.replay, state["fingerprint"])
+                state["replay_blocks"] = self.replay_store.save(self.parts.replay, state["fingerprint"])
         return state
 
     def fingerprint(
         self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
     ) -> dict:
-        """What a checkpoint must share with this run (:func:`mcrs.experiment.rundir.fingerprint`): of this
+        """What a checkpoint must share with this run (:func:`mcrs.experiment.run.rundir.fingerprint`): of this
         run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
-        from mcrs.experiment.config import RESUME_MUTABLE
-
-        learner = self.learner.weights() if learner is None else learner
-        config = to_container(self.config) if config is None else config
+        learner = self.parts.learner.weights() if learner is None else learner
+        config = to_container(self.parts.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
         if config.get("task") is not None:  # another task: the unused scenario is not the run's identity
             config = {k: v for k, v in config.items() if k != "env"}
-        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)  # the task's identity second,
-        algorithm = type(self.algorithm)  # then the algorithm's class (a registered one not imported)
-        return {
+        out = fingerprint(config, networks, ckpt.VERSION, RESUME_MUTABLE)
+        return {  # the format, the task's identity, the algorithm's class, then the config and networks
             "format.version": out.pop("format.version"),
-            **self.task.fingerprint(),
-            "algorithm.class": f"{algorithm.__module__}.{algorithm.__qualname__}",
+            **self.parts.task.fingerprint(),
+            "algorithm.class": class_path(type(self.parts.algorithm)),
             **out,
         }
 
@@ -161,12 +228,12 @@ class RunState:
         episodes inline, so it stays whole whatever later saves delete.
         """
         target = ckpt.checkpoint_path(self.run_dir, name)
-        with io_errors(f"write checkpoint {target}", self._intact):  # judged after the failure
+        with io_errors(f"write checkpoint {target}", self.intact):  # judged after the failure
             path = self._save(name)
         log_event(f"checkpoint at env step {self.counters.env_steps}: {path}")
         return path
 
-    def _intact(self, advice: str = "free space or fix the directory, then ") -> str:
+    def intact(self, advice: str = "free space or fix the directory, then ") -> str:
         """What survives an I/O error (or a dead collector worker): the checkpoint a resume would start from."""
         last = ckpt.checkpoint_path(self.run_dir)
         if not last.is_file():
@@ -180,15 +247,15 @@ class RunState:
         )
         if last:
             self.replay_store.commit()
-            self._last_save = time.monotonic()
+            self.last_save = time.monotonic()
             weights = {
-                "config": to_container(self.config),
+                "config": to_container(self.parts.config),
                 "fingerprint": self.fingerprint(),
                 "counters": asdict(self.counters),
-                "learner": self.learner.weights(),
+                "learner": self.parts.learner.weights(),
             }
             ckpt.save_atomic(weights, ckpt.weights_path(self.run_dir, self.counters.env_steps))
-            ckpt.prune_weights(self.run_dir, self.config.train.keep_checkpoints)
+            ckpt.prune_weights(self.run_dir, self.parts.config.train.keep_checkpoints)
         return path
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -196,26 +263,26 @@ class RunState:
         restored by the caller once everything is built."""
         saved = state.get("callbacks", {})
         self._check_callbacks(saved)  # before anything is restored
-        self.learner.load_state_dict(state["learner"])
+        self.parts.learner.load_state_dict(state["learner"])
         if "replay_blocks" in state:
-            self.replay_store.load(self.replay, state["replay_blocks"], self.fingerprint())
+            self.replay_store.load(self.parts.replay, state["replay_blocks"], self.fingerprint())
         else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
-            load_replay_state_dict(self.replay, state["replay"])
-        for callback in self.callbacks:
+            load_replay_state_dict(self.parts.replay, state["replay"])
+        for callback in self.parts.callbacks:
             if callback.name in saved:
                 callback.load_state_dict(saved[callback.name])
         known = {f.name for f in fields(Counters)}
         self.counters = Counters(**{k: v for k, v in state["counters"].items() if k in known})
         self.last_eval = dict(state.get("last_eval", {}))
-        self._last_eval_step = state.get("last_eval_step", LEGACY_EVAL_STEP)
-        if self._last_eval_step == self.counters.env_steps:  # its row is logged: evaluate() right after the
-            self._evaluated_at = self._last_eval_step  # resume adds no second row at this step
-        self.epsilon.set_env_steps(self.counters.env_steps)
+        self.last_eval_step = state.get("last_eval_step", LEGACY_EVAL_STEP)
+        if self.last_eval_step == self.counters.env_steps:  # its row is logged: evaluate() right after the
+            self.evaluated_at = self.last_eval_step  # resume adds no second row at this step
+        self.parts.epsilon.set_env_steps(self.counters.env_steps)
 
     def _check_callbacks(self, saved: dict[str, Any]) -> None:
         """No callback's saved state is dropped, and no callback with state starts from nothing; a stateless
         callback may join a resumed run."""
-        names = {callback.name for callback in self.callbacks}
+        names = {callback.name for callback in self.parts.callbacks}
         lost = [name for name, value in saved.items() if name not in names and value]
         if lost:
             raise ckpt.CheckpointError(
@@ -228,19 +295,21 @@ class RunState:
                     else ""
                 )
             )
-        for callback in self.callbacks:
+        for callback in self.parts.callbacks:
             if callback.name not in saved and callback.state_dict():
                 raise ckpt.CheckpointError(
                     f"the checkpoint has no state for this run's {callback.name!r} callback (the run that "
                     "wrote it did not have it)"
                 )
 
-    def _load(self, path: Path) -> None:
+    def load(self, path: Path) -> None:
+        """Check the checkpoint at ``path`` against this run and restore it (the random state waits for
+        :meth:`restore_rng`); the logs lose the rows written after it."""
         state = ckpt.load_resumable(
-            path, self.fingerprint(), self.fingerprint, self.device, advice=RESUME_ADVICE
+            path, self.fingerprint(), self.fingerprint, self.parts.device, advice=RESUME_ADVICE
         )
         check_resume_state(state, path)  # before anything is restored
-        self._resume_rng = state["rng"]  # restored last (_restore_rng), once everything is built
+        self._resume_rng = state["rng"]  # restored last (restore_rng), once everything is built
         saved, ours = state.get("fingerprint") or {}, self.fingerprint()
         added = [k for k in ours if k.startswith("algo.options.") and saved and k not in saved]
         if added:  # settings the algorithm gained after the checkpoint: their defaults, said (not compared)
@@ -255,7 +324,7 @@ class RunState:
             raise ckpt.CheckpointError(f"{path} cannot be loaded into this run: {first}") from None
         rows = state.get("logs", {}).get("rows")
         with io_errors(f"rewrite the logs of {self.run_dir}"):  # rows logged after the checkpoint go
-            self._log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
+            self.log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
 
     def final_evaluation_written(self) -> bool:
         """Whether the run's final evaluation is done: its last evaluation is at the current env step.
@@ -265,9 +334,9 @@ class RunState:
         written before ``last_eval_step`` was saved is judged by the last row of its evaluation log (CSV);
         without that log, by whether it holds an evaluation, as before."""
         step = self.counters.env_steps
-        if self._last_eval_step != LEGACY_EVAL_STEP:
-            return bool(self.last_eval) and self._last_eval_step == step
-        rows = self._log_rows.get("eval/episode_reward")
+        if self.last_eval_step != LEGACY_EVAL_STEP:
+            return bool(self.last_eval) and self.last_eval_step == step
+        rows = self.log_rows.get("eval/episode_reward")
         log = self.run_dir / "logs" / "scalars" / "eval" / "episode_reward.csv"
         if not rows or not log.is_file():
             return bool(self.last_eval)
@@ -280,10 +349,11 @@ class RunState:
         except ValueError:
             return bool(self.last_eval)
 
-    def _restore_rng(self) -> None:
+    def restore_rng(self) -> None:
         """The checkpoint's random state, put back last: building the run may draw random numbers."""
-        rng = self._resume_rng
-        del self._resume_rng
+        rng, self._resume_rng = self._resume_rng, None
+        if rng is None:
+            return
         torch.set_rng_state(rng["torch"].cpu())
         if "cuda" in rng and torch.cuda.is_available():
             torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])

@@ -1,0 +1,1 @@
+"""The run on disk: its directory, checkpoints, the replay's block files, logs, counters and saved state."""

@@ -1,0 +1,1 @@
+"""The training loop: the Experiment and the parts it builds (learner, algorithms, callbacks, tasks, ...)."""
