@@ -57,7 +57,7 @@ from mcrs.experiment.config import (
     validation_errors,
 )
 from mcrs.experiment.run.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
-from mcrs.experiment.training.budget import budget_errors
+from mcrs.experiment.training.whole_batches import whole_batch_errors
 from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 
 
@@ -235,7 +235,7 @@ def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     except ConfigError as error:
         return [str(error).removeprefix("invalid config: ")]
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
-    return problems + env_name_errors(cfg) + budget_errors(cfg, explicit) + option_errors(cfg)
+    return problems + env_name_errors(cfg) + whole_batch_errors(cfg, explicit) + option_errors(cfg)
 
 
 #: What makes a map a preset: a run named after a preset must have these values of it.

@@ -257,20 +257,20 @@ def test_a_refused_command_is_refused_before_torch_loads(
     assert "Traceback" not in done.stderr and not (tmp_path / "outputs").exists()
 
 
-def test_budget_errors_name_the_nearest_whole_batches() -> None:
-    from mcrs.experiment.training.budget import budget_errors, collector_batch
+def test_whole_batch_errors_name_the_nearest_whole_batches() -> None:
+    from mcrs.experiment.training.whole_batches import collector_batch, whole_batch_errors
 
     cfg = compose_config("train.total_env_steps=4000", "train.eval_interval=800", tiny=False)
     assert collector_batch(cfg) == 1600  # 32 envs x 50 steps (map10, the pymarl preset)
     explicit = {"train.total_env_steps", "train.eval_interval"}
-    total, interval = budget_errors(cfg, explicit)
+    total, interval = whole_batch_errors(cfg, explicit)
     assert total.endswith("the nearest exact values: 3200 or 4800") and "\n" not in total
     assert interval.startswith("train.eval_interval=800:") and interval.endswith("values: 1600")
-    assert budget_errors(cfg, set()) == []  # a preset's values are not the command line's
+    assert whole_batch_errors(cfg, set()) == []  # a preset's values are not the command line's
     exact = compose_config("train.total_env_steps=4800", "train.eval_interval=1600", tiny=False)
-    assert budget_errors(exact, explicit) == []
+    assert whole_batch_errors(exact, explicit) == []
     map20 = compose_config("env=map20", "train.num_envs=8", "train.total_env_steps=4000", tiny=False)
-    assert budget_errors(map20, {"train.total_env_steps"}) == []  # 8 x 100 = 800: 4000 is five batches
+    assert whole_batch_errors(map20, {"train.total_env_steps"}) == []  # 8 x 100 = 800: 4000 is five batches
 
 
 def test_the_schema_choices_are_the_implementations() -> None:

@@ -345,9 +345,9 @@ def test_batched_insert_equals_the_sequential_reference(
     sequential = resolution._sequential
     walked: list[int] = []
 
-    def counting(memory, group, *args):
+    def counting(memory, group, *args, **kwargs):
         walked.append(group.numel())
-        return sequential(memory, group, *args)
+        return sequential(memory, group, *args, **kwargs)
 
     monkeypatch.setattr(resolution, "_sequential", counting)
     generator = torch.Generator().manual_seed(int(spread * 1e4) + track)

@@ -200,7 +200,7 @@ def test_the_campaigns_background_children_keep_the_bar_off(tmp_path) -> None:
 
 
 def test_a_budget_off_whole_batches_from_a_preset_or_python_is_said_not_rounded_silently() -> None:
-    from mcrs.experiment.training.budget import rounding_notes
+    from mcrs.experiment.training.whole_batches import rounding_notes
 
     assert rounding_notes(3200, 1_000_000, 9600) == [
         "train.total_env_steps=1000000 is not a whole number of collector batches of 3200 env steps: "

@@ -51,25 +51,25 @@ class MCRSCore(CoreOutputs):
     def __init__(self, config: EnvConfig, device: torch.device | str | None = None) -> None:
         self.config = config
         self.device = torch.device(device if device is not None else config.device)
-        c = config
-        self.num_envs, self.n_uavs, self.n_cells = c.num_envs, c.n_uavs, c.n_cells
-        self.rounds = c.rounds_per_step
+        cfg = config
+        self.num_envs, self.n_uavs, self.n_cells = cfg.num_envs, cfg.n_uavs, cfg.n_cells
+        self.rounds = cfg.rounds_per_step
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(0)
 
-        dev, E, N, C = self.device, c.num_envs, c.n_uavs, c.n_cells
+        dev, E, N, C = self.device, cfg.num_envs, cfg.n_uavs, cfg.n_cells
         self._moves = torch.tensor(MOVES, dtype=torch.int64, device=dev)
-        self._grid_max = torch.tensor([c.width - 1, c.height - 1], dtype=torch.int64, device=dev)
+        self._grid_max = torch.tensor([cfg.width - 1, cfg.height - 1], dtype=torch.int64, device=dev)
         self._pos_scale = self._grid_max.clamp(min=1).to(torch.float32)
         # Per-cell lookup tables, so that masks and neighbourhoods are one gather per step.
-        xy = torch.stack(torch.meshgrid(torch.arange(c.width), torch.arange(c.height), indexing="ij"), -1)
+        xy = torch.stack(torch.meshgrid(torch.arange(cfg.width), torch.arange(cfg.height), indexing="ij"), -1)
         xy = xy.reshape(C, 1, 2).to(dev)
         after_move = xy + self._moves  # [C, 8, 2]
         self._mask_of_cell = ((after_move >= 0) & (after_move <= self._grid_max)).all(-1)  # [C, 8]
         around = xy + torch.tensor(SURROUNDING, dtype=torch.int64, device=dev)  # [C, 8, 2] in D_s order
         self._around_on_grid = ((around >= 0) & (around <= self._grid_max)).all(-1).to(torch.float32)
         around = torch.minimum(around.clamp(min=0), self._grid_max)
-        around_cell = around[..., 0] * c.height + around[..., 1]
+        around_cell = around[..., 0] * cfg.height + around[..., 1]
         self._around_cell = around_cell  # [C, 8] flat cells in D_s order (clamped: read with _around_on_grid)
         # Flat count indices of the 8 surrounding cells: 8 positive, then 8 negative (contiguous planes).
         self._around_counts = torch.cat([around_cell * 2, around_cell * 2 + 1], dim=-1)  # [C, 16]
@@ -79,25 +79,25 @@ class MCRSCore(CoreOutputs):
         self._pair_upper = torch.triu(torch.ones(N, N, dtype=torch.bool, device=dev), diagonal=1)  # i < j
         self._earlier = self._pair_upper.transpose(0, 1).contiguous()  # [i, j]: j < i
         self._env_index = torch.arange(E, device=dev)
-        count_dtype = counts_dtype(c)
+        count_dtype = counts_dtype(cfg)
         log_dtype = torch.int16 if 2 * C < 2**15 else torch.int32
 
         # Episode state: everything a step needs, about 24 kB per map20 environment (state_nbytes()).
         self.uav_pos = torch.zeros(E, N, 2, dtype=torch.int64, device=dev)
-        self.no_fly_pos = torch.zeros(E, c.n_no_fly, 2, dtype=torch.int64, device=dev)
-        self.target_pos = torch.zeros(E, c.n_targets, 2, dtype=torch.int64, device=dev)
+        self.no_fly_pos = torch.zeros(E, cfg.n_no_fly, 2, dtype=torch.int64, device=dev)
+        self.target_pos = torch.zeros(E, cfg.n_targets, 2, dtype=torch.int64, device=dev)
         self.is_target = torch.zeros(E, C, dtype=torch.bool, device=dev)
         self.is_no_fly = torch.zeros(E, C, dtype=torch.bool, device=dev)
         # The paper's reading (config.py): zones known and empty in every map; zones hidden in the surround.
-        self.known_zones = c.no_fly_prior == "known"
-        self.hide_zones = c.no_fly_view == "blocked" or self.known_zones
-        self.pay_beliefs = c.discovery_rule == "belief"
+        self.known_zones = cfg.no_fly_prior == "known"
+        self.hide_zones = cfg.no_fly_view == "blocked" or self.known_zones
+        self.pay_beliefs = cfg.discovery_rule == "belief"
         self.step_count = torch.zeros(E, dtype=torch.int64, device=dev)
         self.reading = torch.zeros(E, N, dtype=torch.bool, device=dev)  # last reading, True = "F"
         # Detection log: log[e, s, q] = cell * 2 + channel of UAV q's reading at step s (s = 0 at reset).
-        self.log = torch.zeros(E, c.max_steps + 1, N, dtype=log_dtype, device=dev)
+        self.log = torch.zeros(E, cfg.max_steps + 1, N, dtype=log_dtype, device=dev)
         # known[e, i, q]: how many of q's detections UAV i has heard of (fast form of eq. 11).
-        known_dtype = torch.int16 if c.max_steps < 2**15 - 1 else torch.int64
+        known_dtype = torch.int16 if cfg.max_steps < 2**15 - 1 else torch.int64
         self.known = torch.zeros(E, N, N, dtype=known_dtype, device=dev)
         # UAV i's fused (max-plus-sum) counts, and the global counts of every detection.
         self.counts = torch.zeros(E, N, 2 * C, dtype=count_dtype, device=dev)
@@ -114,24 +114,28 @@ class MCRSCore(CoreOutputs):
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
         # Beyond the paper: objects and state that exist only while their variant is on (the defaults are
         # the paper: none of them).
-        paper_comms = c.comm_delay == 0 and c.comm_budget is None
-        self.channel = None if paper_comms else MessageChannel(c, known_dtype, dev)
-        self.decay = EvidenceDecay(c, dev) if c.evidence_decay > 0 else None
+        paper_comms = cfg.comm_delay == 0 and cfg.comm_budget is None
+        self.channel = None if paper_comms else MessageChannel(cfg, known_dtype, dev)
+        self.decay = EvidenceDecay(cfg, dev) if cfg.evidence_decay > 0 else None
         if self.decay is not None:  # UAV counts hold sums of keep^-s (mcrs/env/evidence.py)
             self.counts = self.counts.to(torch.float64)
             self.global_counts = self.global_counts.to(torch.float32)  # the global counts now, aged in place
-        self.walk = TargetWalk(c, self._moves, dev) if c.target_motion == "random_walk" else None
-        self.dynamic = c.dynamic
+        self.walk = TargetWalk(cfg, self._moves, dev) if cfg.target_motion == "random_walk" else None
+        self.dynamic = cfg.dynamic
         # dynamic: the targets found (current cell's m(F) >= tau) at least once in the episode.
-        self.found_once = torch.zeros(E, c.n_targets, dtype=torch.bool, device=dev) if self.dynamic else None
+        self.found_once = (
+            torch.zeros(E, cfg.n_targets, dtype=torch.bool, device=dev) if self.dynamic else None
+        )
         # no_fly_shield: per env, the moves from each cell that r3 would not charge (config.violates).
         self._safe_moves = (
-            safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, c) if c.no_fly_shield else None
+            safe_move_table(self.no_fly_pos, self._moves, self._mask_of_cell, cfg)
+            if cfg.no_fly_shield
+            else None
         )
         # uav_shield: the table of which moves may meet (mcrs/env/shield.py).
-        self._right_of_way = RightOfWay(self._moves, c) if c.uav_shield else None
+        self._right_of_way = RightOfWay(self._moves, cfg) if cfg.uav_shield else None
         # far_view: the 8 window means of own m(U) appended to the observation (mcrs/env/far_view.py).
-        self.far_view = FarView(c, self._moves) if c.far_view > 0 else None
+        self.far_view = FarView(cfg, self._moves) if cfg.far_view > 0 else None
         self._mask = self._action_mask()  # the action mask of the current positions
 
     # ------------------------------------------------------------------ public API
@@ -170,20 +174,20 @@ class MCRSCore(CoreOutputs):
 
     def step(self, action: torch.Tensor) -> StepResult:
         """Advance every environment by one step with ``action`` ``[E, N]`` (integers in 0..7)."""
-        c = self.config
+        cfg = self.config
         action = check_action(action, self.config, self._mask, self.uav_pos)
-        finished = self.step_count >= c.max_steps
+        finished = self.step_count >= cfg.max_steps
         if finished.any():
             raise RuntimeError(
                 f"environment(s) {finished.nonzero().squeeze(-1).tolist()[:10]} reached the time limit "
-                f"max_steps={c.max_steps}: reset them before stepping (TorchRL: step_and_maybe_reset)"
+                f"max_steps={cfg.max_steps}: reset them before stepping (TorchRL: step_and_maybe_reset)"
             )
         # 0. Targets move (random_walk only; its draws come first, then the readings').
         if self.walk is not None:
             self.target_pos = self.walk.step(self.target_pos, self.is_target, self.generator)
         # 1. Move.
         target = self.uav_pos + self._moves[action]
-        if c.invalid_action == "clip":
+        if cfg.invalid_action == "clip":
             target = torch.minimum(target.clamp(min=0), self._grid_max)
         self.uav_pos = target
         self.step_count += 1
@@ -197,7 +201,7 @@ class MCRSCore(CoreOutputs):
         known_before = self.known.clone()
         self.known.diagonal(dim1=1, dim2=2).copy_((self.step_count + 1).unsqueeze(-1).expand(-1, self.n_uavs))
         geometry = self._geometry()
-        neighbours = neighbours_within(geometry.uav_squared, c.comm_range)
+        neighbours = neighbours_within(geometry.uav_squared, cfg.comm_range)
         if self.channel is None:
             self.known = fuse_known(self.known, reachable_within(neighbours, self.rounds))
         else:
@@ -210,11 +214,11 @@ class MCRSCore(CoreOutputs):
             uncertainty_drop, discoveries = self._update_global_belief_dynamic(cell, flat)
         else:
             uncertainty_drop, discoveries = self._update_global_belief(cell, flat)
-        r_uncertainty = c.w_uncertainty * uncertainty_drop
-        r_discovery = c.w_discovery * discoveries
+        r_uncertainty = cfg.w_uncertainty * uncertainty_drop
+        r_discovery = cfg.w_discovery * discoveries
         no_fly_events, collision_events = self._safety_events(geometry)
-        r_no_fly = -c.w_no_fly * no_fly_events
-        r_collision = -c.w_collision * collision_events
+        r_no_fly = -cfg.w_no_fly * no_fly_events
+        r_collision = -cfg.w_collision * collision_events
         terms = torch.stack([r_uncertainty, r_discovery, r_no_fly, r_collision], dim=-1)
         self.episode_reward += terms.sum(-1)
         self.collisions += collision_events
@@ -247,7 +251,7 @@ class MCRSCore(CoreOutputs):
         its m(F) reaches tau (D_find). Without decay only the sensed cells change (the paper's incremental
         update); with it every cell fades, so the whole map is recomputed.
         """
-        c = self.config
+        cfg = self.config
         discovered_before = self.discovered.clone()
         if self.decay is None:
             drop, _ = self._update_global_belief(cell, flat)
@@ -257,7 +261,7 @@ class MCRSCore(CoreOutputs):
             counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=counts.dtype))
             # Config validation keeps keep^max_steps a normal float32: a sensed cell's count stays > 0.
             self.cells_sensed = ((counts[:, 0::2] + counts[:, 1::2]) > 0).sum(-1).to(torch.float32)
-            _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], c.m_f, c.m_e)
+            _, full, unknown = belief_masses(counts[:, 0::2], counts[:, 1::2], cfg.m_f, cfg.m_e)
             if self.known_zones:
                 unknown, full = (
                     unknown.masked_fill(self.is_no_fly, 0.0),
@@ -266,8 +270,8 @@ class MCRSCore(CoreOutputs):
             self.global_belief[:, 0], self.global_belief[:, 1] = unknown, full
             total = unknown.sum(-1)
             drop, self.total_uncertainty = self.total_uncertainty - total, total
-        reached = self.global_belief[:, 1] >= c.target_threshold
-        found = reached.gather(1, self.target_pos[..., 0] * c.height + self.target_pos[..., 1])
+        reached = self.global_belief[:, 1] >= cfg.target_threshold
+        found = reached.gather(1, self.target_pos[..., 0] * cfg.height + self.target_pos[..., 1])
         self.targets_found = found.sum(-1).to(torch.float32)
         self.false_discoveries = (reached & ~self.is_target).sum(-1).to(torch.float32)
         new_targets = (found & ~self.found_once).sum(-1).to(torch.float32)
@@ -279,18 +283,18 @@ class MCRSCore(CoreOutputs):
 
     def _sense(self, cell: torch.Tensor) -> torch.Tensor:
         """Draw each UAV's reading of its ``cell`` ``[E, N]``; return the flat ``cell * 2 + channel``."""
-        c = self.config
-        p_positive = torch.where(self.is_target.gather(1, cell), c.p_detect, c.p_false_alarm)
+        cfg = self.config
+        p_positive = torch.where(self.is_target.gather(1, cell), cfg.p_detect, cfg.p_false_alarm)
         self.reading = torch.rand(cell.shape, generator=self.generator, device=self.device) < p_positive
         return cell * 2 + (~self.reading).long()
 
     def _reset_envs(self, envs: torch.Tensor) -> None:
-        c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
+        cfg, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
         # No-fly and target cells: the cells of the largest random keys, a uniform draw without
         # replacement (topk is a partial sort: cheaper than a full permutation).
         keys = torch.rand(M, C, generator=self.generator, device=dev)
-        chosen = keys.topk(c.n_no_fly + c.n_targets, dim=1).indices
-        no_fly, targets = chosen[:, : c.n_no_fly], chosen[:, c.n_no_fly :]
+        chosen = keys.topk(cfg.n_no_fly + cfg.n_targets, dim=1).indices
+        no_fly, targets = chosen[:, : cfg.n_no_fly], chosen[:, cfg.n_no_fly :]
         # UAV starts: distinct cells outside no-fly zones (a UAV may start on a target).
         keys = torch.rand(M, C, generator=self.generator, device=dev)
         keys.scatter_(1, no_fly, -1.0)
@@ -301,11 +305,11 @@ class MCRSCore(CoreOutputs):
         self, envs: torch.Tensor, no_fly: torch.Tensor, targets: torch.Tensor, starts: torch.Tensor
     ) -> None:
         """Begin episodes in ``envs`` from flat cells of no-fly zones, targets and UAV starts."""
-        c, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
+        cfg, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
         self.no_fly_pos[envs] = self._cell_to_xy(no_fly)
         if self._safe_moves is not None:
             self._safe_moves[envs] = safe_move_table(
-                self.no_fly_pos[envs], self._moves, self._mask_of_cell, c
+                self.no_fly_pos[envs], self._moves, self._mask_of_cell, cfg
             )
         self.target_pos[envs] = self._cell_to_xy(targets)
         if self.walk is not None:
@@ -326,11 +330,11 @@ class MCRSCore(CoreOutputs):
 
         # Every UAV senses its start cell (no reward); no exchange happens at reset.
         positive = torch.rand(M, N, generator=self.generator, device=dev) < torch.where(
-            is_target.gather(1, starts), c.p_detect, c.p_false_alarm
+            is_target.gather(1, starts), cfg.p_detect, cfg.p_false_alarm
         )
         flat = starts * 2 + (~positive).long()
         self.reading[envs] = positive
-        log = torch.zeros(M, c.max_steps + 1, N, dtype=self.log.dtype, device=dev)
+        log = torch.zeros(M, cfg.max_steps + 1, N, dtype=self.log.dtype, device=dev)
         log[:, 0] = flat.to(log.dtype)
         self.log[envs] = log
         self.known[envs] = torch.eye(N, dtype=self.known.dtype, device=dev).expand(M, N, N)
@@ -340,12 +344,12 @@ class MCRSCore(CoreOutputs):
         global_counts = torch.zeros(M, 2 * C, dtype=self.global_counts.dtype, device=dev)
         global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=global_counts.dtype))
         self.global_counts[envs] = global_counts
-        _, full, unknown = belief_masses(global_counts[:, 0::2], global_counts[:, 1::2], c.m_f, c.m_e)
+        _, full, unknown = belief_masses(global_counts[:, 0::2], global_counts[:, 1::2], cfg.m_f, cfg.m_e)
         if self.known_zones:  # known and empty from reset: no uncertainty, never a discovery
             unknown, full = unknown.masked_fill(is_no_fly, 0.0), full.masked_fill(is_no_fly, 0.0)
         self.global_belief[envs] = torch.stack([unknown, full], dim=1)
         self.total_uncertainty[envs] = unknown.sum(-1)
-        discovered = full >= c.target_threshold  # only when tau <= m_f: counted, never rewarded
+        discovered = full >= cfg.target_threshold  # only when tau <= m_f: counted, never rewarded
         self.discovered[envs] = discovered
         self.cells_sensed[envs] = (global_counts.view(M, C, 2).sum(-1) > 0).sum(-1).to(torch.float32)
         self.targets_found[envs] = (discovered & is_target).sum(-1).to(torch.float32)
@@ -368,14 +372,14 @@ class MCRSCore(CoreOutputs):
         cell, the first of them (lowest index) stands for the cell, so nothing is counted twice. A known
         no-fly cell keeps m(U) = m(F) = 0 when entered: no r1, no discovery.
         """
-        c = self.config
+        cfg = self.config
         same_cell = cell.unsqueeze(-1) == cell.unsqueeze(-2)  # [E, i, j]
         first = ~(same_cell & self._earlier).any(-1)  # no j < i on the same cell
         pair_index = torch.stack([cell * 2, cell * 2 + 1], dim=-1).view(self.num_envs, -1)
         before = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
         self.global_counts.scatter_add_(1, flat, torch.ones_like(flat, dtype=self.global_counts.dtype))
         after = self.global_counts.gather(1, pair_index).view(self.num_envs, self.n_uavs, 2)
-        _, full, unknown = belief_masses(after[..., 0], after[..., 1], c.m_f, c.m_e)
+        _, full, unknown = belief_masses(after[..., 0], after[..., 1], cfg.m_f, cfg.m_e)
         if self.known_zones:
             in_zone = self.is_no_fly.gather(1, cell)
             unknown, full = unknown.masked_fill(in_zone, 0.0), full.masked_fill(in_zone, 0.0)
@@ -387,7 +391,7 @@ class MCRSCore(CoreOutputs):
         self.cells_sensed += (first & (before.sum(-1) == 0)).sum(-1)
         # UAVs on one cell write identical values (same counts), so duplicate indices are harmless here.
         was_discovered = self.discovered.gather(1, cell)
-        reached = full >= c.target_threshold
+        reached = full >= cfg.target_threshold
         self.discovered.scatter_(1, cell, reached | was_discovered)
         newly = first & reached & ~was_discovered
         on_target = self.is_target.gather(1, cell)
@@ -404,9 +408,9 @@ class MCRSCore(CoreOutputs):
     def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
         """(UAV, no-fly zone) pairs closer than d1 and UAV pairs i < j closer than d2 (``safety_rule``
         ``near``: within), per environment."""
-        c = self.config
-        no_fly = c.violates(geometry.no_fly_squared, c.no_fly_safety).sum((-1, -2)).to(torch.float32)
-        close = c.violates(geometry.uav_squared, c.uav_safety) & self._pair_upper
+        cfg = self.config
+        no_fly = cfg.violates(geometry.no_fly_squared, cfg.no_fly_safety).sum((-1, -2)).to(torch.float32)
+        close = cfg.violates(geometry.uav_squared, cfg.uav_safety) & self._pair_upper
         return no_fly, close.sum((-1, -2)).to(torch.float32)
 
     def _uav_cells(self) -> torch.Tensor:

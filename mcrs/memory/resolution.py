@@ -104,6 +104,16 @@ class Stored:
         return self.n_call is not None
 
 
+class Neighbours(NamedTuple):
+    """Pairs of keys within delta, sorted by ``asker`` then ``other``: ``asker [P]`` is a transition,
+    ``other [P]`` a stored slot (its stored neighbours) or another transition (its batch neighbours),
+    ``d2 [P]`` their squared distance."""
+
+    asker: torch.Tensor
+    other: torch.Tensor
+    d2: torch.Tensor
+
+
 @dataclass
 class Outcome:
     """The net effect of a batch on the memory (slots and the transitions whose data they take)."""
@@ -141,13 +151,12 @@ def resolve(
     dev, track = stored.keys.device, stored.track
     n = z.shape[0]
     cubes = index.query_cubes(z)
-    query, slot, d2 = index.within(
-        z, stored.keys, stored.live, cubes
-    )  # stored neighbours, by query then slot
-    bi, bj, bd2 = index.pairs(z, cubes)  # batch neighbours
+    near = Neighbours(*index.within(z, stored.keys, stored.live, cubes))  # stored neighbours
+    pairs = Neighbours(*index.pairs(z, cubes))  # batch neighbours
+    query, slot, d2 = near
 
     interacting = torch.zeros(n, dtype=torch.bool, device=dev)
-    interacting[bi] = True
+    interacting[pairs.asker] = True
     if track:
         interacting[:] = True
     elif slot.numel():
@@ -176,7 +185,7 @@ def resolve(
     shift_is_new = torch.zeros(shift_slots.numel(), dtype=torch.bool, device=dev)
     if group.numel():
         seq = _sequential(
-            stored, group, query, slot, d2, bi, bj, bd2, R, wanted, new_free, write, T, counter_reset
+            stored, group, near, pairs, R, wanted, new_free, write=write, T=T, counter_reset=counter_reset
         )
         new_mask = new_free.clone()
         new_mask[seq["new"]] = True
@@ -215,20 +224,18 @@ def _by_distance(
 def _sequential(
     stored: Stored,
     group: torch.Tensor,
-    query: torch.Tensor,
-    slot: torch.Tensor,
-    d2: torch.Tensor,
-    bi: torch.Tensor,
-    bj: torch.Tensor,
-    bd2: torch.Tensor,
-    R: torch.Tensor,
+    near: Neighbours,
+    pairs: Neighbours,
+    returns: torch.Tensor,
     wanted: torch.Tensor,
     new_free: torch.Tensor,
+    *,
     write: int,
     T: int,
     counter_reset: bool,
 ) -> dict[str, Any]:
-    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending); with desirability
+    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending), given their stored
+    neighbours ``near`` and batch neighbours ``pairs`` and the transitions' ``returns``; with desirability
     tracking ``group`` is every transition, and ``wanted`` spreads backwards within an episode
     (transitions ``e*T .. e*T + T-1`` walk it from s_{T-1} down) from any hit on an entry with xi set.
 
@@ -243,10 +250,10 @@ def _sequential(
     in_group = torch.zeros_like(new_free)
     in_group[group] = True
     n = new_free.numel()
-    sel = in_group[query]
-    s_start, g_slot, g_d2 = _by_distance(query[sel], slot[sel], d2[sel], n)
-    sel = bj < bi  # neighbours earlier in the order
-    e_start, e_from, e_d2 = _by_distance(bi[sel], bj[sel], bd2[sel], n)
+    sel = in_group[near.asker]
+    s_start, g_slot, g_d2 = _by_distance(near.asker[sel], near.other[sel], near.d2[sel], n)
+    sel = pairs.other < pairs.asker  # neighbours earlier in the order
+    e_start, e_from, e_d2 = _by_distance(pairs.asker[sel], pairs.other[sel], pairs.d2[sel], n)
     touched = sorted(set(g_slot))
     touched_t = torch.tensor(touched, dtype=torch.int64, device=dev)
     H = dict(zip(touched, stored.returns[touched_t].tolist(), strict=True))
@@ -256,7 +263,7 @@ def _sequential(
         xi = dict(zip(touched, stored.xi[touched_t].tolist(), strict=True))
     members = group.tolist()
     new_before = (torch.cumsum(new_free.to(torch.int64), 0) - new_free.to(torch.int64))[group].tolist()
-    R_g, want_g = R[group].tolist(), wanted[group].tolist()
+    R_g, want_g = returns[group].tolist(), wanted[group].tolist()
     reset = counter_reset
     propagated_episode = -1  # the episode whose later transitions hit a desirable entry
 
@@ -307,6 +314,21 @@ def _sequential(
         if track and xi[s]:  # EMU's optimality propagation: earlier states of this episode are desirable
             propagated_episode = j // T
 
+    counters = (counted, n_call, n_xi, xi) if track else None
+    return _walked(dev, new, owner, created, hits, shifts, counters)
+
+
+def _walked(
+    dev: torch.device,
+    new: list[int],
+    owner: dict[int, int],
+    created: set[int],
+    hits: int,
+    shifts: int,
+    counters: tuple[set[int], dict[int, int], dict[int, int], dict[int, bool]] | None,
+) -> dict[str, Any]:
+    """What the walk of :func:`_sequential` did, as tensors: the new entries, the slots whose data a
+    transition took, and (EMU) the counters of every slot it changed."""
     owner_slots = sorted(owner)
     result: dict[str, Any] = {
         "new": torch.tensor(new, dtype=torch.int64, device=dev),
@@ -316,8 +338,8 @@ def _sequential(
         "hits": hits,
         "shifts": shifts,
     }
-    if track:
-        # Counters of every slot this group changed (new entries included: their start values).
+    if counters is not None:  # every slot this group changed, new entries included (their start values)
+        counted, n_call, n_xi, xi = counters
         slots = sorted(counted | created)
         result.update(
             count_slots=torch.tensor(slots, dtype=torch.int64, device=dev),

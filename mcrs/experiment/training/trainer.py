@@ -53,7 +53,6 @@ from mcrs.experiment.training.algorithms import (
     algorithm_class,
     unregistered,
 )
-from mcrs.experiment.training.budget import rounding_notes
 from mcrs.experiment.training.callbacks import (
     Callback,
     UnreadBatchKey,
@@ -74,6 +73,7 @@ from mcrs.experiment.training.task import (
     make_task,
     with_agent_state,
 )
+from mcrs.experiment.training.whole_batches import rounding_notes
 from mcrs.experiment.util.threads import SpeedCheck, apply_threads
 from mcrs.models.acting import make_acting_policy
 from mcrs.objectives.gradient import TrainingDiverged
@@ -279,17 +279,19 @@ class Experiment:
 
     def run(self) -> dict[str, float]:
         """Train until ``train.total_env_steps``; returns the last evaluation's metrics."""
-        t, c = self.config.train, self.counters
-        self._session_start_steps = c.env_steps
+        t, counts = self.config.train, self.counters
+        self._session_start_steps = counts.env_steps
         if self.finished:  # a resumed run that had finished
-            log_event(f"the run is finished at env step {c.env_steps}: nothing to train, evaluate or save")
-            self.state.evaluated_at = c.env_steps  # its final evaluation is logged at this step
+            log_event(
+                f"the run is finished at env step {counts.env_steps}: nothing to train, evaluate or save"
+            )
+            self.state.evaluated_at = counts.env_steps  # its final evaluation is logged at this step
             self.collector.shutdown()
             self.close()
             return dict(self.last_eval)  # its final evaluation is logged once, by the session that ended it
         progress = progress_bar(
             self.config.train.total_env_steps,
-            c.env_steps,
+            counts.env_steps,
             self.config.logger.progress_bar,
             f"{self.config.algo.name} {self.task.name}",
         )
@@ -300,27 +302,27 @@ class Experiment:
         stats: dict[str, list[torch.Tensor]] = {}
         with StopSignals() as stop:  # a signal: a checkpoint after this batch; more signals are ignored
             try:
-                while c.env_steps < t.total_env_steps:
-                    if c.env_steps >= c.next_eval:
+                while counts.env_steps < t.total_env_steps:
+                    if counts.env_steps >= counts.next_eval:
                         self.evaluate()
-                        c.next_eval += t.eval_interval
+                        counts.next_eval += t.eval_interval
                     batch = self._collect(collector_iter, stats)  # num_envs whole episodes, into the replay
                     self._learn(stats)  # updates_per_episode updates per collected episode
-                    if c.env_steps >= c.next_log:
+                    if counts.env_steps >= counts.next_log:
                         self._log_train(stats)
                         stats = {}
-                        c.next_log = c.env_steps + self.config.logger.log_interval
+                        counts.next_log = counts.env_steps + self.config.logger.log_interval
                     saved = self._checkpoint_if_due()
                     progress.update(batch.numel())
                     progress.set_postfix(self._postfix(), refresh=False)
                     if stop.requested:  # a consistent point: the batch is in the replay, its updates done
                         path = saved or self.save()
-                        raise RunInterrupted(int(stop.signum or 0), self.run_dir, c.env_steps, path)
+                        raise RunInterrupted(int(stop.signum or 0), self.run_dir, counts.env_steps, path)
                     self._speed.observe()
                 self.evaluate()
                 progress.set_postfix(self._postfix())  # the bar's last line shows the final evaluation
-                if c.env_steps >= c.next_eval:  # done: a resume from this checkpoint must not repeat it
-                    c.next_eval += t.eval_interval
+                if counts.env_steps >= counts.next_eval:  # a resume from this checkpoint must not repeat it
+                    counts.next_eval += t.eval_interval
                 if stats:  # batches since the last row (none: that row is already at this step)
                     self._log_train(stats)
                 self.save()
@@ -339,11 +341,11 @@ class Experiment:
     def _collect(self, collector_iter, stats: dict[str, list[torch.Tensor]]):
         """Collect num_envs whole episodes with the exploring policy; they go into the replay, then to the
         callbacks."""
-        t, c = self.config.train, self.counters
+        t, counts = self.config.train, self.counters
         start = time.perf_counter()
-        self.epsilon.set_env_steps(c.env_steps)
+        self.epsilon.set_env_steps(counts.env_steps)
         self.collector.sync_weights()
-        self.collector.start_batch(batch_seed(int(self.config.seed), c.iteration))
+        self.collector.start_batch(batch_seed(int(self.config.seed), counts.iteration))
         batch = self.collector.next_batch(collector_iter)
         self._check_finite(batch)
         task = self.task
@@ -354,14 +356,14 @@ class Experiment:
             time_limit=str(self.config.algo.time_limit),
             first_episode_only=True,
         )
-        episode_ids = c.episodes + torch.arange(t.num_envs, device=episodes.device)
+        episode_ids = counts.episodes + torch.arange(t.num_envs, device=episodes.device)
         episodes.set("episode", episode_ids.unsqueeze(1).expand(episodes.batch_size).clone())
         self.state.replay_store.mark_written(self.replay.extend(episodes))
         for name, values in task.episode_metrics(batch).items():
             append_scalar(stats, f"train/{name}", values.mean())
-        c.iteration += 1
-        c.episodes += t.num_envs
-        c.env_steps += batch.numel()
+        counts.iteration += 1
+        counts.episodes += t.num_envs
+        counts.env_steps += batch.numel()
         self._timer["collect"] += time.perf_counter() - start
         for callback in self.callbacks:
             start = time.perf_counter()
@@ -373,31 +375,31 @@ class Experiment:
 
     def _learn(self, stats: dict[str, list[torch.Tensor]]) -> None:
         """The updates owed for the episodes collected so far, then the target networks' copy when due."""
-        t, c = self.config.train, self.counters
+        t, counts = self.config.train, self.counters
         start = time.perf_counter()
         if len(self.replay) >= t.batch_episodes:
-            c.update_credit += t.num_envs * t.updates_per_episode
-            while c.update_credit >= 1.0:
+            counts.update_credit += t.num_envs * t.updates_per_episode
+            while counts.update_credit >= 1.0:
                 for key, value in self._update().items():
                     append_scalar(stats, key, value)
-                c.update_credit -= 1.0
-        if c.episodes >= c.next_target_update:  # once per target_update_episodes episodes
+                counts.update_credit -= 1.0
+        if counts.episodes >= counts.next_target_update:  # once per target_update_episodes episodes
             self.learner.target_updater.step()
-            c.next_target_update += t.target_update_episodes * (
-                1 + (c.episodes - c.next_target_update) // t.target_update_episodes
+            counts.next_target_update += t.target_update_episodes * (
+                1 + (counts.episodes - counts.next_target_update) // t.target_update_episodes
             )
         self._timer["update"] += time.perf_counter() - start
 
     def _update(self) -> dict[str, torch.Tensor]:
         """One learner update on a sampled batch, after the callbacks have added their keys to it."""
-        c = self.counters
+        counts = self.counters
         try:
             batch = self.replay.sample()
             out: dict[str, torch.Tensor] = {}
             for callback in self.callbacks:
                 start = time.perf_counter()
                 before = None if self._batch_keys_checked else set(batch.keys(True, True))
-                returned = callback.on_train_batch(batch, c.env_steps)
+                returned = callback.on_train_batch(batch, counts.env_steps)
                 out.update(hook_scalars(callback, "on_train_batch", returned))
                 if before is not None:  # the session's first update: a key the loss never reads is said
                     note = unread_batch_keys(
@@ -410,23 +412,23 @@ class Experiment:
                 self._timer[callback.name] += spent
                 self._timer["update"] -= spent  # _learn's clock runs around this: count it once
             self._batch_keys_checked = True
-            stats = self.learner.update(batch, c.env_steps)
+            stats = self.learner.update(batch, counts.env_steps)
         except TrainingDiverged as error:
             path = self.save(name="last_good.pt")
             raise TrainingDiverged(
-                f"{error} (update {c.updates + 1}); the last good state is saved in {path}"
+                f"{error} (update {counts.updates + 1}); the last good state is saved in {path}"
             ) from None
-        c.updates += 1
+        counts.updates += 1
         return {**{f"train/{k}": v for k, v in stats.items()}, **out}
 
     def _checkpoint_if_due(self) -> Path | None:
-        t, c = self.config.train, self.counters
-        due_by_steps = c.env_steps >= c.next_checkpoint and c.env_steps > 0
+        t, counts = self.config.train, self.counters
+        due_by_steps = counts.env_steps >= counts.next_checkpoint and counts.env_steps > 0
         due_by_time = (
             t.checkpoint_minutes > 0 and time.monotonic() - self.state.last_save >= 60 * t.checkpoint_minutes
         )
         if due_by_steps:
-            c.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
+            counts.next_checkpoint += t.checkpoint_interval  # first: a resume must not save again
         return self.save() if due_by_steps or due_by_time else None
 
     def _check_finite(self, batch) -> None:
@@ -468,11 +470,11 @@ class Experiment:
         return dict(self.last_eval)
 
     def _log_train(self, stats: dict[str, list[torch.Tensor]]) -> None:
-        c = self.counters
+        counts = self.counters
         values = {name: torch.stack(v).float().mean().item() for name, v in stats.items() if v}
         values["train/epsilon"] = float(self.epsilon.eps)
-        values["train/episodes"] = c.episodes
-        values["train/updates"] = c.updates
+        values["train/episodes"] = counts.episodes
+        values["train/updates"] = counts.updates
         values["train/replay_episodes"] = len(self.replay)
         for callback in self.callbacks:
             returned = hook_scalars(callback, "statistics", callback.statistics())
@@ -480,8 +482,8 @@ class Experiment:
         elapsed = sum(self._timer.values())
         values.update({f"time/{k}_s": v for k, v in self._timer.items()})
         if elapsed > 0:  # steps of this session (a resumed run starts its clock again)
-            values["time/env_steps_per_s"] = (c.env_steps - self._session_start_steps) / elapsed
-        self._log(values, c.env_steps)
+            values["time/env_steps_per_s"] = (counts.env_steps - self._session_start_steps) / elapsed
+        self._log(values, counts.env_steps)
 
     def _log(self, values: dict[str, float], step: int) -> None:
         """Log and count the rows of each metric, so that a resume can drop rows logged after its checkpoint."""

@@ -32,7 +32,7 @@ def _max_steps(cfg: Any) -> tuple[str, int]:
 BATCHED_FIELDS = ("train.total_env_steps", "train.eval_interval")
 
 
-def budget_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
+def whole_batch_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
     """A length or evaluation interval set on the command line (``explicit``: the dotted keys it sets)
     that is not a whole number of collector batches, naming the nearest values that are.
 
