@@ -245,7 +245,7 @@ def _run(args: argparse.Namespace, report: Report) -> None:
         embedding,
         codec,
         capacity=max(args.entries, transitions),
-        delta=tolerance,
+        tolerance=tolerance,
         max_steps=config.max_steps,
         shape=args.neighbourhood,
     )

@@ -31,6 +31,7 @@ from mcrs_benchmarks.memory import fill, median_seconds, rollout
 from mcrs.env.config import SCENARIOS, from_mapping
 from mcrs.experiment.training.episodic import build_embedding
 from mcrs.memory.codec import StateCodec
+from mcrs.memory.delta import match_tolerance
 from mcrs.memory.episodic import EpisodicMemory
 
 GOAL_RATIO = 1.3
@@ -52,7 +53,7 @@ def reembed_and_insert_cost(
         build_embedding(cfg, env_config).eval(),
         StateCodec(env_config),
         capacity=entries,
-        delta=mem.delta,
+        tolerance=match_tolerance(mem.delta, str(mem.delta_rule), str(mem.neighbourhood), mem.key_dim),
         gamma=cfg.algo.gamma,
         max_steps=env_config.max_steps,
     )

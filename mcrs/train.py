@@ -56,6 +56,7 @@ from mcrs.experiment.config import (
     register_configs,
     validation_errors,
 )
+from mcrs.experiment.run.history import current_config, legacy_values
 from mcrs.experiment.run.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
 from mcrs.experiment.training.whole_batches import whole_batch_errors
 from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
@@ -80,16 +81,14 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
 
     Refuses a directory that is not a run, and a command whose explicit overrides contradict the run.
     """
-    from mcrs.experiment.run import checkpoint as ckpt  # torch: only once the command is known to be sound
-
     run_dir = Path(str(cfg.resume)).expanduser()
     saved_path = run_dir / "config.yaml"
     problem = resume_problem(cfg.resume)
     if problem:
         raise ConfigError(problem)
     raw = _read_run_config(saved_path)
-    saved = ckpt.current_config(raw)
-    legacy = ckpt.legacy_values(raw)
+    saved = current_config(raw)
+    legacy = legacy_values(raw)
     if legacy:  # nothing saved is reinterpreted: the run goes on under the rules it was trained with
         print(
             f"mcrs-train: {saved_path} was written before {', '.join(v.split('=')[0] for v in legacy)} "

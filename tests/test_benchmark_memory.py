@@ -248,7 +248,7 @@ def test_the_anchors_find_what_our_index_finds(shape: str) -> None:
     config = scenario("map10")
     embedding = make_embedding("cnn", config.state_dim, (config.width, config.height), seed=0).eval()
     memory = EpisodicMemory(
-        embedding, StateCodec(config), capacity=4000, delta=0.2, max_steps=config.max_steps, shape=shape
+        embedding, StateCodec(config), capacity=4000, tolerance=0.2, max_steps=config.max_steps, shape=shape
     )
     bench.fill(memory, config, 4000, seed=3)
     memory.refresh_keys()

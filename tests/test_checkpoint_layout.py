@@ -14,6 +14,7 @@ import torch
 
 from mcrs.env.config import from_mapping
 from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run import history
 from mcrs.experiment.training.trainer import Experiment
 from mcrs.policies.trained import TrainedPolicy
 from mcrs_lab.analysis import horizon
@@ -100,5 +101,5 @@ def test_a_saved_config_loses_the_env_runtime_fields_only() -> None:
         "no_fly_prior": "unknown",
         "discovery_rule": "target",
     }
-    assert ckpt.current_config(saved) == {"env": {"name": "map10", "width": 10, **old}, "seed": 3}
-    assert ckpt.current_config({"seed": 3}) == {"seed": 3}
+    assert history.current_config(saved) == {"env": {"name": "map10", "width": 10, **old}, "seed": 3}
+    assert history.current_config({"seed": 3}) == {"seed": 3}

@@ -199,9 +199,9 @@ def brute_lookup(memory: EpisodicMemory, keys: torch.Tensor):
     z, stored = memory.index.standardise(keys)[:, None], memory.index.standardise(memory.keys)[None]
     d2 = squared_distance(z, stored)
     if memory.index.shape == "box":
-        within = (z - stored).abs().amax(-1) <= memory.index.delta_f32
+        within = (z - stored).abs().amax(-1) <= memory.index.tolerance_f32
     else:
-        within = d2 < memory.index.delta_sq
+        within = d2 < memory.index.tolerance_sq
     d2 = torch.where(memory.live & within, d2, torch.full_like(d2, INF))
     best, slot = d2.min(1)
     hit = torch.isfinite(best)
@@ -221,8 +221,8 @@ def clustered_keys(E: int, T: int, clusters: int, spread: float, generator: torc
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"delta": 0.0}, r"delta must be a finite number > 0, got 0.0"),
-        ({"delta": -1e-3}, r"delta must be a finite number > 0"),
+        ({"tolerance": 0.0}, r"tolerance must be a finite number > 0, got 0.0"),
+        ({"tolerance": -1e-3}, r"tolerance must be a finite number > 0"),
         ({"capacity": 0}, r"capacity must be an int in \[1, "),
         ({"gamma": 1.5}, r"gamma must be a number in \[0, 1\], got 1.5"),
         ({"gamma": -0.1}, r"gamma must be a number in \[0, 1\]"),
@@ -248,7 +248,7 @@ def test_discounted_returns_walk_backwards() -> None:
 # ----------------------------------------------------------------------------------- Algorithm 1
 def hand_memory(**kwargs) -> EpisodicMemory:
     return EpisodicMemory(
-        KeyInState(), StateCodec(MAP10), capacity=20, delta=0.01, gamma=0.5, check_states=False, **kwargs
+        KeyInState(), StateCodec(MAP10), capacity=20, tolerance=0.01, gamma=0.5, check_states=False, **kwargs
     )
 
 
@@ -356,7 +356,7 @@ def test_batched_insert_equals_the_sequential_reference(
         KeyInState(),
         StateCodec(MAP10),
         capacity=capacity,
-        delta=delta,
+        tolerance=delta,
         gamma=gamma,
         track_desirability=track,
         check_states=False,  # synthetic states: keys written into the maps
@@ -391,7 +391,9 @@ def test_batched_insert_equals_the_sequential_reference(
 
 def test_real_rollouts_with_a_neural_embedding_equal_the_reference() -> None:
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=1000, delta=0.05, gamma=0.99)
+    memory = EpisodicMemory(
+        TinyNet(cfg.state_dim), StateCodec(cfg), capacity=1000, tolerance=0.05, gamma=0.99
+    )
     ref = Reference(1000, 0.05, 0.99, cfg.max_steps, False)
     batches: list = []
     states = []
@@ -409,7 +411,7 @@ def test_real_rollouts_with_a_neural_embedding_equal_the_reference() -> None:
 def test_stored_states_decode_to_the_inserted_env_states() -> None:
     cfg = scenario("map15")
     state, counts, reward = rollout("map15", num_envs=4, seed=2)
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=2000, delta=1e-4)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=2000, tolerance=1e-4)
     stats = memory.insert(state, counts, reward)
     assert stats.new == 4 * cfg.max_steps  # distinct states, tiny delta: all new
     slots = memory.live_slots()
@@ -421,7 +423,7 @@ def test_stored_states_decode_to_the_inserted_env_states() -> None:
 
 # ------------------------------------------------------------------------------------------ eviction
 def test_eviction_drops_the_oldest_entries_first() -> None:
-    memory = EpisodicMemory(KeyInState(), StateCodec(MAP10), capacity=10, delta=1e-3, check_states=False)
+    memory = EpisodicMemory(KeyInState(), StateCodec(MAP10), capacity=10, tolerance=1e-3, check_states=False)
     generator = torch.Generator().manual_seed(0)
     all_keys = []
     for b in range(3):
@@ -462,7 +464,7 @@ def test_a_batch_larger_than_the_capacity_is_refused() -> None:
 # ------------------------------------------------------------------------------------- look-ups
 def test_lookups_match_brute_force_and_misses_are_zero() -> None:
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=3000, delta=0.05)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=3000, tolerance=0.05)
     for seed in range(3):
         memory.insert(*rollout("map10", num_envs=8, seed=seed))
     state, _, _ = rollout("map10", num_envs=8, seed=1)
@@ -481,7 +483,7 @@ def test_lookups_match_brute_force_and_misses_are_zero() -> None:
 
 def test_statistics_refresh_when_the_buffer_doubles() -> None:
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=5000, delta=1e-4)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=5000, tolerance=1e-4)
     sizes = []
     for seed in range(5):
         memory.insert(*rollout("map10", num_envs=4, seed=seed))
@@ -495,7 +497,7 @@ def test_statistics_refresh_when_the_buffer_doubles() -> None:
 def test_refresh_keys_re_embeds_every_state_and_lookups_follow() -> None:
     cfg = scenario("map10")
     embedding = TinyNet(cfg.state_dim, seed=0)
-    memory = EpisodicMemory(embedding, StateCodec(cfg), capacity=900, delta=0.05)
+    memory = EpisodicMemory(embedding, StateCodec(cfg), capacity=900, tolerance=0.05)
     for seed in range(5):  # 1000 transitions into 900 slots: the ring has wrapped
         memory.insert(*rollout("map10", num_envs=4, seed=seed))
     old = memory.keys.clone()
@@ -523,7 +525,7 @@ def test_refresh_keys_re_embeds_every_state_and_lookups_follow() -> None:
 def test_counts_above_255_promote_storage_and_keep_states_exact() -> None:
     tiny = scenario("map10", width=2, height=2, n_uavs=4, n_targets=1, n_no_fly=0, max_steps=300)
     state, counts, reward = (x[:, :] for x in _tiny_rollout(tiny))
-    memory = EpisodicMemory(TinyNet(tiny.state_dim), StateCodec(tiny), capacity=1000, delta=1e-5)
+    memory = EpisodicMemory(TinyNet(tiny.state_dim), StateCodec(tiny), capacity=1000, tolerance=1e-5)
     early = slice(0, 20)  # counts still small
     memory.insert(state[:, early], counts[:, early], reward[:, early])
     assert memory.codes.dtype == torch.uint8
@@ -601,7 +603,7 @@ def test_tracking_requires_the_desirable_flags() -> None:
 # ---------------------------------------------------------------------------------------- sampling
 def test_sample_draws_stored_states_with_their_time_and_return() -> None:
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=500, delta=1e-4)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=500, tolerance=1e-4)
     memory.insert(*rollout("map10", num_envs=4, seed=0))
     state, time, returns = memory.sample(64, torch.Generator().manual_seed(0))
     assert state.shape == (64, cfg.state_dim) and time.shape == returns.shape == (64,)
@@ -615,13 +617,13 @@ def test_sample_draws_stored_states_with_their_time_and_return() -> None:
 def test_state_dict_round_trip_answers_like_the_saved_memory(tmp_path) -> None:
     cfg = scenario("map10")
     embedding = TinyNet(cfg.state_dim)
-    memory = EpisodicMemory(embedding, StateCodec(cfg), capacity=700, delta=0.05, track_desirability=True)
+    memory = EpisodicMemory(embedding, StateCodec(cfg), capacity=700, tolerance=0.05, track_desirability=True)
     for seed in range(4):  # wraps the ring
         memory.insert(*rollout("map10", num_envs=4, seed=seed), torch.tensor([True, False, True, False]))
     path = tmp_path / "memory.pt"
     torch.save(memory.state_dict(), path)
     state = torch.load(path, weights_only=True)
-    loaded = EpisodicMemory(embedding, StateCodec(cfg), capacity=700, delta=0.05, track_desirability=True)
+    loaded = EpisodicMemory(embedding, StateCodec(cfg), capacity=700, tolerance=0.05, track_desirability=True)
     loaded.load_state_dict(state)
     assert len(loaded) == len(memory) and loaded.start == memory.start
     assert torch.equal(loaded.live, memory.live)
@@ -635,14 +637,16 @@ def test_state_dict_round_trip_answers_like_the_saved_memory(tmp_path) -> None:
     for a, b in zip(loaded.lookup_keys(queries), memory.lookup_keys(queries), strict=True):
         assert torch.equal(a, b)
     # A larger memory takes it too (slots laid out from 0; same answers).
-    bigger = EpisodicMemory(embedding, StateCodec(cfg), capacity=2000, delta=0.05, track_desirability=True)
+    bigger = EpisodicMemory(
+        embedding, StateCodec(cfg), capacity=2000, tolerance=0.05, track_desirability=True
+    )
     bigger.load_state_dict(state)
     assert torch.equal(bigger.lookup_keys(queries)[0], memory.lookup_keys(queries)[0])
 
 
 def test_state_dict_from_another_map_key_dim_or_too_large_is_refused() -> None:
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=300, delta=0.05)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=300, tolerance=0.05)
     memory.insert(*rollout("map10", num_envs=4, seed=0))
     state = memory.state_dict()
     other_map = scenario("map15")
@@ -670,7 +674,7 @@ def test_statistics_and_nbytes() -> None:
 def test_stale_records_are_purged_and_lookups_stay_exact() -> None:
     """Many evictions and shifts: stale index records stay under stale_fraction of the entries."""
     cfg = scenario("map10")
-    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=500, delta=0.3)
+    memory = EpisodicMemory(TinyNet(cfg.state_dim), StateCodec(cfg), capacity=500, tolerance=0.3)
     rebuilt = 0
     for seed in range(10):
         before = memory.stats_size, len(memory.index)
@@ -698,7 +702,7 @@ def test_decoding_inside_inference_mode_leaves_reusable_buffers() -> None:
 def test_inserting_under_inference_mode_leaves_a_usable_memory() -> None:
     tiny = scenario("map10", width=2, height=2, n_uavs=4, n_targets=1, n_no_fly=0, max_steps=300)
     state, counts, reward = _tiny_rollout(tiny)
-    memory = EpisodicMemory(TinyNet(tiny.state_dim), StateCodec(tiny), capacity=1000, delta=1e-9)
+    memory = EpisodicMemory(TinyNet(tiny.state_dim), StateCodec(tiny), capacity=1000, tolerance=1e-9)
     assert counts[:, 150:].max() > 255
     with torch.inference_mode():
         memory.insert(state[:, 150:], counts[:, 150:], reward[:, 150:])  # promotes to int16 in there

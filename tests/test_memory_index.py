@@ -27,9 +27,9 @@ def brute_force(index: GridIndex, queries: torch.Tensor, keys: torch.Tensor, liv
     z, stored = index.standardise(queries)[:, None, :], index.standardise(keys)[None, :, :]
     d2 = squared_distance(z, stored)
     if index.shape == "box":  # EMU: np.allclose(z, stored, rtol=0, atol=delta)
-        within = ((z - stored).abs() <= torch.tensor(index.delta, dtype=torch.float32)).all(-1)
+        within = ((z - stored).abs() <= torch.tensor(index.tolerance, dtype=torch.float32)).all(-1)
     else:
-        within = d2 < torch.tensor(index.delta**2, dtype=torch.float32)
+        within = d2 < torch.tensor(index.tolerance**2, dtype=torch.float32)
     within &= live[None, :]
     masked = torch.where(within, d2, torch.full_like(d2, INF))
     best, slot = masked.min(1)  # first minimum: the lowest slot
@@ -172,7 +172,7 @@ def test_pairs_within_a_batch_match_brute_force() -> None:
     z = torch.cat([z, z[:10]])  # exact duplicates
     i, j, d2 = index.pairs(z)
     dist = squared_distance(z[:, None], z[None])
-    expected = (dist < index.delta_sq) & ~torch.eye(z.shape[0], dtype=torch.bool)
+    expected = (dist < index.tolerance_sq) & ~torch.eye(z.shape[0], dtype=torch.bool)
     found = torch.zeros_like(expected)
     found[i, j] = True
     assert torch.equal(found, expected) and i.numel() == int(expected.sum())
@@ -244,13 +244,13 @@ def test_constant_dimension_gets_a_floor_not_a_division_by_zero() -> None:
     [
         ({"key_dim": 0}, "key_dim must be an int in"),
         ({"key_dim": 9}, "key_dim must be an int in"),
-        ({"delta": 0.0}, "delta must be a finite number > 0"),
-        ({"delta": float("inf")}, "delta must be a finite number > 0"),
+        ({"tolerance": 0.0}, "tolerance must be a finite number > 0"),
+        ({"tolerance": float("inf")}, "tolerance must be a finite number > 0"),
         ({"capacity": 0}, "capacity must be an int"),
     ],
 )
 def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:
-    args = {"key_dim": 4, "delta": 0.1, "capacity": 10, **kwargs}
+    args = {"key_dim": 4, "tolerance": 0.1, "capacity": 10, **kwargs}
     with pytest.raises(ValueError, match=message):
         GridIndex(**args)
 

@@ -18,6 +18,7 @@ from mcrs.env.config import EnvConfig, scenario, with_legacy_values
 from mcrs.env.core import N_ACTIONS
 from mcrs.experiment.config import as_typed, compose, validate
 from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run import history
 from mcrs.experiment.training.learner import Learner
 from mcrs.experiment.training.replay import episodes_from_rollout
 from mcrs.models.acting import make_acting_policy, recurrent_primer
@@ -57,8 +58,8 @@ def test_defaults_are_the_papers_reward_and_one_horizon():
 
 def test_an_old_config_reads_as_near_and_bootstrap_and_says_so():
     old = saved_before_the_fields()
-    assert ckpt.legacy_values(old) == ["env.safety_rule=near", "algo.time_limit=bootstrap"]
-    current = ckpt.current_config(old)
+    assert history.legacy_values(old) == ["env.safety_rule=near", "algo.time_limit=bootstrap"]
+    current = history.current_config(old)
     assert current["env"]["safety_rule"] == "near" and current["algo"]["time_limit"] == "bootstrap"
     assert "safety_rule" not in old["env"]  # the saved dict itself is not rewritten
     # A config that has the fields keeps them, whatever they are.
@@ -67,7 +68,7 @@ def test_an_old_config_reads_as_near_and_bootstrap_and_says_so():
         "env": {**old["env"], "safety_rule": "enter"},
         "algo": {**old["algo"], "time_limit": "terminal"},
     }
-    assert ckpt.legacy_values(new) == [] and ckpt.current_config(new)["env"]["safety_rule"] == "enter"
+    assert history.legacy_values(new) == [] and history.current_config(new)["env"]["safety_rule"] == "enter"
     paper = {
         "safety_rule": "enter",
         "no_fly_view": "blocked",
@@ -83,10 +84,10 @@ def test_a_config_saved_before_the_no_fly_and_discovery_fields_reads_as_the_lure
     config = OmegaConf.to_container(compose_config(), resolve=True, enum_to_str=True)
     for name in ("no_fly_view", "no_fly_prior", "discovery_rule"):
         del config["env"][name]
-    assert ckpt.legacy_values(config) == [
+    assert history.legacy_values(config) == [
         "env.no_fly_view=belief", "env.no_fly_prior=unknown", "env.discovery_rule=target"
     ]  # fmt: skip
-    current = ckpt.current_config(config)["env"]
+    current = history.current_config(config)["env"]
     assert (
         current["safety_rule"],
         current["no_fly_view"],

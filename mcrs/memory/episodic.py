@@ -84,7 +84,7 @@ class EpisodicMemory:
             ``key_dim`` attribute. It is called under ``torch.no_grad`` / ``inference_mode``.
         codec: the :class:`StateCodec` of the env's map.
         capacity: number of entries (table 3: 1M).
-        delta: match tolerance on standardised keys: the ball's radius or the box's half-side
+        tolerance: the match tolerance on standardised keys: the ball's radius or the box's half-side
             (:func:`mcrs.memory.delta.match_tolerance` turns the paper's delta into it).
         gamma: discount of the returns H.
         max_steps: T of the env (the embedding's time input is ``t / T``); default: the codec's.
@@ -102,7 +102,7 @@ class EpisodicMemory:
         embedding: nn.Module,
         codec: StateCodec,
         capacity: int = 1_000_000,
-        delta: float = 1.3e-3,
+        tolerance: float = 1.3e-3,
         gamma: float = 0.99,
         max_steps: int | None = None,
         track_desirability: bool = False,
@@ -115,8 +115,12 @@ class EpisodicMemory:
         key_dim = getattr(embedding, "key_dim", None)
         _check_int("embedding.key_dim", key_dim, 1, MAX_KEY_DIM)
         _check_int("capacity", capacity, 1, 2**31 - 1)
-        if isinstance(delta, bool) or not isinstance(delta, (int, float)) or not 0 < delta < math.inf:
-            raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
+        if (
+            isinstance(tolerance, bool)
+            or not isinstance(tolerance, (int, float))
+            or not 0 < tolerance < math.inf
+        ):
+            raise ValueError(f"tolerance must be a finite number > 0, got {tolerance!r}")
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}")
         max_steps = codec.config.max_steps if max_steps is None else max_steps
@@ -128,7 +132,7 @@ class EpisodicMemory:
         ):
             raise ValueError(f"stale_fraction must be a number > 0, got {stale_fraction!r}")
         self.embedding, self.codec = embedding, codec
-        self.key_dim, self.capacity, self.delta = int(key_dim), capacity, float(delta)
+        self.key_dim, self.capacity, self.tolerance = int(key_dim), capacity, float(tolerance)
         self.gamma, self.max_steps = float(gamma), max_steps
         self.track_desirability = bool(track_desirability)
         self.counter_reset = bool(counter_reset)
@@ -151,7 +155,7 @@ class EpisodicMemory:
         self.start = 0  # slot of the oldest entry
         self.size = 0
         self.stats_size = 0  # entries when the statistics were last refreshed
-        self.index = GridIndex(self.key_dim, self.delta, C, dev, shape=shape)
+        self.index = GridIndex(self.key_dim, self.tolerance, C, dev, shape=shape)
         self.shape = shape
 
     # ------------------------------------------------------------------------------------ basics
@@ -440,6 +444,6 @@ class EpisodicMemory:
 
         With the same capacity the entries return to their slots, so look-ups answer exactly as before
         (slots included); otherwise they are laid out oldest first from slot 0. The saved statistics are
-        restored (not recomputed); this memory's own delta and gamma apply from now on.
+        restored (not recomputed); this memory's own tolerance and gamma apply from now on.
         """
         restore_memory(self, state)

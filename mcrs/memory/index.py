@@ -109,7 +109,7 @@ class GridIndex:
 
     Args:
         key_dim: dimension d of the keys (1..8; a query searches up to 2^(d-1) cells).
-        delta: the match tolerance on standardised keys (> 0): the ball's radius or the box's half-side.
+        tolerance: the match tolerance on standardised keys (> 0): the ball's radius or the box's half-side.
         capacity: number of slots (records carry the slot number).
         device: where the records live (the keys' device).
         shape: ``"ball"`` or ``"box"`` (see the module docstring).
@@ -118,7 +118,7 @@ class GridIndex:
     def __init__(
         self,
         key_dim: int,
-        delta: float,
+        tolerance: float,
         capacity: int,
         device: torch.device | str = "cpu",
         shape: str = "ball",
@@ -127,18 +127,20 @@ class GridIndex:
             raise ValueError(
                 f"key_dim must be an int in [1, {MAX_KEY_DIM}] (2^(key_dim-1) cells per query), got {key_dim!r}"
             )
-        if not (isinstance(delta, (int, float)) and 0 < delta < float("inf")):
-            raise ValueError(f"delta must be a finite number > 0, got {delta!r}")
+        if not (isinstance(tolerance, (int, float)) and 0 < tolerance < float("inf")):
+            raise ValueError(f"tolerance must be a finite number > 0, got {tolerance!r}")
         if isinstance(capacity, bool) or not isinstance(capacity, int) or not 1 <= capacity < 2**31:
             raise ValueError(f"capacity must be an int in [1, 2^31), got {capacity!r}")
         if shape not in SHAPES:
             raise ValueError(f"shape must be one of {', '.join(SHAPES)}, got {shape!r}")
-        self.key_dim, self.delta, self.capacity, self.shape = key_dim, float(delta), capacity, shape
+        self.key_dim, self.tolerance, self.capacity, self.shape = key_dim, float(tolerance), capacity, shape
         self.device = torch.device(device)
-        self.side = 2.0 * self.delta * (1.0 + SIDE_MARGIN)
-        self.reach = self.delta * (1.0 + REACH_MARGIN)
-        self.delta_sq = torch.tensor(self.delta * self.delta, dtype=torch.float32, device=self.device)
-        self.delta_f32 = torch.tensor(self.delta, dtype=torch.float32, device=self.device)
+        self.side = 2.0 * self.tolerance * (1.0 + SIDE_MARGIN)
+        self.reach = self.tolerance * (1.0 + REACH_MARGIN)
+        self.tolerance_sq = torch.tensor(
+            self.tolerance * self.tolerance, dtype=torch.float32, device=self.device
+        )
+        self.tolerance_f32 = torch.tensor(self.tolerance, dtype=torch.float32, device=self.device)
         self.slot_bits = slot_bits_for(capacity)
         self.prefix_bits = PREFIX_BITS // max(1, key_dim - 1)
         self._shifts = torch.arange(key_dim - 1, device=self.device, dtype=torch.int64) * self.prefix_bits
@@ -395,11 +397,11 @@ class GridIndex:
         for i in range(columns.shape[0]):
             diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
             if self.shape == "box":  # the distance only for the pairs that pass (below)
-                keep = flatnonzero(diff.abs() <= self.delta_f32)
+                keep = flatnonzero(diff.abs() <= self.tolerance_f32)
                 query, index = query.index_select(0, keep), index.index_select(0, keep)
                 continue
             d2 = diff * diff if d2 is None else d2 + diff * diff
-            keep = flatnonzero(d2 < self.delta_sq)
+            keep = flatnonzero(d2 < self.tolerance_sq)
             query, index, d2 = (x.index_select(0, keep) for x in (query, index, d2))
         if d2 is None:
             for i in range(columns.shape[0]):
@@ -411,5 +413,5 @@ class GridIndex:
         """Whether standardised keys ``a`` and ``b`` ``[..., d]`` are within delta (this index's shape);
         ``d2`` may pass their :func:`squared_distance`."""
         if self.shape == "box":
-            return (a - b).abs().amax(-1) <= self.delta_f32
-        return (squared_distance(a, b) if d2 is None else d2) < self.delta_sq
+            return (a - b).abs().amax(-1) <= self.tolerance_f32
+        return (squared_distance(a, b) if d2 is None else d2) < self.tolerance_sq

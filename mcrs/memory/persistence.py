@@ -25,7 +25,7 @@ def memory_state(memory: Any) -> dict[str, Any]:
         "version": STATE_VERSION,
         "codec": memory.codec.identity(),
         "key_dim": memory.key_dim,
-        "delta": memory.delta,
+        "delta": memory.tolerance,  # the match tolerance, under the name the format has always used
         "capacity": memory.capacity,
         "start": memory.start,
         "size": memory.size,

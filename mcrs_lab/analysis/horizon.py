@@ -28,6 +28,7 @@ from torchrl.objectives.value.functional import reward2go
 
 from mcrs.experiment.config import ConfigError, as_typed, validate
 from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.history import current_config
 from mcrs.experiment.run.replay_store import ReplayStore
 from mcrs.experiment.training.learner import Learner
 from mcrs.experiment.training.replay import make_episode_buffer
@@ -65,7 +66,7 @@ def horizon_gaps(
 def load_run(run_dir: Path, device: str = "cpu") -> tuple[Learner, TensorDictBase, object]:
     """The run's learner (from ``checkpoints/last.pt``), its replay episodes, and its typed config."""
     saved = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
-    cfg = as_typed(OmegaConf.create(ckpt.current_config(saved)))
+    cfg = as_typed(OmegaConf.create(current_config(saved)))
     env_config = validate(cfg).replace(device=device)
     learner = Learner(cfg.algo, cfg.model, cfg.train, env_config, torch.device(device))
     path = ckpt.checkpoint_path(run_dir)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from mcrs.experiment.run.checkpoint import current_config, legacy_values
+from mcrs.experiment.run.history import current_config, legacy_values
 from mcrs.experiment.run.logging import ScalarFileError, flatten_config, scalar_file
 from mcrs.experiment.run.logging import read_scalar_rows as logged_rows
 from mcrs.experiment.run.logging import sorted_points as _sorted_points

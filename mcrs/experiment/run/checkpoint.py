@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from mcrs.env.config import with_legacy_values
+from mcrs.experiment.run.history import current_config
 from mcrs.experiment.util.untrusted import check_archive
 
 FORMAT = "mcrs-checkpoint"
@@ -261,35 +261,6 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
         for block in path.parent.glob("replay_*_*.pt"):
             block.unlink(missing_ok=True)
     return before, path.stat().st_size
-
-
-#: Algorithm fields added after runs were saved, with the value such a saved run was trained with.
-LEGACY_ALGO_VALUES = {"time_limit": "bootstrap"}
-
-
-def current_config(config: dict[str, Any]) -> dict[str, Any]:
-    """A saved config in today's layout: the env's runtime fields were once saved under ``env``, and the
-    fields it predates (``env.safety_rule``, ``algo.time_limit``) take the values it was made under
-    (:func:`legacy_values` lists them)."""
-    if not isinstance(config.get("env"), dict):
-        return config
-    env = {k: v for k, v in config["env"].items() if k not in ("num_envs", "device")}
-    env, _ = with_legacy_values(env)
-    out = {**config, "env": env}
-    if isinstance(config.get("algo"), dict):
-        out["algo"] = {**LEGACY_ALGO_VALUES, **config["algo"]}
-    return out
-
-
-def legacy_values(config: dict[str, Any]) -> list[str]:
-    """``["env.safety_rule=near", ...]``: the fields a saved config predates, as :func:`current_config`
-    sets them (empty for a config saved by this mcrs)."""
-    notes: list[str] = []
-    if isinstance(config.get("env"), dict):
-        notes += [f"env.{line}" for line in with_legacy_values(config["env"])[1]]
-    if isinstance(config.get("algo"), dict):
-        notes += [f"algo.{k}={v}" for k, v in LEGACY_ALGO_VALUES.items() if k not in config["algo"]]
-    return notes
 
 
 def refuse_pre_release(state: dict[str, Any], path: str | Path) -> dict[str, Any]:

@@ -68,7 +68,7 @@ class EpisodicMemoryCallback(Callback):
             self.embedding,
             StateCodec(env_config),
             capacity=mem.capacity,
-            delta=self.tolerance,
+            tolerance=self.tolerance,
             gamma=a.gamma,
             max_steps=env_config.max_steps,
             track_desirability=incentive.tracks_desirability,
