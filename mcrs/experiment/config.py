@@ -200,7 +200,7 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
     errors: list[str] = _type_errors(cfg)
     if errors:  # the value checks below compare values: they need the types right
         return errors, None
-    a, m, lg, t = cfg.algo, cfg.model, cfg.logger, cfg.train
+    t = cfg.train
     env_config = None
     problem = device_problem(cfg.device)  # no torch import for "cpu"; a GPU asked for is checked at once
     if problem:
@@ -214,6 +214,16 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
         )
     except (ValueError, TypeError) as error:
         errors += _env_errors(str(error))
+    errors += _algo_errors(cfg)
+    errors += _train_errors(cfg)
+    errors += _run_errors(cfg)
+    return errors, env_config
+
+
+def _algo_errors(cfg: Config) -> list[str]:
+    """The choices, then the algorithm's and its memory's fields."""
+    errors: list[str] = []
+    a, lg, t = cfg.algo, cfg.logger, cfg.train
     _choice(errors, "algo.mixer", a.mixer, Mixer)
     _choice(errors, "algo.time_limit", a.time_limit, TimeLimit)
     _choice(errors, "train.optimizer", t.optimizer, Optimizer)
@@ -229,6 +239,13 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
         if not 0.0 <= getattr(a, name) <= 1.0:
             errors.append(f"algo.{name}={getattr(a, name)}: must be in [0, 1]")
     errors += _memory_errors(cfg)
+    return errors
+
+
+def _train_errors(cfg: Config) -> list[str]:
+    """The model's size, the logging interval and the training schedule."""
+    errors: list[str] = []
+    m, lg, t = cfg.model, cfg.logger, cfg.train
     _positive(errors, "model.hidden_dim", m.hidden_dim)
     _positive(errors, "logger.log_interval", lg.log_interval)
     for name in (
@@ -268,6 +285,13 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
         errors.append(f"train.eval_seed={t.eval_seed}: must be in [0, 2**63 - 1]")
     if not 0 <= cfg.seed <= MAX_SEED:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
+    return errors
+
+
+def _run_errors(cfg: Config) -> list[str]:
+    """The run's names and labels (they name directories), the incentive threshold and the threads."""
+    errors: list[str] = []
+    a, m, lg = cfg.algo, cfg.model, cfg.logger
     _choice(errors, "model.name", m.name, ModelName)
     if not str(lg.project).strip():
         errors.append(f"logger.project={lg.project!r}: must be a non-empty name")
@@ -290,7 +314,7 @@ def _problems(cfg: Config, deep: bool = True) -> tuple[list[str], EnvConfig | No
     problem = threads_problem(cfg.threads, cpu_count())
     if problem:
         errors.append(f"threads={cfg.threads}: {problem}")
-    return errors, env_config
+    return errors
 
 
 def _memory_errors(cfg: Config) -> list[str]:

@@ -37,6 +37,45 @@ def _require(batch: TensorDictBase, key: NestedKey, origin: str) -> torch.Tensor
     return value
 
 
+def _episode_ends(
+    batch: TensorDictBase, done: torch.Tensor, whole_episodes: bool, first_episode_only: bool
+) -> torch.Tensor:
+    """``[E, T]``: whether each transition ends an episode piece, after checking that the rows are what
+    ``whole_episodes`` and ``first_episode_only`` promise (see :func:`episodes_from_rollout`)."""
+    E, T = batch.batch_size
+    ends = done.reshape(E, T, -1).any(-1)  # the transition ends an episode
+    if first_episode_only:
+        if not whole_episodes:
+            raise ValueError("first_episode_only needs whole_episodes=True (rows that start at a reset)")
+        if not bool(ends.any(-1).all()):
+            rows = (~ends.any(-1)).nonzero().flatten().tolist()
+            raise ValueError(
+                f"rows {rows[:8]} of the batch hold no done step: an episode outlasted the batch's "
+                f"{T} steps (a task's episodes must end by max_steps: TorchRL's StepCounter(max_steps))"
+            )
+        ends = ends & (ends.long().cumsum(-1) == 1)  # each row's first end only
+        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
+            raise ValueError("every row of the batch must start with a reset (step_count 0)")
+    elif whole_episodes:
+        if not bool(ends[:, -1].all()):
+            rows = (~ends[:, -1]).nonzero().flatten().tolist()
+            raise ValueError(
+                f"rows {rows[:8]} of the batch do not end with a done step: the collector cut an episode. "
+                "A recurrent agent needs whole episodes: set frames_per_batch to num_envs * max_steps for a "
+                "task of fixed episode length; with a feed-forward agent pass whole_episodes=False, which "
+                "keeps the cut piece and bootstraps from it"
+            )
+        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
+            raise ValueError(
+                "every row of the batch must start with a reset (step_count 0); with a feed-forward agent "
+                "pass whole_episodes=False"
+            )
+    else:
+        ends = ends.clone()
+        ends[:, -1] = True  # the batch's cut: done (bootstrap), never terminated
+    return ends
+
+
 def episodes_from_rollout(
     batch: TensorDictBase,
     step_keys: Sequence[NestedKey] = STEP_KEYS,
@@ -82,36 +121,7 @@ def episodes_from_rollout(
             batch, ("next", "truncated"), "the env's truncated flags (time_limit='terminal')"
         )
         terminated = terminated | truncated
-    ends = done.reshape(E, T, -1).any(-1)  # [E, T]: the transition ends an episode
-    if first_episode_only:
-        if not whole_episodes:
-            raise ValueError("first_episode_only needs whole_episodes=True (rows that start at a reset)")
-        if not bool(ends.any(-1).all()):
-            rows = (~ends.any(-1)).nonzero().flatten().tolist()
-            raise ValueError(
-                f"rows {rows[:8]} of the batch hold no done step: an episode outlasted the batch's "
-                f"{T} steps (a task's episodes must end by max_steps: TorchRL's StepCounter(max_steps))"
-            )
-        ends = ends & (ends.long().cumsum(-1) == 1)  # each row's first end only
-        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
-            raise ValueError("every row of the batch must start with a reset (step_count 0)")
-    elif whole_episodes:
-        if not bool(ends[:, -1].all()):
-            rows = (~ends[:, -1]).nonzero().flatten().tolist()
-            raise ValueError(
-                f"rows {rows[:8]} of the batch do not end with a done step: the collector cut an episode. "
-                "A recurrent agent needs whole episodes: set frames_per_batch to num_envs * max_steps for a "
-                "task of fixed episode length; with a feed-forward agent pass whole_episodes=False, which "
-                "keeps the cut piece and bootstraps from it"
-            )
-        if "step_count" in batch.keys() and bool((batch.get("step_count")[:, 0] != 0).any()):  # noqa: SIM118
-            raise ValueError(
-                "every row of the batch must start with a reset (step_count 0); with a feed-forward agent "
-                "pass whole_episodes=False"
-            )
-    else:
-        ends = ends.clone()
-        ends[:, -1] = True  # the batch's cut: done (bootstrap), never terminated
+    ends = _episode_ends(batch, done, whole_episodes, first_episode_only)  # [E, T]
 
     # Items: one per episode piece, in row-major order. starts/ends mark each piece's first/last step.
     starts = torch.zeros_like(ends)
