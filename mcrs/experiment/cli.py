@@ -11,13 +11,15 @@ the key, group or override and lists what is allowed, closest match first::
 :func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
 ``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
 Hydra does, refusing an unwritable one in one line, and remembers the directories it made, so that
-:func:`remove_refused_dirs` can take them away again when the command is refused.
+:func:`remove_refused_dirs` can take them away again when the command is refused. :class:`RunLogHandler`,
+the file handler of ``mcrs-train``'s log, claims each sweep job's folder before Hydra writes into it.
 """
 
 from __future__ import annotations
 
 import difflib
 import functools
+import logging
 import os
 import shutil
 import sys
@@ -36,6 +38,7 @@ from mcrs.experiment.rundir import (
     LOCK,
     RunDirError,
     claim_run_dir,
+    claimed,
     describe_os_error,
     fresh_problem,
     lock_holder,
@@ -247,7 +250,8 @@ def hydra_override_problem(override: Override) -> str | None:
             "anything: refused (the command's own callbacks are fixed)"
         )
     for node in ("hydra.job_logging", "hydra.hydra_logging"):
-        if _under(key, node) and key.rsplit(".", 1)[-1] not in LOGGING_KEYS:
+        group = key == node.replace(".", "/")  # hydra/job_logging=default: another set of handlers
+        if group or (_under(key, node) and key.rsplit(".", 1)[-1] not in LOGGING_KEYS):
             return (
                 f"{text}: the command's log is written in its run directory through its own handlers; "
                 f"only levels may be set ({node}.root.level=WARNING)"
@@ -425,6 +429,43 @@ class RunDirCheck(Callback):
             raise SystemExit(
                 f"{self.command}: error: cannot write the run directory {directory}: {describe_os_error(error)}"
             ) from None
+
+
+class RunLogHandler(logging.FileHandler):
+    """The file handler of ``mcrs-train``'s log (``hydra.job_logging`` in ``conf/config.yaml``): it claims
+    the run directory before it opens the log.
+
+    For each job Hydra makes the folder, then sets up the job's log, then writes ``.hydra/`` there, in the
+    process that runs the job (whatever the launcher). A single run is already claimed
+    (:class:`RunDirCheck`); a sweep's job is claimed here. A job whose folder a live process holds, or
+    that holds another run (without ``overwrite=true``), stops the sweep in one line, and nothing is
+    written into the folder. A sweep that went on would leave a hole its summary hides."""
+
+    def __init__(self, filename: str, overwrite: bool = False, **kwargs: Any) -> None:
+        run_dir = Path(filename).parent
+        if not claimed(run_dir):
+            try:
+                problem = _in_use(run_dir) or fresh_problem(run_dir, bool(overwrite))
+                if problem is None:
+                    claim_run_dir(run_dir)
+            except RunDirError as error:  # taken meanwhile, or not writable
+                problem = str(error)
+            except OSError as error:
+                problem = f"cannot read the run directory {run_dir}: {describe_os_error(error)}"
+            if problem:
+                remove_refused_dirs()
+                raise SystemExit(f"mcrs-train: error: {_sweep_job_refused(problem)}")
+        super().__init__(filename, **kwargs)
+
+
+def _sweep_job_refused(problem: str) -> str:
+    """``sweep job 3: <problem>; the sweep stops: ...`` for a sweep's job, else ``problem``."""
+    from hydra.core.hydra_config import HydraConfig
+
+    num = OmegaConf.select(HydraConfig.get(), "job.num", default=None) if HydraConfig.initialized() else None
+    if num is None:
+        return problem
+    return f"sweep job {num}: {problem}; the sweep stops: no later job was started"
 
 
 def _in_use(run_dir: Path) -> str | None:

@@ -155,6 +155,11 @@ def claim_run_dir(run_dir: str | Path) -> None:
     _CLAIMED[key] = (RunLock(run_dir), not existed)
 
 
+def claimed(run_dir: str | Path) -> bool:
+    """Whether this process claimed ``run_dir`` (:func:`claim_run_dir`) and no lock has taken it over yet."""
+    return _key(run_dir) in _CLAIMED
+
+
 def release_claims() -> None:
     """Drop the claims of a command refused before its run started; a lock file the claim created goes."""
     for key, (lock, created) in list(_CLAIMED.items()):
