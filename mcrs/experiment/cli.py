@@ -11,15 +11,14 @@ the key, group or override and lists what is allowed, closest match first::
 :func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
 ``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
 Hydra does, refusing an unwritable one in one line, and remembers the directories it made, so that
-:func:`remove_refused_dirs` can take them away again when the command is refused. :class:`RunLogHandler`,
-the file handler of ``mcrs-train``'s log, claims each sweep job's folder before Hydra writes into it.
+:func:`remove_refused_dirs` can take them away again when the command is refused. A sweep's jobs are
+claimed by the file handler of ``mcrs-train``'s log (:class:`mcrs.experiment.rundir.RunLogHandler`).
 """
 
 from __future__ import annotations
 
 import difflib
 import functools
-import logging
 import os
 import shutil
 import sys
@@ -38,10 +37,9 @@ from mcrs.experiment.rundir import (
     LOCK,
     RunDirError,
     claim_run_dir,
-    claimed,
     describe_os_error,
     fresh_problem,
-    lock_holder,
+    in_use_problem,
     release_claims,
     resume_problem,
 )
@@ -357,10 +355,12 @@ class RunDirCheck(Callback):
         problem = resume_problem(resume) if resume is not None else None
         run_dir = Path(str(config.hydra.run.dir))
         if problem is None and resume is not None:
-            problem = _in_use(Path(str(resume)).expanduser())
+            problem = in_use_problem(Path(str(resume)).expanduser())
         elif problem is None and self.fresh_run:  # before Hydra writes .hydra/ and the log into a run
             overwrite = bool(OmegaConf.select(config, "overwrite", default=False))
-            problem = _in_use(run_dir) or fresh_problem(run_dir, overwrite) or self._invalid(config, run_dir)
+            problem = (
+                in_use_problem(run_dir) or fresh_problem(run_dir, overwrite) or self._invalid(config, run_dir)
+            )
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
         self._make(run_dir)
@@ -429,54 +429,6 @@ class RunDirCheck(Callback):
             raise SystemExit(
                 f"{self.command}: error: cannot write the run directory {directory}: {describe_os_error(error)}"
             ) from None
-
-
-class RunLogHandler(logging.FileHandler):
-    """The file handler of ``mcrs-train``'s log (``hydra.job_logging`` in ``conf/config.yaml``): it claims
-    the run directory before it opens the log.
-
-    For each job Hydra makes the folder, then sets up the job's log, then writes ``.hydra/`` there, in the
-    process that runs the job (whatever the launcher). A single run is already claimed
-    (:class:`RunDirCheck`); a sweep's job is claimed here. A job whose folder a live process holds, or
-    that holds another run (without ``overwrite=true``), stops the sweep in one line, and nothing is
-    written into the folder. A sweep that went on would leave a hole its summary hides."""
-
-    def __init__(self, filename: str, overwrite: bool = False, **kwargs: Any) -> None:
-        run_dir = Path(filename).parent
-        if not claimed(run_dir):
-            try:
-                problem = _in_use(run_dir) or fresh_problem(run_dir, bool(overwrite))
-                if problem is None:
-                    claim_run_dir(run_dir)
-            except RunDirError as error:  # taken meanwhile, or not writable
-                problem = str(error)
-            except OSError as error:
-                problem = f"cannot read the run directory {run_dir}: {describe_os_error(error)}"
-            if problem:
-                remove_refused_dirs()
-                raise SystemExit(f"mcrs-train: error: {_sweep_job_refused(problem)}")
-        super().__init__(filename, **kwargs)
-
-
-def _sweep_job_refused(problem: str) -> str:
-    """``sweep job 3: <problem>; the sweep stops: ...`` for a sweep's job, else ``problem``."""
-    from hydra.core.hydra_config import HydraConfig
-
-    num = OmegaConf.select(HydraConfig.get(), "job.num", default=None) if HydraConfig.initialized() else None
-    if num is None:
-        return problem
-    return f"sweep job {num}: {problem}; the sweep stops: no later job was started"
-
-
-def _in_use(run_dir: Path) -> str | None:
-    """The refusal :class:`mcrs.experiment.rundir.RunLock` would give, said before anything is written."""
-    holder = lock_holder(run_dir)
-    if holder is None:
-        return None
-    return (
-        f"run directory {run_dir} is in use by {holder}: one process writes a run; "
-        "wait for it to end (then resume=), or choose another directory"
-    )
 
 
 def make_run_dir(directory: Path) -> None:
