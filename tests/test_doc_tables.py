@@ -3,12 +3,13 @@ committed records, checked and rewritten in place; docs/RESULTS.md itself agrees
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
 import pytest
 
-from mcrs_lab.analysis.doc_tables import DocTableError, check, find_blocks, main, update
+from mcrs_lab.analysis.doc_tables import DocTableError, _root, check, default_docs, find_blocks, main, update
 
 RECORDS = Path(
     "results/records/near/heuristics/map20"
@@ -115,9 +116,37 @@ def test_a_generated_figure_is_drawn_from_the_records_and_checked(tmp_path: Path
 def test_results_md_agrees_with_the_committed_records() -> None:
     """The issue's proof: every generated table of docs/RESULTS.md is what mcrs-report makes of the
     committed records alone (no run directories)."""
-    doc = Path("docs/RESULTS.md")
-    assert len(find_blocks(doc.read_text())) >= 7
-    assert check(doc) == []
+    docs = default_docs()
+    assert docs[0] == Path("docs/RESULTS.md") and len(docs) >= 6  # the answer sheet and its notebooks
+    assert len(find_blocks(docs[0].read_text())) >= 5
+    for doc in docs:
+        assert check(doc) == [], doc
+
+
+def test_a_notebook_runs_its_commands_from_the_repository_root(tmp_path: Path, capsys) -> None:
+    """A notebook under results/notebooks/ names records from the repository root, as docs/ does; with no
+    document named, mcrs-results checks the answer sheet and every notebook."""
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "RESULTS.md").write_text("no tables\n")
+    notebooks = tmp_path / "results" / "notebooks"
+    notebooks.mkdir(parents=True)
+    (notebooks / "b.md").write_text("| a | b |\n|---|---|\n| 1 | 2 |\n")  # a table not made from records
+    (notebooks / "a.md").write_text("prose only\n")
+    before = Path.cwd()
+    os.chdir(tmp_path)
+    try:
+        assert default_docs() == [
+            Path("docs/RESULTS.md"),
+            notebooks.relative_to(tmp_path) / "a.md",
+            notebooks.relative_to(tmp_path) / "b.md",
+        ]
+        assert main(["check"]) == 1
+    finally:
+        os.chdir(before)
+    out = capsys.readouterr().out
+    assert "docs/RESULTS.md: all 0 generated tables and figures agree" in out
+    assert "results/notebooks/b.md: 1 tables or figures are not generated from the records" in out
+    assert _root(notebooks / "b.md") == tmp_path.resolve()
 
 
 def test_a_missing_document_is_one_line(tmp_path: Path) -> None:

@@ -127,6 +127,8 @@ HYDRA_FILES_AND_LOGS = [
      "the command's log is written in its run directory"),
     ("hydra.job.name=../../../job", "job.log", "the job's name names its log file in the run directory"),
     ("~hydra.callbacks.run_dir_check", None, "adds, changes or removes a Hydra callback"),
+    # another set of handlers: the log would open, and Hydra write .hydra/, before a sweep's job is claimed
+    ("hydra/job_logging=default", None, "the command's log is written in its run directory"),
 ]  # fmt: skip
 #: Overrides refused on the command line before Hydra starts: the callback and the cases above.
 COMMAND_LINE_REFUSALS = 1 + len(HYDRA_FILES_AND_LOGS)
@@ -135,7 +137,7 @@ COMMAND_LINE_REFUSALS = 1 + len(HYDRA_FILES_AND_LOGS)
 @pytest.mark.parametrize(
     ("override", "outside", "expected"),
     HYDRA_FILES_AND_LOGS,
-    ids=["output_subdir", "log_file", "job_name", "remove_check"],
+    ids=["output_subdir", "log_file", "job_name", "remove_check", "log_handlers"],
 )
 def test_hydras_files_and_logs_stay_in_the_run_directory(
     override: str, outside: str | None, expected: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -558,6 +560,72 @@ def test_a_second_command_into_a_starting_run_is_refused_before_it_writes(
         "vdn" not in (run_dir / "train.log").read_text()
         and "in use" not in (run_dir / "train.log").read_text()
     )
+
+
+def _held(lock: Path):
+    """Another process holding ``lock`` as a live run holds its run's: an exclusive ``flock``, its PID in it."""
+    import subprocess
+
+    code = (
+        "import fcntl, os, socket, sys, time\n"
+        "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT, 0o644)\n"
+        "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+        "os.pwrite(fd, f'{os.getpid()} {socket.gethostname()}\\n'.encode(), 0)\n"
+        "print('held', flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    holder = subprocess.Popen([sys.executable, "-c", code, str(lock)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+    return holder
+
+
+def _files(directory: Path) -> dict[str, bytes | None]:
+    """Every file and folder under ``directory`` (hidden ones too), with a file's bytes."""
+    return {
+        p.relative_to(directory).as_posix(): p.read_bytes() if p.is_file() else None
+        for p in sorted(directory.rglob("*"))
+    }
+
+
+@pytest.mark.parametrize("other", ["live", "finished"])
+def test_a_sweep_job_is_refused_before_hydra_writes_into_its_folder(
+    other: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``mcrs-train -m``: Hydra makes each job's folder and writes its ``.hydra/`` and ``train.log`` before
+    the trainer runs, so a job whose folder held a live run (a concurrent sweep's job, a single run)
+    overwrote that run's ``.hydra/config.yaml`` and logged its refusal into the run's ``train.log``, and a
+    job whose folder held a finished run rewrote its ``.hydra/``. Now each job claims its folder first:
+    the sweep stops at that job in one line naming what holds the folder, and every file there is as it
+    was."""
+    from tests.train_helpers import TINY
+
+    sweep = tmp_path / "sweep"
+    job = sweep / "0_map10_qmix_seed0"  # the first job's folder (hydra.sweep.subdir)
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "config.yaml").write_text("algo:\n  name: vdn\nseed: 1\n")
+    (job / "train.log").write_text("[2026-01-01 00:00:00][mcrs.run][INFO] the other run\n")
+    if other == "finished":
+        (job / "config.yaml").write_text("algo:\n  name: vdn\nseed: 1\n")
+        (job / "checkpoints").mkdir()
+        (job / "checkpoints" / "last.pt").write_bytes(b"the other run's checkpoint")
+    holder = _held(job / ".mcrs.lock") if other == "live" else None
+    before = _files(job)
+    try:
+        message = _refused(monkeypatch, tmp_path, "mcrs.train", "-m", f"hydra.sweep.dir={sweep}", "algo=qmix",
+                           "seed=0,1", *TINY)  # fmt: skip
+        assert _files(job) == before  # the lock file too: its holder's PID
+    finally:
+        if holder is not None:
+            holder.kill()
+            holder.wait()
+    held = (
+        f"run directory {job} is in use by process {holder.pid}"
+        if holder
+        else f"run directory {job} is not empty"
+    )
+    assert message.startswith("mcrs-train: error: sweep job 0: ") and held in message, message
+    assert message.endswith("; the sweep stops: no later job was started"), message
+    assert sorted(p.name for p in sweep.iterdir() if not p.name.startswith((".", "multirun"))) == [job.name]
 
 
 # ------------------------------------------------------------------------ values, names and full disks

@@ -4,6 +4,8 @@
     mcrs-results update           # rewrite those tables in place, and the figures' image files
     mcrs-results check docs/OTHER.md
 
+With no document named, both act on docs/RESULTS.md and every notebook under results/notebooks/.
+
 A generated table sits between two HTML comments (invisible on GitHub), the first naming the table file
 and the ``mcrs-report`` command that writes it::
 
@@ -19,7 +21,7 @@ to the document) is what the command draws::
     <!-- end figure -->
 
 Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
-the document's ``docs/``), so the paths are the committed records'. A table or image outside these
+the document's ``docs/`` or ``results/notebooks/``), so the paths are the committed records'. A table or image outside these
 blocks is not made from the records: ``check`` names its line and fails (``update`` leaves it alone).
 """
 
@@ -116,9 +118,14 @@ def find_blocks(text: str) -> list[Block]:
 
 
 def _root(doc: Path) -> Path:
-    """The folder the commands run in: the repository root for a document under ``docs/``."""
+    """The folder the commands run in: the repository root for a document under ``docs/`` or
+    ``results/notebooks/``, else the document's own folder."""
     folder = doc.resolve().parent
-    return folder.parent if folder.name == "docs" else folder
+    if folder.name == "docs":
+        return folder.parent
+    if folder.name == "notebooks" and folder.parent.name == "results":
+        return folder.parent.parent
+    return folder
 
 
 @contextlib.contextmanager
@@ -241,40 +248,59 @@ def update(doc: Path) -> int:
     return changed
 
 
+#: The documents ``mcrs-results`` checks when none is named: the answer sheet and the notebooks that keep
+#: the campaigns' histories.
+DEFAULT_DOCS = (Path("docs/RESULTS.md"), Path("results/notebooks"))
+
+
+def default_docs() -> list[Path]:
+    """docs/RESULTS.md and every notebook under results/notebooks/, in name order."""
+    answer, notebooks = DEFAULT_DOCS
+    return [answer, *sorted(notebooks.glob("*.md"))]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="mcrs-results",
-        description="Check or rewrite the generated tables of a results document from the committed records.",
+        description="Check or rewrite the generated tables of results documents from the committed records.",
     )
     parser.add_argument("action", choices=["check", "update"])
     parser.add_argument(
-        "doc", nargs="?", type=Path, default=Path("docs/RESULTS.md"), help="default: docs/RESULTS.md"
+        "docs",
+        nargs="*",
+        type=Path,
+        help="default: docs/RESULTS.md and results/notebooks/*.md",
     )
     args = parser.parse_args(argv)
+    status = 0
+    for doc in args.docs or default_docs():
+        status = max(status, _run(args.action, doc))
+    return status
+
+
+def _run(action: str, doc: Path) -> int:
+    """``action`` on one document; 0 when it agrees with the records (or was rewritten), else 1."""
     try:
-        text = args.doc.read_text()
+        text = doc.read_text()
         n, hand = len(find_blocks(text)), len(hand_made(text))
-        if args.action == "update":
-            print(f"{args.doc}: {update(args.doc)} of {n} generated tables and figures rewritten")
+        if action == "update":
+            print(f"{doc}: {update(doc)} of {n} generated tables and figures rewritten")
             return 0
-        diffs = check(args.doc)
+        diffs = check(doc)
     except ChangedSinceRead as error:
         raise SystemExit(f"mcrs-results: error: {error}") from None
     except (DocTableError, OSError, UnicodeDecodeError) as error:
-        raise SystemExit(f"mcrs-results: error: {args.doc}: {error}") from None
+        raise SystemExit(f"mcrs-results: error: {doc}: {error}") from None
     if diffs:
         print("\n".join(diffs))
         if len(diffs) > hand:
             print(
-                f"{args.doc}: {len(diffs) - hand} of {n} generated tables and figures differ from the records "
-                "(mcrs-results update)"
+                f"{doc}: {len(diffs) - hand} of {n} generated tables and figures differ from the records (mcrs-results update)"
             )
         if hand:
-            print(
-                f"{args.doc}: {hand} tables or figures are not generated from the records (make them blocks)"
-            )
+            print(f"{doc}: {hand} tables or figures are not generated from the records (make them blocks)")
         return 1
-    print(f"{args.doc}: all {n} generated tables and figures agree with the records")
+    print(f"{doc}: all {n} generated tables and figures agree with the records")
     return 0
 
 

@@ -12,6 +12,7 @@ from mcrs_lab.analysis.evaluations import heuristic_references, heuristic_rows
 from mcrs_lab.analysis.report_document import Report
 from mcrs_lab.analysis.runs import Skipped, TrainingRun, default_labels, label_fields, run_labels
 from mcrs_lab.analysis.step_notation import format_steps, step_labels
+from mcrs_lab.analysis.sweep_figure import SWEPT_SETTINGS, plot_sweep, sweep_points, sweep_table
 from mcrs_lab.analysis.table4 import PAPER_TABLE4_ENV, Table4Row, table4
 from mcrs_lab.analysis.versus import Versus, versus, versus_table
 
@@ -114,6 +115,7 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         versus(finals, order, runs.evaluations, comm_range, budget),
         "Learners against the heuristics (last tenth of the budget, Welch p < 0.05)",
     )
+    _report_sweeps(report, groups, panels["episode reward"], budget)
     q_tot = aggregate(groups, Q_TOT, [])
     if report.claims:
         by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
@@ -132,6 +134,25 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         )
         report.add("Mean Q_tot (figure 8b)", f"![Q_tot]({png.name})")
     return panels
+
+
+def _report_sweeps(
+    report: Report, groups: dict[str, list[TrainingRun]], curves: dict[str, Curve], budget: int
+) -> None:
+    """<symbol>.png|md (figures 10 and 11), for each swept setting with two values or more of one algorithm."""
+    for setting, symbol in SWEPT_SETTINGS.items():
+        points = sweep_points(groups, curves, budget, setting)
+        if not points:
+            continue
+        md = sweep_table(points, symbol)
+        (report.out / f"{symbol}.md").write_text(md + "\n")
+        png = plot_sweep(
+            points,
+            symbol,
+            report.out / f"{symbol}.png",
+            f"{report.env_name}: episode reward against {symbol}",
+        )
+        report.add(f"Episode reward against {symbol}", f"![{symbol}]({png.name})\n\n{md}")
 
 
 def report_versus(report: Report, results: list[Versus], title: str) -> None:

@@ -8,7 +8,8 @@ composition error into one line that names the key, group or override and lists 
 :func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
 ``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
 Hydra does, refusing an unwritable one in one line, and remembers the directories it made, so that
-:func:`remove_refused_dirs` can take them away again when the command is refused.
+:func:`remove_refused_dirs` can take them away again when the command is refused. A sweep's jobs are
+claimed by the file handler of ``mcrs-train``'s log (:class:`mcrs.experiment.run.rundir.RunLogHandler`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from mcrs.experiment.run.rundir import (
     claim_run_dir,
     describe_os_error,
     fresh_problem,
-    lock_holder,
+    in_use_problem,
     release_claims,
     resume_problem,
 )
@@ -136,7 +137,8 @@ def hydra_override_problem(override: Override) -> str | None:
             "anything: refused (the command's own callbacks are fixed)"
         )
     for node in ("hydra.job_logging", "hydra.hydra_logging"):
-        if _under(key, node) and key.rsplit(".", 1)[-1] not in LOGGING_KEYS:
+        group = key == node.replace(".", "/")  # hydra/job_logging=default: another set of handlers
+        if group or (_under(key, node) and key.rsplit(".", 1)[-1] not in LOGGING_KEYS):
             return (
                 f"{text}: the command's log is written in its run directory through its own handlers; "
                 f"only levels may be set ({node}.root.level=WARNING)"
@@ -242,10 +244,12 @@ class RunDirCheck(Callback):
         problem = resume_problem(resume) if resume is not None else None
         run_dir = Path(str(config.hydra.run.dir))
         if problem is None and resume is not None:
-            problem = _in_use(Path(str(resume)).expanduser())
+            problem = in_use_problem(Path(str(resume)).expanduser())
         elif problem is None and self.fresh_run:  # before Hydra writes .hydra/ and the log into a run
             overwrite = bool(OmegaConf.select(config, "overwrite", default=False))
-            problem = _in_use(run_dir) or fresh_problem(run_dir, overwrite) or self._invalid(config, run_dir)
+            problem = (
+                in_use_problem(run_dir) or fresh_problem(run_dir, overwrite) or self._invalid(config, run_dir)
+            )
         if problem:  # the run directory would be the one named: refused before anything is made
             raise SystemExit(f"{self.command}: error: {problem}")
         self._make(run_dir)
@@ -314,17 +318,6 @@ class RunDirCheck(Callback):
             raise SystemExit(
                 f"{self.command}: error: cannot write the run directory {directory}: {describe_os_error(error)}"
             ) from None
-
-
-def _in_use(run_dir: Path) -> str | None:
-    """The refusal :class:`mcrs.experiment.run.rundir.RunLock` would give, said before anything is written."""
-    holder = lock_holder(run_dir)
-    if holder is None:
-        return None
-    return (
-        f"run directory {run_dir} is in use by {holder}: one process writes a run; "
-        "wait for it to end (then resume=), or choose another directory"
-    )
 
 
 def make_run_dir(directory: Path) -> None:

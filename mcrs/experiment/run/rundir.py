@@ -7,6 +7,8 @@
 - :class:`RunLock` is an exclusive ``flock`` on ``<run>/.mcrs.lock``, held by the process that writes the
   run; the kernel drops it when that process dies (even by SIGKILL), so a crashed run can be resumed at
   once, while a second writer or a resume of a live run is refused, naming the holder's PID.
+- :class:`RunLogHandler`, the file handler of ``mcrs-train``'s log, claims a sweep job's directory before
+  Hydra writes into it (a single run is claimed earlier, by :class:`mcrs.experiment.commands.cli.RunDirCheck`).
 - :func:`prepare_fresh` refuses a non-empty directory unless ``overwrite=true``, and then clears only what
   a run writes.
 - :func:`truncate_csv_logs` drops the CSV rows written after the checkpoint a run resumes from.
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import logging
 import os
 import shutil
 import socket
@@ -155,6 +158,11 @@ def claim_run_dir(run_dir: str | Path) -> None:
     _CLAIMED[key] = (RunLock(run_dir), not existed)
 
 
+def claimed(run_dir: str | Path) -> bool:
+    """Whether this process claimed ``run_dir`` (:func:`claim_run_dir`) and no lock has taken it over yet."""
+    return _key(run_dir) in _CLAIMED
+
+
 def release_claims() -> None:
     """Drop the claims of a command refused before its run started; a lock file the claim created goes."""
     for key, (lock, created) in list(_CLAIMED.items()):
@@ -225,6 +233,55 @@ def lock_holder(run_dir: str | Path) -> str | None:
     finally:
         os.close(fd)  # closing drops a lock taken here
     return None
+
+
+def in_use_problem(run_dir: Path) -> str | None:
+    """The refusal :class:`RunLock` would give, said before anything is written."""
+    holder = lock_holder(run_dir)
+    if holder is None:
+        return None
+    return (
+        f"run directory {run_dir} is in use by {holder}: one process writes a run; "
+        "wait for it to end (then resume=), or choose another directory"
+    )
+
+
+class RunLogHandler(logging.FileHandler):
+    """The file handler of ``mcrs-train``'s log (``hydra.job_logging`` in ``conf/config.yaml``): it claims
+    the run directory before it opens the log.
+
+    For each job Hydra makes the folder, then sets up the job's log, then writes ``.hydra/`` there, in the
+    process that runs the job (whatever the launcher). A single run is already claimed; a sweep's job is
+    claimed here. A job whose folder a live process holds, or that holds another run (without
+    ``overwrite=true``), stops the sweep in one line, and nothing is written into the folder. A sweep that
+    went on would leave a hole its summary hides."""
+
+    def __init__(self, filename: str, overwrite: bool = False, **kwargs: Any) -> None:
+        run_dir = Path(filename).parent
+        if not claimed(run_dir):
+            try:
+                problem = in_use_problem(run_dir) or fresh_problem(run_dir, bool(overwrite))
+                if problem is None:
+                    claim_run_dir(run_dir)
+            except RunDirError as error:  # taken meanwhile, or not writable
+                problem = str(error)
+            except OSError as error:
+                problem = f"cannot read the run directory {run_dir}: {describe_os_error(error)}"
+            if problem:
+                release_claims()
+                raise SystemExit(f"mcrs-train: error: {_sweep_job_refused(problem)}")
+        super().__init__(filename, **kwargs)
+
+
+def _sweep_job_refused(problem: str) -> str:
+    """``sweep job 3: <problem>; the sweep stops: ...`` for a sweep's job, else ``problem``."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    num = OmegaConf.select(HydraConfig.get(), "job.num", default=None) if HydraConfig.initialized() else None
+    if num is None:
+        return problem
+    return f"sweep job {num}: {problem}; the sweep stops: no later job was started"
 
 
 def _fresh_entries(run_dir: Path) -> list[str]:
