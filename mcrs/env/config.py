@@ -244,6 +244,18 @@ MAX_DISTANCE = 1e9
 
 def validation_errors(cfg: EnvConfig) -> list[str]:
     """All problems of a config, one message each naming the field, the value and what is allowed."""
+    errors = _number_errors(cfg) + _choice_errors(cfg)
+    errors += _variant_errors(cfg)
+    problem = device_problem(cfg.device)
+    if problem:
+        errors.append(f"device={cfg.device!r}: {problem}")
+    if not errors:  # the sizes are sane: do the map's cells hold the team, the targets and the zones?
+        errors += _layout_errors(cfg)
+    return errors
+
+
+def _number_errors(cfg: EnvConfig) -> list[str]:
+    """Sizes, probabilities, distances and reward weights."""
     errors: list[str] = []
     for name in ("width", "height", "n_uavs", "max_steps", "num_envs"):
         value = getattr(cfg, name)
@@ -280,6 +292,12 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
         value = getattr(cfg, name)
         if not _is_number(value) or not math.isfinite(value):
             errors.append(f"{name}={value!r}: must be a finite number")
+    return errors
+
+
+def _choice_errors(cfg: EnvConfig) -> list[str]:
+    """The choices among named rules, the flags and the far view."""
+    errors: list[str] = []
     rounds = cfg.comm_rounds
     if not (rounds == "flood" or (_is_int(rounds) and rounds >= 1)):
         errors.append(f"comm_rounds={rounds!r}: must be an integer >= 1 or 'flood'")
@@ -326,26 +344,27 @@ def validation_errors(cfg: EnvConfig) -> list[str]:
             f"far_view={far}: must be <= max(width, height) = {max(cfg.width, cfg.height)} "
             "(a larger window holds no more of the map)"
         )
-    errors += _variant_errors(cfg)
-    problem = device_problem(cfg.device)
-    if problem:
-        errors.append(f"device={cfg.device!r}: {problem}")
-    if not errors:
-        cells = cfg.width * cfg.height
-        if cells < 2:  # every one of the 8 moves leaves the grid: no action is allowed
-            errors.append(
-                f"width={cfg.width}, height={cfg.height}: a 1x1 map leaves a UAV no move: at least 2 cells"
-            )
-        if cfg.n_targets + cfg.n_no_fly > cells:
-            errors.append(
-                f"n_targets + n_no_fly = {cfg.n_targets} + {cfg.n_no_fly} > {cells} cells: "
-                "targets and no-fly zones need distinct cells"
-            )
-        if cfg.n_uavs > cells - cfg.n_no_fly:
-            errors.append(
-                f"n_uavs={cfg.n_uavs} > {cells - cfg.n_no_fly} free cells (cells - n_no_fly): "
-                "UAVs start on distinct cells outside no-fly zones"
-            )
+    return errors
+
+
+def _layout_errors(cfg: EnvConfig) -> list[str]:
+    """Whether the map's cells hold the UAVs, targets and no-fly zones (the sizes are valid)."""
+    errors: list[str] = []
+    cells = cfg.width * cfg.height
+    if cells < 2:  # every one of the 8 moves leaves the grid: no action is allowed
+        errors.append(
+            f"width={cfg.width}, height={cfg.height}: a 1x1 map leaves a UAV no move: at least 2 cells"
+        )
+    if cfg.n_targets + cfg.n_no_fly > cells:
+        errors.append(
+            f"n_targets + n_no_fly = {cfg.n_targets} + {cfg.n_no_fly} > {cells} cells: "
+            "targets and no-fly zones need distinct cells"
+        )
+    if cfg.n_uavs > cells - cfg.n_no_fly:
+        errors.append(
+            f"n_uavs={cfg.n_uavs} > {cells - cfg.n_no_fly} free cells (cells - n_no_fly): "
+            "UAVs start on distinct cells outside no-fly zones"
+        )
     return errors
 
 

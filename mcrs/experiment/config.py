@@ -9,9 +9,10 @@ unknown keys, wrong types and unknown choices while composing (``algo.lrr=1``, `
 per problem naming the field, the value and what is allowed. The scenario's rules are
 :class:`mcrs.env.EnvConfig`'s own.
 
-The schemas are in :mod:`mcrs.experiment.schema` and re-exported here, where users import them: the checks
-need the runtime modules (threads, resources, the embedding), which need the schemas, so the schemas cannot
-live in this module without an import cycle.
+The schemas are in :mod:`mcrs.experiment.schema` and re-exported here, where users import them. These
+checks read values only and import nothing of the training loop; whether the run's parts fit the map and
+the machine is checked where the :class:`~mcrs.experiment.training.trainer.Experiment` builds them
+(:func:`~mcrs.experiment.training.resources.check_buildable`).
 
     config = compose("algo=qmix", "env=map20", "seed=3")     # a typed Config, as mcrs-train composes it
     Experiment(config, "outputs/my_run").run()

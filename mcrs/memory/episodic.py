@@ -300,27 +300,8 @@ class EpisodicMemory:
 
         ``T`` may be ``max_steps + 1``: the terminal state s_T is stored too, with a reward of 0 after it
         (so H(s_T) = 0, as EMC stores it) and the last transition has a memory to look up."""
-        D, cells = self.codec.state_dim, self.codec.n_cells
-        if state.dim() != 3 or state.shape[2] != D:
-            raise ValueError(f"state must have shape [E, T, {D}], got {tuple(state.shape)}")
-        E, T = state.shape[:2]
-        if counts.shape != (E, T, cells, 2):
-            raise ValueError(f"counts must have shape {[E, T, cells, 2]}, got {tuple(counts.shape)}")
-        if reward.shape != (E, T):
-            raise ValueError(f"reward must have shape {[E, T]}, got {tuple(reward.shape)}")
-        if self.max_steps + 1 < T:
-            raise ValueError(
-                f"episodes have {T} states, more than max_steps + 1 = {self.max_steps + 1} (s_0 .. s_T)"
-            )
-        n = E * T
-        if n > self.capacity:
-            raise ValueError(
-                f"a batch of {n} transitions does not fit capacity={self.capacity}: insert fewer"
-            )
-        if self.track_desirability and (desirable is None or desirable.shape != (E,)):
-            raise ValueError(f"desirable must be a bool tensor of shape [{E}] with track_desirability")
-        if episode is not None and episode.shape != (E,):
-            raise ValueError(f"episode must be an int tensor of shape [{E}], got {tuple(episode.shape)}")
+        E, T = self._check_batch(state, counts, reward, desirable, episode)
+        D, cells, n = self.codec.state_dim, self.codec.n_cells, E * T
         if n == 0:
             return InsertStats(0, 0, 0, 0, 0)
         dev, C = self.device, self.capacity
@@ -385,6 +366,38 @@ class EpisodicMemory:
             shifted=outcome.shifts,
             evicted=evicted,
         )
+
+    def _check_batch(
+        self,
+        state: torch.Tensor,
+        counts: torch.Tensor,
+        reward: torch.Tensor,
+        desirable: torch.Tensor | None,
+        episode: torch.Tensor | None,
+    ) -> tuple[int, int]:
+        """The batch's ``(E, T)``, after checking the shapes :meth:`insert` needs and that it fits."""
+        D, cells = self.codec.state_dim, self.codec.n_cells
+        if state.dim() != 3 or state.shape[2] != D:
+            raise ValueError(f"state must have shape [E, T, {D}], got {tuple(state.shape)}")
+        E, T = state.shape[:2]
+        if counts.shape != (E, T, cells, 2):
+            raise ValueError(f"counts must have shape {[E, T, cells, 2]}, got {tuple(counts.shape)}")
+        if reward.shape != (E, T):
+            raise ValueError(f"reward must have shape {[E, T]}, got {tuple(reward.shape)}")
+        if self.max_steps + 1 < T:
+            raise ValueError(
+                f"episodes have {T} states, more than max_steps + 1 = {self.max_steps + 1} (s_0 .. s_T)"
+            )
+        n = E * T
+        if n > self.capacity:
+            raise ValueError(
+                f"a batch of {n} transitions does not fit capacity={self.capacity}: insert fewer"
+            )
+        if self.track_desirability and (desirable is None or desirable.shape != (E,)):
+            raise ValueError(f"desirable must be a bool tensor of shape [{E}] with track_desirability")
+        if episode is not None and episode.shape != (E,):
+            raise ValueError(f"episode must be an int tensor of shape [{E}], got {tuple(episode.shape)}")
+        return E, T
 
     def _evict(self, count: int) -> int:
         """Drop the ``count`` oldest entries."""
