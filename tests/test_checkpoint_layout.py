@@ -103,3 +103,16 @@ def test_a_saved_config_loses_the_env_runtime_fields_only() -> None:
     }
     assert history.current_config(saved) == {"env": {"name": "map10", "width": 10, **old}, "seed": 3}
     assert history.current_config({"seed": 3}) == {"seed": 3}
+
+
+def test_fingerprints_name_classes_by_their_names_before_the_rooms() -> None:
+    """Checkpoints written before mcrs/experiment/ had rooms name mcrs.experiment.algorithms.Algorithm; a
+    fingerprint still does, so they resume (run/history.py). Classes elsewhere keep their own module."""
+    from mcrs.experiment.run.history import class_path
+    from mcrs.experiment.training.algorithms import Algorithm
+    from mcrs.experiment.training.task import MCRSTask
+    from mcrs.tasks import MatrixGameTask
+
+    assert class_path(Algorithm) == "mcrs.experiment.algorithms.Algorithm"
+    assert class_path(MCRSTask) == "mcrs.experiment.task.MCRSTask"
+    assert class_path(MatrixGameTask) == "mcrs.tasks.matrix_game.MatrixGameTask"
