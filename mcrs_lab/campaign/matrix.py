@@ -68,6 +68,10 @@ def _option(group: str, value: Any, where: str) -> str:
     return name
 
 
+#: A config group's option as a campaign file names it (an evaluation's ``algo`` too).
+figure_option = _option
+
+
 def _seed(value: Any, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
         raise MatrixError(f"{where}: seeds: {value!r} is not a whole number in [0, 2**63 - 1]")
