@@ -2,7 +2,8 @@
 
 Two sources, both reported when present:
 - ``mcrs-eval`` results at several ``env.comm_range`` (a heuristic, or a trained agent evaluated at
-  every range): mean over the evaluation seeds of each seed's mean over episodes;
+  every range): mean over the seeds of each seed's mean over episodes, a trained agent's seeds being
+  its training runs (each the mean of its evaluation seeds), a heuristic's its evaluation seeds;
 - ``mcrs-train`` runs that differ in ``env.comm_range`` (``experiment=comm_range``): the final
   greedy evaluation, mean over training seeds.
 """
@@ -35,15 +36,23 @@ class RangeCurve:
 
 
 def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
-    """Per policy label, each metric against R_c, averaged over evaluation seeds."""
-    grouped: dict[str, dict[float, list[EvaluationRow]]] = {}
+    """Per policy label, each metric against R_c. A trained policy's seeds are its training runs, each
+    counted by its mean over its evaluation seeds; a heuristic's are the evaluation seeds."""
+    grouped: dict[str, dict[float, dict[str, list[EvaluationRow]]]] = {}
     for row in rows:
-        grouped.setdefault(row.label or policy_label(row.policy), {}).setdefault(row.comm_range, []).append(
-            row
-        )
+        unit = str(row.seed) if row.is_heuristic else (row.run or row.policy)
+        by_range = grouped.setdefault(row.label or policy_label(row.policy), {})
+        by_range.setdefault(row.comm_range, {}).setdefault(unit, []).append(row)
     return {
-        label: _curve(label, by_range, lambda r, m: r.means.get(m)) for label, by_range in grouped.items()
+        label: _curve(label, {rc: list(units.values()) for rc, units in by_range.items()}, _unit_mean)
+        for label, by_range in grouped.items()
     }
+
+
+def _unit_mean(unit: list[EvaluationRow], metric: str) -> float | None:
+    """One seed's value: the mean of its evaluations (a training run evaluated on several seeds)."""
+    values = [v for row in unit if (v := row.means.get(metric)) is not None]
+    return float(np.mean(values)) if values else None
 
 
 def _curve(label: str, by_range: dict, value_of) -> RangeCurve:
