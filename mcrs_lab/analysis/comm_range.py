@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.env.metrics import METRIC_LABELS
-from mcrs.viz.learning_curves import confidence_half_width
 from mcrs_lab.analysis.policy_identity import policy_label
 from mcrs_lab.analysis.runs import EvaluationRow
 
@@ -26,12 +25,13 @@ RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncert
 
 @dataclass(frozen=True)
 class RangeCurve:
-    """A policy's metrics against R_c: ``mean[metric][k]`` at ``ranges[k]`` over ``seeds[k]`` seeds."""
+    """A policy's metrics against R_c: ``mean[metric][k]`` and ``std[metric][k]`` (the spread over seeds,
+    sample std; 0 for one seed) at ``ranges[k]`` over ``seeds[k]`` seeds."""
 
     label: str
     ranges: np.ndarray
     mean: dict[str, np.ndarray]
-    half_width: dict[str, np.ndarray]
+    std: dict[str, np.ndarray]
     seeds: np.ndarray
 
 
@@ -63,7 +63,7 @@ def _curve(label: str, by_range: dict, value_of) -> RangeCurve:
         for r in ranges:
             values = np.array([v for x in by_range[r] if (v := value_of(x, metric)) is not None])
             m.append(values.mean() if len(values) else np.nan)
-            h.append(confidence_half_width(values[:, None])[0] if len(values) > 1 else 0.0)
+            h.append(values.std(ddof=1) if len(values) > 1 else 0.0)
         mean[metric], half[metric] = np.array(m), np.array(h)
     seeds = np.array([len(by_range[r]) for r in ranges])
     return RangeCurve(label, ranges, mean, half, seeds)
@@ -90,13 +90,13 @@ def plot_range_curves(curves: dict[str, RangeCurve], path: Path, title: str) -> 
         for k, (label, c) in enumerate(sorted(curves.items())):
             colour = plt.cm.tab10(k % 10)
             ax.plot(c.ranges, c.mean[metric], "o-", color=colour, label=label, ms=3)
-            lo, hi = c.mean[metric] - c.half_width[metric], c.mean[metric] + c.half_width[metric]
+            lo, hi = c.mean[metric] - c.std[metric], c.mean[metric] + c.std[metric]
             ax.fill_between(c.ranges, lo, hi, color=colour, alpha=0.2)
         ax.set_xlabel("communication range R_c (cells)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(title + "  (mean over seeds, 95 % confidence band)", fontsize=10)
+    fig.suptitle(title + "  (mean over seeds, band: ± std over seeds)", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)

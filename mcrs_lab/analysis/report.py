@@ -108,6 +108,7 @@ def report_comm_range(report: Report) -> bool:
         for k, rc in enumerate(c.ranges):
             row = {"policy": label, "comm_range": float(rc), "seeds": int(c.seeds[k])}
             row.update({f"{m}_mean": float(c.mean[m][k]) for m in cr.RANGE_METRICS})
+            row.update({f"{m}_std": float(c.std[m][k]) for m in cr.RANGE_METRICS})
             rows.append(row)
             table.append(
                 [label, f"{rc:g}", str(c.seeds[k]), *(f"{c.mean[m][k]:.2f}" for m in cr.RANGE_METRICS)]

@@ -184,7 +184,10 @@ def make_tsne(entry: TsneEntry, embedding_dirs: list[Path], records: Path) -> st
     }
     for point, run in zip(entry.embeddings, runs, strict=True):
         features[f"{point.algo} keys"] = tsne.trained_embedding_keys(run, sample)
-    out, panels = tsne.tsne_record(features, arrays["returns"], entry.seed)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):  # beside the campaign's runs, one core at a time each
+        out, panels = tsne.tsne_record(features, arrays["returns"], entry.seed)
     tsne_meta = {
         "format": tsne.TSNE_FORMAT,
         "version": tsne.TSNE_VERSION,
