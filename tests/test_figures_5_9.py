@@ -112,7 +112,7 @@ def test_the_runner_records_the_states_before_pruning_and_the_tsne_once_both_run
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
     semu, cnn_semu = load_matrix(matrix)[0]
     # the memory run first: its states are recorded, then it is pruned; the t-SNE waits for SEMU
-    assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1", "--only", cnn_semu.id]) == 0
+    assert campaign_main(["run", *args, "--hours", "2", "--jobs", "1", "--only", cnn_semu.id]) == 0
     out = capsys.readouterr().out
     states = records / "fig9" / "map10" / "states.npz"
     assert "tsne fig9: 50 of " in out and out.index(str(states)) < out.index("pruned ")
@@ -127,7 +127,7 @@ def test_the_runner_records_the_states_before_pruning_and_the_tsne_once_both_run
         f"tsne fig9: states recorded, the t-SNE waits for {semu.id}, {cnn_semu.id}" in capsys.readouterr().out
     )
     # SEMU ends: the t-SNE from the recorded states and both (pruned) runs' embeddings
-    assert campaign_main(["run", *args, "--hours", "1", "--jobs", "1"]) == 0
+    assert campaign_main(["run", *args, "--hours", "2", "--jobs", "1"]) == 0
     out = capsys.readouterr().out
     record = records / "fig9" / "map10" / "tsne.npz"
     assert "tsne fig9: the t-SNE of 50 states, 4 panels" in out and record.is_file()

@@ -54,6 +54,9 @@ STOP_GRACE_S = 120.0
 #: With ``fill``: no start with less time than this left before the deadline (a run's set-up, its
 #: first evaluation and its checkpoint would be most of it).
 FILL_FLOOR_S = 600.0
+#: No t-SNE (figure 9) with less time than this left before the deadline: at one thread beside two runs, a
+#: 20k-state panel took 385 s here, four panels about half an hour; a later run makes it.
+TSNE_FLOOR_S = 3600.0
 LOG = "campaign.log"
 #: Under the records folder: one lock file per point being trained, shared by every runner that records
 #: there (the lock per outputs folder cannot see a runner with other --outputs).
@@ -161,6 +164,7 @@ class Campaign:
         # the states of a tsne entry are always sampled before pruning; the t-SNE itself with make_tsne
         self.tsne, self.make_tsne = tsne or [], make_tsne
         self.stop_signal: int | None = None
+        self.deadline = float("inf")  # set by run
         self.failed = 0  # runs of this campaign that ended with a non-zero exit status (not stopped by it)
 
     def status(self) -> list[Progress]:
@@ -268,7 +272,7 @@ class Campaign:
             return self._run(hours, fill, finish_first)
 
     def _run(self, hours: float, fill: bool, finish_first: bool) -> int:
-        deadline = time.time() + hours * 3600
+        deadline = self.deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
             self._record(state.point)
@@ -440,6 +444,11 @@ class Campaign:
                 plan(self.evaluations, [point], self.records, self.outputs)[0], self.outputs, self.records
             )
         if self.tsne and self.make_tsne and self.stop_signal is None:
+            if self.deadline - time.time() < TSNE_FLOOR_S:
+                _print(
+                    f"tsne: not now ({_hours(TSNE_FLOOR_S)} needed before the deadline); a later run makes it"
+                )
+                return
             for line in figure9.pending(self.tsne, self.outputs, self.records):
                 _print(line)
 
