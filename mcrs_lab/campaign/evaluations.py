@@ -3,7 +3,10 @@
 A question asked of trained policies after training, such as "does the no-fly shield at test time make
 a learner beat the greedy heuristic?", is a named entry under ``evaluations:`` of the campaign file: the
 figures whose finished points it evaluates, the heuristics evaluated beside them, the episodes and
-evaluation seeds, and its variants (each a list of ``mcrs-eval`` overrides). Each (variant, policy) is
+evaluation seeds, and its variants (each a list of ``mcrs-eval`` overrides). With ``trained: false`` only
+the heuristics run, on the maps of those figures: at ``seeds: [1000000]`` and ``episodes: 32`` they play
+the episodes every learner's periodic evaluation plays during training (``train.eval_seed`` and
+``train.eval_episodes``), so a learner and a heuristic are compared on the same layouts. Each (variant, policy) is
 one ``mcrs-eval -m`` over the seeds on the point's map; each seed's result is recorded under
 
     <records>/<evaluation>/<variant>/eval/<map>/<policy>_rc<R_c>_seed<k>.json
@@ -36,7 +39,7 @@ from mcrs_lab.analysis.records import (
 from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
 from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, check_overrides, load_campaign_file, plain
 
-EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
+EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants", "trained"}
 #: What ``EvaluationJob.command`` sets for each job: a variant's overrides may not.
 EVAL_KEYS = ("policy", "env", "episodes", "seed", "figures")
 
@@ -52,6 +55,7 @@ class Evaluation:
     episodes: int
     seeds: tuple[int, ...]
     variants: tuple[tuple[str, tuple[str, ...]], ...]  # (variant, its mcrs-eval overrides)
+    trained: bool = True  # False: the heuristics alone, on the maps of the figures in ``of``
 
 
 @dataclass(frozen=True)
@@ -157,6 +161,11 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_SEED for s in seeds
         ):
             raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers in [0, 2**63 - 1]")
+        trained = entry.get("trained", True)
+        if not isinstance(trained, bool):
+            raise MatrixError(f"{where}: trained={trained!r}: true or false")
+        if not trained and not entry.get("heuristics"):
+            raise MatrixError(f"{where}: trained: false needs heuristics to evaluate")
         out.append(
             Evaluation(
                 name=str(name),
@@ -169,6 +178,7 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                     (str(v), check_overrides(ov or (), f"{where}: variant {v}", EVAL_KEYS))
                     for v, ov in variants.items()
                 ),
+                trained=trained,
             )
         )
     return out
@@ -200,7 +210,7 @@ def plan(
             on_map = [{o for o in p.overrides if o.startswith("env.")} for p in chosen if p.env == env]
             shared = tuple(sorted(set.intersection(*on_map)))
             policies += [(env, h, h, shared) for h in evaluation.heuristics]
-        for point in chosen:
+        for point in chosen if evaluation.trained else ():
             record_path = point.record_path(records)
             record = read_record(record_path) if record_path.is_file() else None
             if record is None or record.get("status") != "finished":
