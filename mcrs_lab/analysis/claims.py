@@ -273,14 +273,22 @@ class Comparison:
         """``a vs b: Δ +1.03 [-2.9, +5.1], g +0.31, p 0.660 → 1.000`` (and how it was tested, where that is
         not Welch's test)."""
         if self.test == "none":
-            return f"{self.above} vs {self.below}: Δ {self.diff:+.3g}, one number on a side: no test"
+            return f"{self.above} vs {self.below}: Δ {_signed(self.diff)[0]}, one number on a side: no test"
         lo, hi = self.ci
         g = f"g {self.g:+.2f}" if np.isfinite(self.g) else "g -"
         holm = _p(self.p_holm) if np.isfinite(self.p_holm) else "-"
-        tested = f"Δ {self.diff:+.3g} [{lo:+.3g}, {hi:+.3g}], {g}, p {_p(self.p)} → {holm}"
+        d, lo_text, hi_text = _signed(self.diff, lo, hi)
+        tested = f"Δ {d} [{lo_text}, {hi_text}], {g}, p {_p(self.p)} → {holm}"
         how = ", one-sample on the same episodes" if self.test == "one-sample" else ""
         other = ", heuristic on other episodes" if self.other_episodes else ""
         return f"{self.above} vs {self.below}: {tested}{how}{other}"
+
+
+def _signed(*values: float) -> tuple[str, ...]:
+    """Signed numbers to three significant figures of the largest, all with its decimals."""
+    largest = max((abs(v) for v in values if np.isfinite(v)), default=0.0)
+    decimals = min(4, max(0, 2 - int(np.floor(np.log10(largest))))) if largest > 0 else 2
+    return tuple(f"{v:+.{decimals}f}" for v in values)
 
 
 def _p(p: float) -> str:
