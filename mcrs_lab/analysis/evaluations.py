@@ -191,7 +191,11 @@ def heuristic_references(
                 half = float(confidence_half_width(values[:, None])[0])
                 out.setdefault(panel, []).append(
                     Reference(
-                        f"{policy} (heuristic)", float(values.mean()), half, len(values), "evaluation seeds"
+                        f"{policy} (heuristic)",
+                        float(values.mean()),
+                        half,
+                        len(values),
+                        "evaluation seeds" if len(values) > 1 else "evaluation seed",
                     )
                 )
     return out
