@@ -191,3 +191,31 @@ def test_section6_paper_records_the_heuristics_on_the_learners_episodes() -> Non
     assert (
         record["rows"][0]["seed"] == train.eval_seed and record["rows"][0]["episodes"] == train.eval_episodes
     )
+
+
+def test_a_heuristics_only_evaluation_evaluates_no_trained_point(tmp_path: Path) -> None:
+    """``trained: false``: the heuristics on the maps of ``of`` and nothing else, whatever points are
+    finished; it must name heuristics, and takes true or false only."""
+    from mcrs_lab.campaign.evaluations import load_evaluations, plan
+    from mcrs_lab.campaign.matrix import MatrixError, load_matrix
+    from tests.test_campaign import TWO_POINTS
+
+    matrix = tmp_path / "m.yaml"
+    entry = "evaluations:\n  h:\n    of: [figa]\n    heuristics: [greedy, coverage]\n    seeds: [1000000]\n"
+    entry += "    variants: {default: []}\n"
+    matrix.write_text(TWO_POINTS + entry + "    trained: false\n")
+    points, titles = load_matrix(matrix)
+    (evaluation,) = load_evaluations(matrix, set(titles))
+    jobs, left_out = plan([evaluation], points, tmp_path / "records")
+    assert [j.policy for j in jobs] == ["greedy", "coverage"] and left_out == []
+    assert "seed=1000000" in jobs[0].command(tmp_path / "outputs")
+    matrix.write_text(TWO_POINTS + entry)  # the default: the trained points too (none finished here)
+    (evaluation,) = load_evaluations(matrix, set(titles))
+    assert len(plan([evaluation], points, tmp_path / "records")[1]) == len(points)
+    for bad, message in (("    trained: nope\n", "trained='nope': true or false"),):
+        matrix.write_text(TWO_POINTS + entry + bad)
+        with pytest.raises(MatrixError, match=message):
+            load_evaluations(matrix, set(titles))
+    matrix.write_text(TWO_POINTS + entry.replace("[greedy, coverage]", "[]") + "    trained: false\n")
+    with pytest.raises(MatrixError, match="trained: false needs heuristics"):
+        load_evaluations(matrix, set(titles))
