@@ -17,7 +17,8 @@ The test of a pair:
   episodes on the same env config plays the same layouts): the heuristic's score on those episodes is one
   number, not a sample (a deterministic heuristic scores it every time; the random heuristic's own draws
   follow the same seed), so the learner's seeds are tested against it with the one-sample t-test, which
-  pairs every seed with the heuristic on the same layouts;
+  pairs every seed with the heuristic on the same layouts (for trained policies evaluated with
+  ``mcrs-eval``, the heuristic's mean over the same evaluation seeds);
 - a learner against a heuristic evaluated on other episodes (other evaluation seeds, another task): Welch's
   t-test over the learner's training seeds and the heuristic's evaluation seeds, as unpaired samples; the
   table says the heuristic did not play the learners' episodes.
@@ -270,8 +271,8 @@ class Comparison:
         return "noise"
 
     def text(self) -> str:
-        """``a vs b: Δ +1.03 [-2.9, +5.1], g +0.31, p 0.660 → 1.000`` (and how it was tested, where that is
-        not Welch's test)."""
+        """``a vs b: Δ +1.03 [-2.45, +4.30], g +0.31, p 0.659 → 1.000`` (p before → after Holm; how it was
+        tested where that is not Welch's test, and a heuristic that played other episodes)."""
         if self.test == "none":
             return f"{self.above} vs {self.below}: Δ {_signed(self.diff)[0]}, one number on a side: no test"
         lo, hi = self.ci
