@@ -13,20 +13,22 @@ from scipy import stats
 from mcrs.policies import POLICIES
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import (
-    BOOTSTRAP_SEED,
     CLAIM_Q_TOT,
     Claim,
     ClaimsError,
-    Samples,
-    bootstrap_ci,
-    compare,
     default_claims_path,
-    hedges_correction,
-    hedges_g,
-    holm,
     load_claims,
     verdict,
     window_samples,
+)
+from mcrs_lab.analysis.pairwise import (
+    BOOTSTRAP_SEED,
+    Samples,
+    bootstrap_ci,
+    compare,
+    hedges_correction,
+    hedges_g,
+    holm,
 )
 from mcrs_lab.analysis.report import main as report_main
 from mcrs_lab.analysis.report_training import ALGO_ORDER

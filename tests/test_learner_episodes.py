@@ -18,8 +18,9 @@ from mcrs.evaluate import episode_metrics
 from mcrs.experiment.evaluation import final_metrics
 from mcrs.experiment.trainer import Experiment
 from mcrs.policies import make_policy
-from mcrs_lab.analysis.claims import Samples, bootstrap_ci, pairwise_test, verdict
+from mcrs_lab.analysis.claims import verdict
 from mcrs_lab.analysis.evaluations import task_key, training_layout
+from mcrs_lab.analysis.pairwise import Samples, bootstrap_ci, pairwise_test
 from mcrs_lab.analysis.report import main as report_main
 from tests.test_claims import STEPS, claim
 from tests.test_report import make_run
