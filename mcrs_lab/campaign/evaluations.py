@@ -3,8 +3,11 @@
 A question asked of trained policies after training, such as "does the no-fly shield at test time make
 a learner beat the greedy heuristic?", is a named entry under ``evaluations:`` of the campaign file: the
 figures whose finished points it evaluates (``algo``: only these algorithms' points), the heuristics
-evaluated beside them, the episodes and
-evaluation seeds, and its variants (each a list of ``mcrs-eval`` overrides). Each (variant, policy) is
+evaluated beside them, the episodes and evaluation seeds, and its variants (each a list of ``mcrs-eval``
+overrides). With ``trained: false`` only the heuristics run, on the maps of those figures: at
+``seeds: [1000000]`` and ``episodes: 32`` they play the episodes every learner's periodic evaluation plays
+during training (``train.eval_seed`` and ``train.eval_episodes``), so a learner and a heuristic are
+compared on the same layouts. Each (variant, policy) is
 one ``mcrs-eval -m`` over the seeds on the point's map; each seed's result is recorded under
 
     <records>/<evaluation>/<variant>/eval/<map>/<policy>_rc<R_c>_seed<k>.json
@@ -45,7 +48,7 @@ from mcrs_lab.campaign.matrix import (
     plain,
 )
 
-EVALUATION_KEYS = {"title", "of", "algo", "heuristics", "episodes", "seeds", "variants"}
+EVALUATION_KEYS = {"title", "of", "algo", "heuristics", "episodes", "seeds", "variants", "trained"}
 #: What ``EvaluationJob.command`` sets for each job: a variant's overrides may not.
 EVAL_KEYS = ("policy", "env", "episodes", "seed", "figures")
 
@@ -62,6 +65,7 @@ class Evaluation:
     seeds: tuple[int, ...]
     variants: tuple[tuple[str, tuple[str, ...]], ...]  # (variant, its mcrs-eval overrides)
     algos: tuple[str, ...] = ()  # only these algorithms' points (empty: every algorithm of the figures)
+    trained: bool = True  # False: the heuristics alone, on the maps of the figures in ``of``
 
     def evaluates(self, point: Point) -> bool:
         """Whether ``point`` is one of the finished policies this evaluation asks for."""
@@ -172,6 +176,11 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_SEED for s in seeds
         ):
             raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers in [0, 2**63 - 1]")
+        trained = entry.get("trained", True)
+        if not isinstance(trained, bool):
+            raise MatrixError(f"{where}: trained={trained!r}: true or false")
+        if not trained and not entry.get("heuristics"):
+            raise MatrixError(f"{where}: trained: false needs heuristics to evaluate")
         out.append(
             Evaluation(
                 name=str(name),
@@ -185,6 +194,7 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                     for v, ov in variants.items()
                 ),
                 algos=algos,
+                trained=trained,
             )
         )
     return out
@@ -216,7 +226,7 @@ def plan(
             on_map = [{o for o in p.overrides if o.startswith("env.")} for p in chosen if p.env == env]
             shared = tuple(sorted(set.intersection(*on_map)))
             policies += [(env, h, h, shared) for h in evaluation.heuristics]
-        for point in chosen:
+        for point in chosen if evaluation.trained else ():
             record_path = point.record_path(records)
             record = read_record(record_path) if record_path.is_file() else None
             if record is None or record.get("status") != "finished":
