@@ -8,6 +8,11 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
     mcrs-eval policy=all episodes=32
     mcrs-eval env=map20 env.comm_range=0 policy=lawnmower episodes=8
     mcrs-eval policy=outputs/map10/qmix/<run>/checkpoints/model_000500000.pt    (a trained agent)
+    mcrs-eval policy=outputs/map10/qmix/<run> heuristics=true    (it and every heuristic, same episodes)
+
+A trained policy is evaluated on its training's evaluation episodes (``train.eval_seed``,
+``train.eval_episodes``) unless ``seed=`` or ``episodes=`` says otherwise; heuristics alone on 32 episodes of
+seed 0. Tables name a trained policy by its run (:func:`policy_label`).
 """
 
 from __future__ import annotations
@@ -54,8 +59,9 @@ class EvalConfig:
 
     env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario (conf/env/ presets)
     policy: str = "greedy"  # random | lawnmower | greedy | coverage | all | a checkpoint or run directory
-    episodes: int = 32  # K episodes, run as batches of K environments (the env's num_envs)
-    seed: int = 0  # seeds the environments and the policy's generator
+    heuristics: bool = False  # true: every heuristic beside the policy, on the same episodes
+    episodes: int | None = None  # K episodes (batches of K environments); None: see default_episodes_seed
+    seed: int | None = None  # seeds the environments and the policy's generator; None: as episodes
     figures: bool = True  # scene.png, uncertainty_contours.png, episode.gif
     device: str = "cpu"  # where the environments run
     threads: str = "auto"  # torch CPU threads: auto (the cores the load leaves free), 0 (torch's: all) or N
@@ -68,14 +74,14 @@ register_resolvers()  # ${mcrs.num:...} in the sweep directory names (conf/study
 def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
     """Problems of an evaluation config, each naming the field and what is allowed."""
     errors = []
-    if cfg.episodes < 1:
+    if cfg.episodes is not None and cfg.episodes < 1:
         errors.append(f"episodes={cfg.episodes}: must be >= 1")
-    elif cfg.episodes > MAX_EVAL_EPISODES:
+    elif cfg.episodes is not None and cfg.episodes > MAX_EVAL_EPISODES:
         errors.append(
             f"episodes={cfg.episodes}: at most {MAX_EVAL_EPISODES} (every episode's metrics are kept): "
             "evaluate more as several runs with other seeds"
         )
-    if not 0 <= cfg.seed <= MAX_SEED:
+    if cfg.seed is not None and not 0 <= cfg.seed <= MAX_SEED:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
     problem = device_problem(cfg.device)
     if problem:
@@ -97,7 +103,7 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
         errors.append(" ".join(line.strip().removeprefix("- ") for line in str(error).splitlines()))
         env_config = None
     try:
-        for name in policy_names(str(cfg.policy)):
+        for name in policy_names(str(cfg.policy), bool(cfg.get("heuristics", False))):
             if env_config is not None:
                 check_policy(name, env_config)  # a checkpoint of another map or team: its config only
     except ValueError as error:
@@ -105,8 +111,14 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     return errors
 
 
-def policy_names(policy: str) -> list[str]:
-    """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
+def policy_names(policy: str, heuristics: bool = False) -> list[str]:
+    """The policies a ``policy=`` value stands for, then every heuristic when ``heuristics``; an unknown
+    name fails listing the allowed ones."""
+    names = _policy_names(policy)
+    return [*names, *(p for p in POLICIES if p not in names)] if heuristics else names
+
+
+def _policy_names(policy: str) -> list[str]:
     if policy == ALL:
         return list(POLICIES)
     from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
@@ -130,6 +142,65 @@ def policy_names(policy: str) -> list[str]:
             "file) or an exported agent (.pt2)"
         )
     return [policy]
+
+
+#: Episodes and seed of an evaluation of heuristics only, when the command names neither.
+HEURISTIC_EPISODES, HEURISTIC_SEED = 32, 0
+
+
+def default_episodes_seed(names: list[str]) -> tuple[int, int]:
+    """The episodes and seed an evaluation of ``names`` runs when the command names neither: the first
+    trained policy's training evaluations (``train.eval_episodes``, ``train.eval_seed``), so its figures are
+    those its run logged; an exported agent's are the training defaults (its file keeps no train config);
+    heuristics alone: 32 episodes of seed 0."""
+    from mcrs.experiment import checkpoint as ckpt
+    from mcrs.experiment.schema import TrainConfig
+    from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
+
+    trained = [name for name in names if name not in POLICIES and looks_like_checkpoint(name)]
+    if not trained:
+        return HEURISTIC_EPISODES, HEURISTIC_SEED
+    train: Any = {}
+    if not is_exported(trained[0]):
+        try:
+            state = ckpt.load(resolve_checkpoint(trained[0]), mmap=True)
+            train = state["config"]["train"]
+        except (ckpt.CheckpointError, OSError, KeyError, TypeError):
+            train = {}  # loading the policy names the problem
+    defaults = TrainConfig()
+    episodes = train.get("eval_episodes", defaults.eval_episodes) if isinstance(train, dict) else None
+    seed = train.get("eval_seed", defaults.eval_seed) if isinstance(train, dict) else None
+    return int(episodes or defaults.eval_episodes), int(seed if seed is not None else defaults.eval_seed)
+
+
+def policy_label(name: str) -> str:
+    """A policy as tables name it: a heuristic by its name, a trained run by its run name (its folder),
+    with its algorithm when the name does not hold it (``2026-11-28_10-00-00_4711_seed0 (qmix)``), a
+    checkpoint file of a run as ``<run>/<file stem>`` and an exported agent by its file name."""
+    from mcrs.policies.trained import is_exported, looks_like_checkpoint
+
+    if name in POLICIES or not looks_like_checkpoint(name):
+        return name
+    path = Path(name).expanduser()
+    if is_exported(name):
+        return path.name
+    if path.suffix == ".pt":
+        run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+        return f"{run.name}/{path.stem}"
+    algo = _algo_of(path)
+    return f"{path.name} ({algo})" if algo and algo not in path.name else path.name
+
+
+def _algo_of(run_dir: Path) -> str | None:
+    """The algorithm a run directory's ``config.yaml`` names (None when it cannot be read)."""
+    from mcrs.experiment.untrusted import UntrustedInput, read_yaml
+
+    try:
+        algo = (read_yaml(run_dir / "config.yaml", interpolations=False) or {}).get("algo") or {}
+    except (OSError, UntrustedInput, ValueError):
+        return None
+    name = algo.get("name") if isinstance(algo, dict) else None
+    return name if isinstance(name, str) else None
 
 
 def episode_metrics(
@@ -272,24 +343,26 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     errors = eval_errors(cfg)
     if errors:
         raise ValueError("invalid config: " + "; ".join(errors))
-    names = policy_names(str(cfg.policy))
+    names = policy_names(str(cfg.policy), bool(cfg.get("heuristics", False)))
     apply_threads(cfg.threads)
-    episodes, seed = int(cfg.episodes), int(cfg.seed)
-    if len(names) == 1 and task_node(names[0]) is not None:  # a run of another task than MCRS
-        return run_task(names[0], episodes, seed, str(cfg.device), out_dir)
+    default_episodes, default_seed = default_episodes_seed(names)
+    episodes = int(cfg.episodes) if cfg.episodes is not None else default_episodes
+    seed = int(cfg.seed) if cfg.seed is not None else default_seed
+    if task_node(names[0]) is not None:  # a run of another task than MCRS: beside its random baseline
+        return run_task(names[0], episodes, seed, str(cfg.device), out_dir, policy_label(names[0]))
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)
-    table = format_table(results)
+    labels = {name: policy_label(name) for name in names}
+    table = format_table({labels[name]: r for name, r in results.items()})
     _say(f"{title}\n\n{table}\n")
     write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
-            print(
-                f"drawing one episode of {Path(name).name if name not in POLICIES else name} ...", flush=True
-            )
-            paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
+            print(f"drawing one episode of {labels[name]} ...", flush=True)
+            folder = out_dir if len(names) == 1 else out_dir / Path(labels[name].split(" ")[0]).name
+            paths = write_figures(folder, env_config, name, seed)
             _say("figures: " + ", ".join(str(p) for p in paths))
     _say(f"results in {out_dir}")
     return results
