@@ -349,7 +349,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     episodes = int(cfg.episodes) if cfg.episodes is not None else default_episodes
     seed = int(cfg.seed) if cfg.seed is not None else default_seed
     if task_node(names[0]) is not None:  # a run of another task than MCRS: beside its random baseline
-        return run_task(names[0], episodes, seed, str(cfg.device), out_dir, policy_label(names[0]))
+        return run_task(names[0], episodes, seed, str(cfg.device), out_dir, shown=policy_label(names[0]))
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")
     results = {name: summarize(values) for name, values in per_episode.items()}
@@ -369,11 +369,18 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
 
 
 def run_task(
-    policy: str, episodes: int, seed: int, device: str, out_dir: Path, label: str | None = None
+    policy: str,
+    episodes: int,
+    seed: int,
+    device: str,
+    out_dir: Path,
+    label: str | None = None,
+    shown: str | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """``mcrs-eval policy=<run>`` for a run of another task than MCRS: its task rebuilt from the run, the
     trained agent and the random baseline on the same episodes, the table printed and written
-    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the table."""
+    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the files
+    (its path when None), ``shown`` in the table only."""
     from mcrs.experiment.checkpoint import CheckpointError
     from mcrs.policies.task_runs import evaluate_task_run, load_task_run
 
@@ -383,15 +390,18 @@ def run_task(
         raise ValueError(str(error)) from None
     name = label or str(policy)
     print(
-        f"evaluating {name} and the random baseline on {episodes} episodes of {run.task.name} ...", flush=True
+        f"evaluating {shown or name} and the random baseline on {episodes} episodes of {run.task.name} ...",
+        flush=True,
     )
     per_episode = evaluate_task_run(run, min(episodes, MAX_EVAL_EPISODES), seed, device, name)
     results = {policy_name: summarize(values) for policy_name, values in per_episode.items()}
     metrics = list(next(iter(per_episode.values())))
     from mcrs.experiment.tables import markdown, mean_std
 
+    names = {name: shown} if shown else {}
     table = markdown(
-        ["policy", *metrics], [[p] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()]
+        ["policy", *metrics],
+        [[names.get(p, p)] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()],
     )
     title = f"{run.task.name} ({run.config['task'].get('_target_')}): {episodes} episodes, seed {seed}"
     _say(f"{title}\n\n{table}\n")
