@@ -10,9 +10,8 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
     mcrs-eval policy=outputs/map10/qmix/<run>/checkpoints/model_000500000.pt    (a trained agent)
     mcrs-eval policy=outputs/map10/qmix/<run> heuristics=true    (it and every heuristic, same episodes)
 
-A trained policy is evaluated on its training's evaluation episodes (``train.eval_seed``,
-``train.eval_episodes``) unless ``seed=`` or ``episodes=`` says otherwise; heuristics alone on 32 episodes of
-seed 0. Tables name a trained policy by its run (:func:`policy_label`).
+A trained policy plays its training's evaluation episodes unless ``seed=`` or ``episodes=`` says otherwise,
+and tables name it by its run name (:mod:`mcrs.policies.identity`).
 """
 
 from __future__ import annotations
@@ -39,6 +38,7 @@ from mcrs.experiment.rundir import describe_os_error, register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
+from mcrs.policies.identity import default_episodes_seed, policy_label, run_task_name
 from mcrs.policies.task_runs import task_node
 
 ALL = "all"
@@ -142,65 +142,6 @@ def _policy_names(policy: str) -> list[str]:
             "file) or an exported agent (.pt2)"
         )
     return [policy]
-
-
-#: Episodes and seed of an evaluation of heuristics only, when the command names neither.
-HEURISTIC_EPISODES, HEURISTIC_SEED = 32, 0
-
-
-def default_episodes_seed(names: list[str]) -> tuple[int, int]:
-    """The episodes and seed an evaluation of ``names`` runs when the command names neither: the first
-    trained policy's training evaluations (``train.eval_episodes``, ``train.eval_seed``), so its figures are
-    those its run logged; an exported agent's are the training defaults (its file keeps no train config);
-    heuristics alone: 32 episodes of seed 0."""
-    from mcrs.experiment import checkpoint as ckpt
-    from mcrs.experiment.schema import TrainConfig
-    from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
-
-    trained = [name for name in names if name not in POLICIES and looks_like_checkpoint(name)]
-    if not trained:
-        return HEURISTIC_EPISODES, HEURISTIC_SEED
-    train: Any = {}
-    if not is_exported(trained[0]):
-        try:
-            state = ckpt.load(resolve_checkpoint(trained[0]), mmap=True)
-            train = state["config"]["train"]
-        except (ckpt.CheckpointError, OSError, KeyError, TypeError):
-            train = {}  # loading the policy names the problem
-    defaults = TrainConfig()
-    episodes = train.get("eval_episodes", defaults.eval_episodes) if isinstance(train, dict) else None
-    seed = train.get("eval_seed", defaults.eval_seed) if isinstance(train, dict) else None
-    return int(episodes or defaults.eval_episodes), int(seed if seed is not None else defaults.eval_seed)
-
-
-def policy_label(name: str) -> str:
-    """A policy as tables name it: a heuristic by its name, a trained run by its run name (its folder),
-    with its algorithm when the name does not hold it (``2026-11-28_10-00-00_4711_seed0 (qmix)``), a
-    checkpoint file of a run as ``<run>/<file stem>`` and an exported agent by its file name."""
-    from mcrs.policies.trained import is_exported, looks_like_checkpoint
-
-    if name in POLICIES or not looks_like_checkpoint(name):
-        return name
-    path = Path(name).expanduser()
-    if is_exported(name):
-        return path.name
-    if path.suffix == ".pt":
-        run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
-        return f"{run.name}/{path.stem}"
-    algo = _algo_of(path)
-    return f"{path.name} ({algo})" if algo and algo not in path.name else path.name
-
-
-def _algo_of(run_dir: Path) -> str | None:
-    """The algorithm a run directory's ``config.yaml`` names (None when it cannot be read)."""
-    from mcrs.experiment.untrusted import UntrustedInput, read_yaml
-
-    try:
-        algo = (read_yaml(run_dir / "config.yaml", interpolations=False) or {}).get("algo") or {}
-    except (OSError, UntrustedInput, ValueError):
-        return None
-    name = algo.get("name") if isinstance(algo, dict) else None
-    return name if isinstance(name, str) else None
 
 
 def episode_metrics(
@@ -345,9 +286,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
         raise ValueError("invalid config: " + "; ".join(errors))
     names = policy_names(str(cfg.policy), bool(cfg.get("heuristics", False)))
     apply_threads(cfg.threads)
-    default_episodes, default_seed = default_episodes_seed(names)
-    episodes = int(cfg.episodes) if cfg.episodes is not None else default_episodes
-    seed = int(cfg.seed) if cfg.seed is not None else default_seed
+    given = zip((cfg.episodes, cfg.seed), default_episodes_seed(names), strict=True)  # None: the default
+    episodes, seed = (int(d if v is None else v) for v, d in given)
     if task_node(names[0]) is not None:  # a run of another task than MCRS: beside its random baseline
         return run_task(names[0], episodes, seed, str(cfg.device), out_dir, shown=policy_label(names[0]))
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
@@ -532,15 +472,6 @@ def evaluate_task_report(
         references,
     )
     return out / "summary.md", curve, {name: r["episode_reward"] for name, r in results.items()}
-
-
-def run_task_name(run_dir: Path) -> str:
-    """The task's name in a task run's ``config.yaml`` (its class name when the node has no ``name``)."""
-    from mcrs.experiment.rundir import task_name
-    from mcrs.experiment.untrusted import read_yaml
-
-    node = read_yaml(run_dir / "config.yaml", interpolations=False).get("task") or {}
-    return task_name(node, "task")
 
 
 def _say(message: str) -> None:
