@@ -8,6 +8,10 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
     mcrs-eval policy=all episodes=32
     mcrs-eval env=map20 env.comm_range=0 policy=lawnmower episodes=8
     mcrs-eval policy=outputs/map10/qmix/<run>/checkpoints/model_000500000.pt    (a trained agent)
+    mcrs-eval policy=outputs/map10/qmix/<run> heuristics=true    (it and every heuristic, same episodes)
+
+A trained policy plays its training's evaluation episodes unless ``seed=`` or ``episodes=`` says otherwise,
+and tables name it by its run name (:mod:`mcrs.policies.identity`).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from mcrs.experiment.training.evaluation import final_metrics
 from mcrs.experiment.util.messages import ranked
 from mcrs.experiment.util.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
+from mcrs.policies.identity import default_episodes_seed, policy_label, run_task_name
 from mcrs.policies.task_runs import task_node
 
 ALL = "all"
@@ -55,8 +60,9 @@ class EvalConfig:
 
     env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario (conf/env/ presets)
     policy: str = "greedy"  # random | lawnmower | greedy | coverage | all | a checkpoint or run directory
-    episodes: int = 32  # K episodes, run as batches of K environments (the env's num_envs)
-    seed: int = 0  # seeds the environments and the policy's generator
+    heuristics: bool = False  # true: every heuristic beside the policy, on the same episodes
+    episodes: int | None = None  # K episodes (batches of K environments); None: see default_episodes_seed
+    seed: int | None = None  # seeds the environments and the policy's generator; None: as episodes
     figures: bool = True  # scene.png, uncertainty_contours.png, episode.gif
     device: str = "cpu"  # where the environments run
     threads: str = "auto"  # torch CPU threads: auto (the cores the load leaves free), 0 (torch's: all) or N
@@ -69,14 +75,14 @@ register_resolvers()  # ${mcrs.num:...} in the sweep directory names (conf/study
 def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
     """Problems of an evaluation config, each naming the field and what is allowed."""
     errors = []
-    if cfg.episodes < 1:
+    if cfg.episodes is not None and cfg.episodes < 1:
         errors.append(f"episodes={cfg.episodes}: must be >= 1")
-    elif cfg.episodes > MAX_EVAL_EPISODES:
+    elif cfg.episodes is not None and cfg.episodes > MAX_EVAL_EPISODES:
         errors.append(
             f"episodes={cfg.episodes}: at most {MAX_EVAL_EPISODES} (every episode's metrics are kept): "
             "evaluate more as several runs with other seeds"
         )
-    if not 0 <= cfg.seed <= MAX_SEED:
+    if cfg.seed is not None and not 0 <= cfg.seed <= MAX_SEED:
         errors.append(f"seed={cfg.seed}: must be in [0, 2**63 - 1]")
     problem = device_problem(cfg.device)
     if problem:
@@ -98,7 +104,7 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
         errors.append(" ".join(line.strip().removeprefix("- ") for line in str(error).splitlines()))
         env_config = None
     try:
-        for name in policy_names(str(cfg.policy)):
+        for name in policy_names(str(cfg.policy), bool(cfg.get("heuristics", False))):
             if env_config is not None:
                 check_policy(name, env_config)  # a checkpoint of another map or team: its config only
     except ValueError as error:
@@ -106,8 +112,14 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
     return errors
 
 
-def policy_names(policy: str) -> list[str]:
-    """The policies a ``policy=`` value stands for; an unknown name fails listing the allowed ones."""
+def policy_names(policy: str, heuristics: bool = False) -> list[str]:
+    """The policies a ``policy=`` value stands for, then every heuristic when ``heuristics``; an unknown
+    name fails listing the allowed ones."""
+    names = _policy_names(policy)
+    return [*names, *(p for p in POLICIES if p not in names)] if heuristics else names
+
+
+def _policy_names(policy: str) -> list[str]:
     if policy == ALL:
         return list(POLICIES)
     from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
@@ -273,35 +285,43 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, floa
     errors = eval_errors(cfg)
     if errors:
         raise ValueError("invalid config: " + "; ".join(errors))
-    names = policy_names(str(cfg.policy))
+    names = policy_names(str(cfg.policy), bool(cfg.get("heuristics", False)))
     apply_threads(cfg.threads)
-    episodes, seed = int(cfg.episodes), int(cfg.seed)
-    if len(names) == 1 and task_node(names[0]) is not None:  # a run of another task than MCRS
-        return run_task(names[0], episodes, seed, str(cfg.device), out_dir)
+    given = zip((cfg.episodes, cfg.seed), default_episodes_seed(names), strict=True)  # None: the default
+    episodes, seed = (int(d if v is None else v) for v, d in given)
+    if task_node(names[0]) is not None:  # a run of another task than MCRS: beside its random baseline
+        return run_task(names[0], episodes, seed, str(cfg.device), out_dir, shown=policy_label(names[0]))
     env_config = EnvConfig.from_scenario(cfg.env, num_envs=min(episodes, MAX_BATCH), device=str(cfg.device))
     per_episode = evaluate_episodes(env_config, names, episodes, seed, "mcrs-eval")
     results = {name: summarize(values) for name, values in per_episode.items()}
     title = describe(env_config, episodes, seed)
-    table = format_table(results)
+    labels = {name: policy_label(name) for name in names}
+    table = format_table({labels[name]: r for name, r in results.items()})
     _say(f"{title}\n\n{table}\n")
     write_results(out_dir, env_config, seed, per_episode, results, title, table)
     if cfg.figures:
         for name in names:
-            print(
-                f"drawing one episode of {Path(name).name if name not in POLICIES else name} ...", flush=True
-            )
-            paths = write_figures(out_dir if len(names) == 1 else out_dir / name, env_config, name, seed)
+            print(f"drawing one episode of {labels[name]} ...", flush=True)
+            folder = out_dir if len(names) == 1 else out_dir / Path(labels[name].split(" ")[0]).name
+            paths = write_figures(folder, env_config, name, seed)
             _say("figures: " + ", ".join(str(p) for p in paths))
     _say(f"results in {out_dir}")
     return results
 
 
 def run_task(
-    policy: str, episodes: int, seed: int, device: str, out_dir: Path, label: str | None = None
+    policy: str,
+    episodes: int,
+    seed: int,
+    device: str,
+    out_dir: Path,
+    label: str | None = None,
+    shown: str | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """``mcrs-eval policy=<run>`` for a run of another task than MCRS: its task rebuilt from the run, the
     trained agent and the random baseline on the same episodes, the table printed and written
-    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the table."""
+    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the files
+    (its path when None), ``shown`` in the table only."""
     from mcrs.experiment.run.checkpoint import CheckpointError
     from mcrs.policies.task_runs import evaluate_task_run, load_task_run
 
@@ -311,15 +331,18 @@ def run_task(
         raise ValueError(str(error)) from None
     name = label or str(policy)
     print(
-        f"evaluating {name} and the random baseline on {episodes} episodes of {run.task.name} ...", flush=True
+        f"evaluating {shown or name} and the random baseline on {episodes} episodes of {run.task.name} ...",
+        flush=True,
     )
     per_episode = evaluate_task_run(run, min(episodes, MAX_EVAL_EPISODES), seed, device, name)
     results = {policy_name: summarize(values) for policy_name, values in per_episode.items()}
     metrics = list(next(iter(per_episode.values())))
     from mcrs.experiment.util.tables import markdown, mean_std
 
+    names = {name: shown} if shown else {}
     table = markdown(
-        ["policy", *metrics], [[p] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()]
+        ["policy", *metrics],
+        [[names.get(p, p)] + [mean_std(*r[m]) for m in metrics] for p, r in results.items()],
     )
     title = f"{run.task.name} ({run.config['task'].get('_target_')}): {episodes} episodes, seed {seed}"
     _say(f"{title}\n\n{table}\n")
@@ -450,15 +473,6 @@ def evaluate_task_report(
         references,
     )
     return out / "summary.md", curve, {name: r["episode_reward"] for name, r in results.items()}
-
-
-def run_task_name(run_dir: Path) -> str:
-    """The task's name in a task run's ``config.yaml`` (its class name when the node has no ``name``)."""
-    from mcrs.experiment.run.rundir import task_name
-    from mcrs.experiment.util.untrusted import read_yaml
-
-    node = read_yaml(run_dir / "config.yaml", interpolations=False).get("task") or {}
-    return task_name(node, "task")
 
 
 def _say(message: str) -> None:

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 
@@ -108,6 +109,7 @@ BAD_CAMPAIGN_FILES: list[tuple[str, str]] = [
     (POINTS + EVALUATION.replace('"on":', "on:"), "variant True: not a name"),
     (POINTS + EVALUATION.replace("[greedy]", "[../x]"), "heuristics: '../x': allowed values are"),
     (POINTS + EVALUATION.replace("[greedy]", "[greedyy]"), "heuristics: 'greedyy': allowed values are"),
+    (POINTS + EVALUATION.replace("    episodes: 2\n", "    algo: [qtran]\n    episodes: 2\n"), "evaluation shield: algo='qtran': allowed values are"),
     (POINTS + EVALUATION.replace("episodes: 2", "episodes: 0"), "episodes=0: a whole number >= 1"),
     (POINTS + EVALUATION.replace("episodes: 2", "episodes: true"), "episodes=True"),
     (POINTS + EVALUATION.replace("episodes: 2", "episodes: 100000000"), "episodes=100000000"),
@@ -167,6 +169,98 @@ def test_a_bad_campaign_file_is_one_line(text: str, expected: str, tmp_path: Pat
     assert message.startswith("mcrs-campaign: error: ") and "\n" not in message, message
     assert expected in message, message
     assert outside.read_text() == "mine" and not (tmp_path / "out").exists()
+
+
+TSNE_POINTS = (
+    POINTS.replace("experiment: comm_range", "experiment: baselines")
+    .replace("algo: [qmix]", "algo: [semu, cnn_semu]")
+    .replace("    sweep: {env.comm_range: [0, 2]}\n", "")
+)
+TSNE_ENTRY = """
+tsne:
+  fig9:
+    of: figa
+    env: map10
+    seed: 0
+    memory: cnn_semu
+    embeddings: [semu, cnn_semu]
+    samples: 50
+"""
+#: A campaign file's tsne entry (figure 9's records, mcrs_lab.campaign.figure9): each a bad input.
+BAD_TSNE_ENTRIES: list[tuple[str, str]] = [
+    (TSNE_ENTRY.replace("fig9:", "'../x':"), "tsne name='../x': must be a plain name"),
+    (TSNE_ENTRY.replace("of: figa", "of: figz"), "tsne fig9: of='figz': name a figure of the file (figa)"),
+    (TSNE_ENTRY.replace("env: map10", "env: map99"), "tsne fig9: env='map99': allowed values are"),
+    (TSNE_ENTRY.replace("env: map10", "env: map20"), "memory='cnn_semu': figure figa has no map20 cnn_semu point"),
+    (TSNE_ENTRY.replace("seed: 0", "seed: 3"), "memory='cnn_semu': figure figa has no map10 cnn_semu point at seed 3"),
+    (TSNE_ENTRY.replace("seed: 0", "seed: -1"), "tsne fig9: seed=-1: a whole number in [0, 2**63 - 1]"),
+    (TSNE_ENTRY.replace("memory: cnn_semu", "memory: qtran"), "tsne fig9: memory: algo='qtran': allowed values"),
+    (TSNE_ENTRY.replace("[semu, cnn_semu]", "[semu, emc]"), "embeddings='emc': figure figa has no map10 emc point"),
+    (TSNE_ENTRY.replace("[semu, cnn_semu]", "[]"), "tsne fig9: embeddings=[]: a list of algorithms"),
+    (TSNE_ENTRY.replace("samples: 50", "samples: 1"), "tsne fig9: samples=1: a whole number in [2, 100000]"),
+    (TSNE_ENTRY.replace("samples: 50", "samples: 1000000"), "samples=1000000: a whole number in [2, 100000]"),
+    (TSNE_ENTRY.replace("    samples: 50\n", "    perplexity: 5\n"), "tsne fig9: unknown keys ['perplexity']"),
+    (TSNE_ENTRY.replace("    seed: 0\n", ""), "tsne fig9: missing keys ['seed']"),
+    ("tsne: [fig9]\n", "tsne: a mapping of names to entries"),
+]  # fmt: skip
+
+
+@pytest.mark.bad_tool_input
+@pytest.mark.parametrize(("entry", "expected"), BAD_TSNE_ENTRIES, ids=range(len(BAD_TSNE_ENTRIES)))
+def test_a_bad_tsne_entry_is_one_line(entry: str, expected: str, tmp_path: Path) -> None:
+    for command in (["tsne"], ["run", "--hours", "1", "--dry-run"]):  # refused before anything runs
+        with pytest.raises(SystemExit) as info:
+            campaign_main([*command, *_campaign_args(tmp_path, TSNE_POINTS + entry)])
+        message = str(info.value.code)
+        assert message.startswith("mcrs-campaign: error: ") and "\n" not in message, message
+        assert expected in message, message
+    assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()
+
+
+def _tsne_record(path: Path, **change: Any) -> Path:
+    from mcrs_lab.analysis import tsne
+
+    meta = {"format": tsne.TSNE_FORMAT, "version": tsne.TSNE_VERSION, "env": "map10",
+            "panels": [{"name": "raw state", "dims": 3, "locality": 1.0, "locality_tsne": 1.0}]}  # fmt: skip
+    arrays = {"xy": np.zeros((1, 4, 2), np.float32), "returns": np.arange(4, dtype=np.float32)}
+    for key, value in change.items():
+        (arrays if key in arrays else meta)[key] = value
+        if value is None:
+            (arrays if key in arrays else meta).pop(key)
+    return tsne.write_npz_record(path, arrays, meta)
+
+
+#: (what a t-SNE record holds instead, the error's text): figure 9 drawn from a bad record.
+BAD_TSNE_RECORDS: list[tuple[dict[str, Any] | bytes, str]] = [
+    (b"not a zip file", "tsne.npz: not a t-SNE record"),
+    ({"format": "mcrs-tsne-states"}, "field meta.format: 'mcrs-tsne-states', expected 'mcrs-tsne'"),
+    ({"version": 99}, "field meta.version: 99; this mcrs reads 1"),
+    ({"returns": None}, "field returns: missing"),
+    ({"returns": np.arange(3, dtype=np.float32)}, "field returns: 3 entries, not 4"),
+    ({"xy": np.zeros((1, 4, 3), np.float32)}, "field xy: shape (1, 4, 3), expected [panels, n >= 2, 2]"),
+    ({"xy": np.full((1, 4, 2), np.nan, np.float32)}, "field returns or xy: not finite numbers"),
+    ({"panels": []}, "field meta.panels: a list of 1 panels"),
+    ({"panels": [{"name": "raw state"}]}, "field meta.panels[0]: name, dims, locality, locality_tsne"),
+]  # fmt: skip
+
+
+@pytest.mark.bad_tool_input
+@pytest.mark.parametrize(("content", "expected"), BAD_TSNE_RECORDS, ids=range(len(BAD_TSNE_RECORDS)))
+def test_a_bad_tsne_record_is_one_line_for_mcrs_report(
+    content: dict[str, Any] | bytes, expected: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "fig9" / "map10" / "tsne.npz"
+    if isinstance(content, bytes):
+        path.parent.mkdir(parents=True)
+        path.write_bytes(content)
+    else:
+        _tsne_record(path, **content)
+    with pytest.raises(SystemExit) as info:
+        report_main([str(tmp_path / "fig9"), "--out", str(tmp_path / "out")])
+    message = str(info.value.code)
+    assert message.startswith("mcrs-report: error: ") and "\n" not in message, message
+    assert expected in message, message
+    assert not (tmp_path / "out").exists()
 
 
 #: (command line, the error's text): values that used to be accepted or to crash.

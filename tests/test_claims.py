@@ -16,12 +16,19 @@ from mcrs_lab.analysis.claims import (
     CLAIM_Q_TOT,
     Claim,
     ClaimsError,
-    Samples,
-    compare,
     default_claims_path,
     load_claims,
     verdict,
     window_samples,
+)
+from mcrs_lab.analysis.pairwise import (
+    BOOTSTRAP_SEED,
+    Samples,
+    bootstrap_ci,
+    compare,
+    hedges_correction,
+    hedges_g,
+    holm,
 )
 from mcrs_lab.analysis.report import main as report_main
 from mcrs_lab.analysis.report_training import ALGO_ORDER
@@ -102,7 +109,7 @@ def test_verdicts_of_all_and_any() -> None:
     found = verdict(q, {"a": good, "b": bad, "greedy (heuristic)": greedy})
     assert (
         found.word == "reproduced"
-        and found.why.startswith("significantly higher: a (p = 0.0")
+        and found.why.startswith("significantly higher after Holm: a (Holm p = 0.0")
         and "no runs of x" in found.why
     )
     none = verdict(q, {"a": samples("a", 0, 1, 2), "b": bad, "greedy (heuristic)": greedy})
@@ -187,8 +194,10 @@ def test_report_writes_the_claims_table(tmp_path: Path) -> None:
     out = tmp_path / "report"
     assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
     rows = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
-    verdicts = {r[1].strip(): r[4].strip() for r in rows}
-    assert verdicts["qmix beats greedy"].startswith("**yes**: every comparison significant")  # our question
+    verdicts = {r[1].strip(): r[5].strip() for r in rows}
+    assert verdicts["qmix beats greedy"].startswith(
+        "**yes**: every comparison significant after Holm"
+    )  # our question
     assert verdicts["vdn beats greedy"].startswith(
         "**not shown**: vdn against greedy (heuristic) within noise"
     )
@@ -220,7 +229,7 @@ def test_a_claim_on_the_mean_q_tot_reads_the_training_scalar(tmp_path: Path) -> 
         .strip()
         .startswith("mean Q_tot of replayed transitions, last tenth: emu_change 101.00 ± 1.00 (3)")
     )
-    assert row[4].strip().startswith("**reproduced**")
+    assert row[5].strip().startswith("**reproduced**")
 
 
 def test_a_bad_claims_file_is_one_line(tmp_path: Path) -> None:
@@ -249,7 +258,7 @@ def test_a_pattern_claim_on_evaluations_of_trained_policies(tmp_path: Path) -> N
     assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
     (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
     assert "on the same fixed episodes: trained qmix 51.00 ± 1.41 (2)" in row[3]
-    assert row[4].strip().startswith("**yes**: significantly higher: trained qmix (p = ")
+    assert row[5].strip().startswith("**yes**: significantly higher after Holm: trained qmix (Holm p = ")
 
     entry["above"] = ["trained vdn*"]  # matches nothing: the pattern is reported as not run
     claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
@@ -278,7 +287,87 @@ def test_a_claim_about_a_method_finds_its_default_runs_beside_a_sweep_of_it(tmp_
     out = tmp_path / "report"
     assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
     rows = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
-    verdicts = {r[1].strip(): r[4].strip() for r in rows}
+    verdicts = {r[1].strip(): r[5].strip() for r in rows}
     assert verdicts["emc beats qmix"].startswith("**reproduced**"), verdicts
     assert "emc delta=0.0013 61.00 ± 1.00 (3)" in rows[0][3]
     assert verdicts["100x emc beats qmix"].startswith("**not reproduced**"), verdicts
+
+
+# ------------------------------------------------------------------ Holm, effect sizes, bootstrap, verdicts
+def test_holm_matches_a_hand_computed_example() -> None:
+    """Sorted 0.005, 0.01, 0.03, 0.04 of m = 4 tests: times 4, 3, 2, 1 is 0.02, 0.03, 0.06, 0.04; the last
+    is raised to the one before it (step-down), each capped at 1."""
+    assert holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm([0.5, 0.6]).tolist() == [1.0, 1.0]
+    assert holm([0.02]).tolist() == [0.02]  # one test: nothing to correct
+    assert holm([]).tolist() == []
+
+
+def test_holm_matches_statsmodels() -> None:
+    multipletests = pytest.importorskip("statsmodels.stats.multitest").multipletests
+    p = np.random.default_rng(3).uniform(0, 0.2, size=9)
+    assert holm(p) == pytest.approx(multipletests(p, method="holm")[1])
+
+
+def test_hedges_g_uses_the_exact_small_sample_correction() -> None:
+    assert hedges_correction(2) == pytest.approx(1 / np.sqrt(np.pi))  # Γ(1) / (1 · Γ(1/2))
+    assert hedges_correction(4) == pytest.approx(1 / (np.sqrt(2) * np.sqrt(np.pi) / 2))  # Γ(2)/(√2 Γ(3/2))
+    assert hedges_correction(200) == pytest.approx(1 - 3 / (4 * 200 - 1), abs=1e-5)
+    assert np.isnan(hedges_correction(1))
+    # pooled sd 1, d = -3 on 4 degrees of freedom
+    assert hedges_g(np.array([1.0, 2, 3]), np.array([4.0, 5, 6])) == pytest.approx(-3 * hedges_correction(4))
+    # one-sample: (mean - c) / sd on n - 1 degrees of freedom
+    assert hedges_g(np.array([1.0, 2, 3]), c=0.0) == pytest.approx(2 * hedges_correction(2))
+    assert np.isnan(hedges_g(np.array([2.0, 2, 2]), c=0.0))  # no spread: no standardized effect
+
+
+def test_bootstrap_interval_is_deterministic_and_covers_a_known_difference() -> None:
+    a, b = np.array([10.0, 11, 13]), np.array([1.0, 2, 4])
+    assert bootstrap_ci(a, b) == bootstrap_ci(a, b)  # the fixed seed: same numbers, same interval
+    wide = np.random.default_rng(1).normal(size=8)
+    assert bootstrap_ci(wide, c=0.0) != bootstrap_ci(wide, c=0.0, seed=BOOTSTRAP_SEED + 1)  # the seed counts
+    lo, hi = bootstrap_ci(a, b)
+    assert lo <= a.mean() - b.mean() <= hi and lo >= 6 and hi <= 12  # within the resamples' extremes
+    assert bootstrap_ci(np.full(3, 5.0), np.full(4, 2.0)) == (3.0, 3.0)  # no spread: the difference itself
+    assert bootstrap_ci(np.full(3, 5.0), c=1.5) == (3.5, 3.5)
+
+    # coverage: normal samples whose means differ by 1; the 95 % interval holds it about 95 % of the time
+    rng = np.random.default_rng(7)
+    hits = [
+        lo <= 1.0 <= hi
+        for lo, hi in (
+            bootstrap_ci(rng.normal(1.0, 1.0, 40), rng.normal(0.0, 1.0, 40), resamples=2000)
+            for _ in range(300)
+        )
+    ]
+    assert 0.9 <= np.mean(hits) <= 0.99
+
+
+def test_a_claim_needs_its_direction_to_survive_holm() -> None:
+    """Two comparisons each at p about 0.037 (Welch, 3 seeds against 3): significant alone, not after Holm
+    (0.075): not shown, whichever way they point. Reversed beyond the correction: not reproduced."""
+    a, b, c = samples("a", 10, 11, 12), samples("b", 7.5, 8.5, 9.5), samples("c", 7.5, 8.5, 9.5)
+    assert compare(a, b, "higher") == ("holds", pytest.approx(0.0375, abs=1e-3))  # one test alone
+    two = claim(below=("b", "c"))
+    result = verdict(two, {"a": a, "b": b, "c": c})
+    assert result.word == "not shown" and "Holm p = 0.07" in result.why
+    assert [t.p_holm for t in result.comparisons] == pytest.approx([0.075, 0.075], abs=2e-3)
+    reversed_weakly = verdict(claim(below=("b", "c"), better="lower"), {"a": a, "b": b, "c": c})
+    assert reversed_weakly.word == "not shown"  # significantly the other way alone, not after Holm
+
+    strong = {"a": samples("a", 1, 2, 3), "b": samples("b", 10, 11, 12), "c": samples("c", 30, 31, 33)}
+    flipped = verdict(two, strong)  # a far below both: the reversal survives Holm
+    assert (
+        flipped.word == "not reproduced" and "b significantly higher than a (Holm p = <0.001)" in flipped.why
+    )
+    assert verdict(claim(below=("b",)), {"a": samples("a", 1, 5, 9), "b": samples("b", 2, 4, 6)}).word == (
+        "not shown"
+    )
+    won = verdict(
+        two, {"a": samples("a", 30, 31, 33), "b": samples("b", 1, 2, 3), "c": samples("c", 10, 11, 12)}
+    )
+    assert won.word == "reproduced" and won.why.startswith("every comparison significant after Holm")
+    (row,) = [t for t in won.comparisons if t.below == "b"]
+    assert row.diff == pytest.approx(31.333 - 2, abs=1e-3) and row.test == "welch"
+    assert row.p_holm == pytest.approx(2 * row.p)  # the smaller of two p-values, times 2
+    assert row.ci == bootstrap_ci(np.array([30.0, 31, 33]), np.array([1.0, 2, 3]))

@@ -78,6 +78,7 @@ def test_format_table_is_aligned_markdown() -> None:
 
 def test_policy_names() -> None:
     assert policy_names("all") == ["random", "lawnmower", "greedy", "coverage"]
+    assert policy_names("greedy", heuristics=True) == ["greedy", "random", "lawnmower", "coverage"]
     assert policy_names("greedy") == ["greedy"]
     with pytest.raises(
         ValueError, match=r"unknown policy 'bogus'; allowed: .*greedy.*lawnmower.*random.*all"
@@ -97,7 +98,14 @@ def _compose(overrides: list[str]):
 
 def test_hydra_config_composes_with_overrides() -> None:
     cfg = _compose([])
-    assert (cfg.policy, cfg.episodes, cfg.seed, cfg.figures) == ("greedy", 32, 0, True)
+    # episodes and seed unset: a trained policy's own evaluation episodes, else 32 of seed 0
+    assert (cfg.policy, cfg.heuristics, cfg.episodes, cfg.seed, cfg.figures) == (
+        "greedy",
+        False,
+        None,
+        None,
+        True,
+    )
     assert from_mapping(cfg.env) == scenario("map10")
     cfg = _compose(["env=map20", "env.comm_range=0", "policy=lawnmower", "episodes=8"])
     env = from_mapping(cfg.env)
@@ -121,7 +129,7 @@ def test_run_in_process_writes_results(tmp_path: Path, capsys) -> None:
     assert [r["policy"] for r in rows] == ["random", "lawnmower", "greedy", "coverage"]
     assert {(r["env"], r["comm_range"], r["seed"]) for r in rows} == {
         ("map10", "5", "0")
-    }  # mcrs-report groups
+    }  # mcrs-report groups; heuristics alone: seed 0 unless seed= says
     assert float(rows[2]["episode_reward_mean"]) == pytest.approx(
         results["greedy"]["episode_reward"][0], rel=1e-5
     )

@@ -269,6 +269,7 @@ def test_a_custom_task_trains_resumes_evaluates_beside_random_and_exports(tmp_pa
     with (tmp_path / "eval" / "metrics.csv").open() as f:
         table = {row["policy"]: float(row["episode_reward_mean"]) for row in csv.DictReader(f)}
     trained, random = table[str(run_dir)], table["random"]
+    assert "\n| run (qmix) " in (tmp_path / "eval" / "summary.md").read_text()  # the table: the run's name
     print(f"rendezvous: trained {trained:.2f}, random {random:.2f}")
     assert trained > random + 3.0, table
     # the same numbers in Python, on the same episodes

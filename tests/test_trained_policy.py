@@ -52,6 +52,43 @@ def test_eval_and_render_accept_checkpoints(run_dir: Path, tmp_path: Path) -> No
     assert all(p.is_file() for p in paths)
 
 
+def test_mcrs_eval_plays_a_run_on_its_evaluation_episodes_beside_every_heuristic(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``mcrs-eval policy=<run> heuristics=true``: the run's own evaluation episodes (train.eval_seed,
+    train.eval_episodes) unless the command names them, so its reward is the one its training logged last;
+    every heuristic on the same episodes; tables name the run by its run name, the CSV by its path."""
+    import csv
+
+    from hydra import compose, initialize_config_dir
+
+    from mcrs.evaluate import CONFIG_DIR, default_episodes_seed, policy_label, run
+    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file
+
+    assert default_episodes_seed([str(run_dir)]) == (2, 1_000_000)  # the suite's tiny eval_episodes
+    assert default_episodes_seed(["greedy", "random"]) == (32, 0)
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        cfg = compose(
+            "eval", overrides=[f"policy={run_dir}", "heuristics=true", "env.max_steps=10", "figures=false"]
+        )
+    results = run(cfg, tmp_path)
+    label = f"{run_dir.name} (qmix)"
+    assert policy_label(str(run_dir)) == label
+    assert (
+        policy_label(str(run_dir / "checkpoints" / "model_000000080.pt")) == f"{run_dir.name}/model_000000080"
+    )
+    assert list(results) == [str(run_dir), "random", "lawnmower", "greedy", "coverage"]
+    logged = read_scalar_rows(scalar_file(run_dir, "eval/episode_reward"))[-1][1]
+    assert results[str(run_dir)]["episode_reward"][0] == pytest.approx(logged, abs=1e-4)
+    summary = (tmp_path / "summary.md").read_text()
+    assert "2 episodes, seed 1000000" in summary
+    rows = [line.split("|")[1].strip() for line in summary.splitlines() if line.startswith("| ")]
+    assert rows == ["policy", label, "random", "lawnmower", "greedy", "coverage"]
+    assert str(run_dir) not in capsys.readouterr().out.split("results in")[0]  # no path in the table
+    with open(tmp_path / "metrics.csv") as f:
+        assert next(r["policy"] for r in csv.DictReader(f)) == str(run_dir)  # mcrs-report finds the run
+
+
 def test_a_replay_block_is_named_for_what_it_is(run_dir: Path) -> None:
     from mcrs.experiment.run.checkpoint import CheckpointError
 

@@ -3,9 +3,13 @@
 A claim (``paper_claims.yaml``, per map) says that some methods beat others on one evaluation metric,
 early or late in training. Each training seed gives one number, its mean evaluation over the window (the
 last tenth of the budget, or its first third): the mean over a window is steadier than the last
-evaluation alone. A heuristic gives one number per evaluation seed. Two methods are compared with Welch's
-t-test over those numbers: a difference counts only when it is significant at ``ALPHA`` (two-sided), so
-three seeds that overlap decide nothing, and one seed never decides.
+evaluation alone. A claim needs several pairwise comparisons (each method of ``above`` against each of
+``below``); each is a two-sided test, and Holm's step-down correction holds the claim's family of tests at
+``ALPHA``. A verdict says "reproduced" only where the claimed direction survives the correction, "not
+reproduced" only where the reversed direction does, and "not shown" otherwise: three seeds that overlap
+decide nothing, and one seed never decides.
+
+How each pair is tested, and what each comparison shows, is :mod:`mcrs_lab.analysis.pairwise`.
 """
 
 from __future__ import annotations
@@ -17,15 +21,20 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy import stats
 
 from mcrs.experiment.util.tables import markdown
 from mcrs.experiment.util.untrusted import UntrustedInput, check_yaml_text, read_yaml_text
 from mcrs.viz.learning_curves import Curve
-from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
+from mcrs_lab.analysis.evaluations import (
+    Layout,
+    heuristic_layout_values,
+    heuristic_samples,
+    trained_layouts,
+    trained_samples,
+)
+from mcrs_lab.analysis.pairwise import Comparison, Samples, corrected, p_text, pairwise_test
 from mcrs_lab.analysis.runs import EvaluationRow
 
-ALPHA = 0.05  # significance of Welch's two-sided t-test
 END_FRACTION = 0.1  # "end": the evaluations in the last tenth of the budget
 START_FRACTION = 1 / 3  # "start": the evaluations after step 0 up to a third of the budget
 WINDOWS = ("end", "start")
@@ -59,33 +68,13 @@ class Claim:
 
 
 @dataclass(frozen=True)
-class Samples:
-    """One method's numbers: one per training seed (or evaluation seed, for a heuristic)."""
-
-    label: str
-    values: np.ndarray
-    complete: bool = True  # False: the method's runs stop before the window ends
-
-    @property
-    def mean(self) -> float:
-        return float(self.values.mean())
-
-    @property
-    def std(self) -> float:
-        return float(self.values.std(ddof=1)) if len(self.values) > 1 else float("nan")
-
-    def text(self) -> str:
-        spread = f" ± {self.std:.2f}" if len(self.values) > 1 else ""
-        return f"{self.label} {self.mean:.2f}{spread} ({len(self.values)})"
-
-
-@dataclass(frozen=True)
 class Verdict:
     """A claim's outcome: ``word`` (reproduced, not reproduced, not shown, not run) and why."""
 
     word: str
     why: str
     compared: list[Samples] = field(default_factory=list)
+    comparisons: list[Comparison] = field(default_factory=list)  # its pairwise tests, Holm-adjusted
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -167,18 +156,23 @@ def method_samples(
     comm_range: float | None,
     budget: int,
     aliases: dict[str, str] | None = None,
+    layouts: dict[str, frozenset[Layout]] | None = None,
 ) -> tuple[Claim, dict[str, Samples]]:
     """The claim with its label patterns (``trained *``) replaced by the methods they match, and the
-    numbers of every method it names that the report has: training runs (per seed, over the window),
-    heuristics (per evaluation seed) and trained policies evaluated on fixed episodes (per trained run:
-    their final checkpoints, so every window is theirs)."""
+    numbers of every method it names that the report has: training runs (per seed, over the window; their
+    evaluation episodes from ``layouts``, per label), heuristics (per evaluation seed, and their score on
+    each layout) and trained policies evaluated on fixed episodes (per trained run: their final
+    checkpoints, so every window is theirs)."""
     found: dict[str, Samples] = {}
     for label, curve in curves.get(claim.metric, {}).items():
-        found[label] = window_samples(curve, claim.window, budget)
+        window = window_samples(curve, claim.window, budget)
+        found[label] = replace(window, layouts=(layouts or {}).get(label, frozenset()))
+    on_layouts = heuristic_layout_values(evaluations, comm_range, claim.metric)
     for label, values in heuristic_samples(evaluations, comm_range, claim.metric).items():
-        found[label] = Samples(label, values)
+        found[label] = Samples(label, values, on_layouts=on_layouts.get(label, ()), heuristic=True)
+    trained_on = trained_layouts(evaluations)
     for label, values in trained_samples(evaluations, claim.metric).items():
-        found.setdefault(label, Samples(label, values))
+        found.setdefault(label, Samples(label, values, layouts=trained_on.get(label, frozenset())))
     above, below = _expand(claim.above, found, aliases or {}), _expand(claim.below, found, aliases or {})
     resolved = replace(claim, above=above, below=below)
     return resolved, {m: found[m] for m in (*above, *below) if m in found}
@@ -198,36 +192,10 @@ def _expand(labels: tuple[str, ...], found: dict[str, Samples], aliases: dict[st
 
 
 # ---------------------------------------------------------------------------------------- verdicts
-def compare(a: Samples, b: Samples, better: str) -> tuple[str, float]:
-    """Does ``a`` beat ``b``? ``holds`` / ``reversed`` (significant either way), ``noise``, or ``few``
-    (fewer than two numbers on a side); and the p-value (NaN when not tested)."""
-    if len(a.values) < 2 or len(b.values) < 2:
-        return "few", float("nan")
-    diff = a.mean - b.mean
-    if better == "lower":
-        diff = -diff
-    a_fixed, b_fixed = _no_spread(a.values), _no_spread(b.values)
-    if a_fixed and b_fixed:  # no spread at all: the t-test is undefined
-        p = 0.0 if diff != 0 else 1.0
-    elif a_fixed or b_fixed:  # Welch's test against a constant is the one-sample test against it
-        varied, fixed = (b.values, a.values) if a_fixed else (a.values, b.values)
-        p = float(stats.ttest_1samp(varied, fixed.mean()).pvalue)
-    else:
-        p = float(stats.ttest_ind(a.values, b.values, equal_var=False).pvalue)
-    if p < ALPHA:
-        return ("holds" if diff > 0 else "reversed"), p
-    return "noise", p
-
-
-def _no_spread(values: np.ndarray) -> bool:
-    """Whether the values are equal but for float rounding (a heuristic's coverage of 0.975 on every
-    evaluation seed): scipy's two-sample moments of such a sample warn of catastrophic cancellation."""
-    return bool(np.ptp(values) <= 1e-9 * max(1.0, float(np.abs(values).max())))
-
-
 def verdict(claim: Claim, samples: dict[str, Samples]) -> Verdict:
-    """``claim`` judged on ``samples``: reproduced (every comparison it needs is significant its way), not
-    reproduced (significantly the other way), not shown (within noise, or one seed), or not run."""
+    """``claim`` judged on ``samples`` after Holm's correction over its comparisons: reproduced (every
+    comparison it needs is significant its way), not reproduced (one it needs is significantly the other
+    way), not shown (within noise, or one seed), or not run."""
     names = (*claim.above, *claim.below)
     compared = [samples[m] for m in names if m in samples and len(samples[m].values)]
     absent = [m for m in names if m not in samples]
@@ -242,37 +210,45 @@ def verdict(claim: Claim, samples: dict[str, Samples]) -> Verdict:
     if not candidates or (claim.quantifier == "all" and unfinished) or set(claim.below) & {*absent, *short}:
         return Verdict("not run", unfinished, compared)
 
-    rivals = [samples[m] for m in claim.below]
-    outcomes = {m: [(r.label, *compare(samples[m], r, claim.better)) for r in rivals] for m in candidates}
+    tests = corrected(
+        [pairwise_test(samples[m], samples[r], claim.better) for m in candidates for r in claim.below]
+    )
+    outcomes = {m: [(t.below, t.outcome, t.p_holm) for t in tests if t.above == m] for m in candidates}
     state = {m: _state([o for _, o, _ in results]) for m, results in outcomes.items()}
     single = [s.label for s in compared if len(s.values) < 2]
     if claim.quantifier == "all":
         if all(v == "holds" for v in state.values()):
             worst = max(p for results in outcomes.values() for _, _, p in results)
-            return Verdict("reproduced", f"every comparison significant (largest p = {worst:.3f})", compared)
+            return Verdict(
+                "reproduced",
+                f"every comparison significant after Holm (largest Holm p = {p_text(worst)})",
+                compared,
+                tests,
+            )
         for m, results in outcomes.items():
             for r, o, p in results:
                 if o == "reversed":
-                    return Verdict(
-                        "not reproduced", f"{r} significantly {claim.better} than {m} (p = {p:.3f})", compared
-                    )
+                    why = f"{r} significantly {claim.better} than {m} (Holm p = {p_text(p)})"
+                    return Verdict("not reproduced", why, compared, tests)
         if single:
-            return Verdict("not shown", f"one seed of {', '.join(single)}: no test", compared)
+            return Verdict("not shown", f"one seed of {', '.join(single)}: no test", compared, tests)
         m, r, p = max(
             ((m, r, p) for m, res in outcomes.items() for r, o, p in res if o == "noise"), key=lambda x: x[2]
         )
-        return Verdict("not shown", f"{m} against {r} within noise (p = {p:.2f})", compared)
+        return Verdict("not shown", f"{m} against {r} within noise (Holm p = {p_text(p)})", compared, tests)
 
     later = f"; {unfinished}" if unfinished else ""
     winners = [m for m, v in state.items() if v == "holds"]
     if winners:
-        won = ", ".join(f"{m} (p = {max(p for _, _, p in outcomes[m]):.3f})" for m in winners)
-        return Verdict("reproduced", f"significantly {claim.better}: {won}{later}", compared)
+        won = ", ".join(f"{m} (Holm p = {p_text(max(p for _, _, p in outcomes[m]))})" for m in winners)
+        return Verdict(
+            "reproduced", f"significantly {claim.better} after Holm: {won}{later}", compared, tests
+        )
     summary = "; ".join(_summary(m, outcomes[m], state[m]) for m in candidates)
     # "no method does" needs every method of the claim finished: one still running might
     every_one_worse = all(v == "reversed" for v in state.values()) and not unfinished
     word = "not reproduced" if every_one_worse else "not shown"
-    return Verdict(word, f"{summary}{later}", compared)
+    return Verdict(word, f"{summary}{later}", compared, tests)
 
 
 def _state(outcomes: list[str]) -> str:
@@ -289,9 +265,8 @@ def _summary(method: str, results: list[tuple[str, str, float]], state: str) -> 
     if state == "few":
         return f"{method}: one seed"
     p = max(p for _, o, p in results if o == state) if state != "holds" else 0.0
-    return (
-        f"{method}: {'significantly the other way' if state == 'reversed' else 'within noise'} (p = {p:.3f})"
-    )
+    way = "significantly the other way" if state == "reversed" else "within noise"
+    return f"{method}: {way} (Holm p = {p_text(p)})"
 
 
 # ------------------------------------------------------------------------------------------- table
@@ -307,18 +282,46 @@ def claims_table(
     budget: int,
     window_text: str | None = None,
     aliases: dict[str, str] | None = None,
+    layouts: dict[str, frozenset[Layout]] | None = None,
 ) -> str:
     """Markdown: source, claim, the paper's numbers, ours (mean ± std (seeds) per method over the
-    window, or ``window_text`` where there is none: evaluations of final checkpoints), and the verdict
-    with its reason. ``aliases`` (:func:`~mcrs_lab.analysis.runs.default_labels`): a plain algorithm name the
-    report has no method of stands for its label at the default settings."""
+    window, or ``window_text`` where there is none: evaluations of final checkpoints), each comparison
+    (difference, its bootstrap interval, Hedges' g, p and Holm's p) and the verdict with its reason.
+    ``aliases`` (:func:`~mcrs_lab.analysis.runs.default_labels`): a plain algorithm name the report has no
+    method of stands for its label at the default settings. ``layouts``: per training label, the episodes
+    its periodic evaluations played (a heuristic on them is compared one-sample)."""
     rows = []
     for claim in claims:
-        claim, samples = method_samples(claim, curves, evaluations, comm_range, budget, aliases)
+        claim, samples = method_samples(claim, curves, evaluations, comm_range, budget, aliases, layouts)
         result = verdict(claim, samples)
         word = OUR_WORDS.get(result.word, result.word) if claim.ours else result.word
-        ours = "; ".join(s.text() for s in result.compared) or "-"
+        ours = "; ".join(_sample_text(s, result.comparisons) for s in result.compared) or "-"
         metric = METRIC_TEXT.get(claim.metric, claim.metric.replace("_", " "))
         what = f"{metric}, {window_text or WINDOW_TEXT[claim.window]}"
-        rows.append([claim.source, claim.claim, claim.paper, f"{what}: {ours}", f"**{word}**: {result.why}"])
-    return markdown(["source", "claim", "paper", "ours (mean ± std (seeds))", "verdict"], rows, left=5)
+        tests = "<br>".join(t.text() for t in result.comparisons) or "-"
+        row = [claim.source, claim.claim, claim.paper, f"{what}: {ours}", tests, f"**{word}**: {result.why}"]
+        rows.append(row)
+    header = ["source", "claim", "paper", "ours (mean ± std (seeds))", COMPARISONS_HEADER, "verdict"]
+    return markdown(header, rows, left=6)
+
+
+#: The comparisons column: each pair's difference with its 95 % bootstrap interval, Hedges' g, the raw p
+#: and Holm's adjusted p over the claim's tests.
+COMPARISONS_HEADER = "comparisons: Δ [95 % bootstrap CI], Hedges' g, p → Holm p"
+
+
+def _sample_text(samples: Samples, tests: list[Comparison]) -> str:
+    """A method's numbers; a heuristic's says whether it played the learners' episodes: its score there
+    (one number), or its evaluation seeds' mean ± std where it did not."""
+    if not samples.heuristic:
+        return samples.text()
+    mine = [t for t in tests if samples.label in (t.above, t.below)]
+    scores = sorted({t.score for t in mine if np.isfinite(t.score)})
+    parts = (
+        [f"{samples.label} {', '.join(f'{v:.2f}' for v in scores)} on the learners' episodes"]
+        if scores
+        else []
+    )
+    if not scores or any(t.other_episodes for t in mine):
+        parts.append(f"{samples.text()} over evaluation seeds, not the learners' episodes")
+    return "; ".join(parts)

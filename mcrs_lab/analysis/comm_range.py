@@ -2,7 +2,8 @@
 
 Two sources, both reported when present:
 - ``mcrs-eval`` results at several ``env.comm_range`` (a heuristic, or a trained agent evaluated at
-  every range): mean over the evaluation seeds of each seed's mean over episodes;
+  every range): mean over the seeds of each seed's mean over episodes, a trained agent's seeds being
+  its training runs (each the mean of its evaluation seeds), a heuristic's its evaluation seeds;
 - ``mcrs-train`` runs that differ in ``env.comm_range`` (``experiment=comm_range``): the final
   greedy evaluation, mean over training seeds.
 """
@@ -15,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.env.metrics import METRIC_LABELS
-from mcrs.viz.learning_curves import confidence_half_width
 from mcrs_lab.analysis.policy_identity import policy_label
 from mcrs_lab.analysis.runs import EvaluationRow
 
@@ -25,25 +25,34 @@ RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncert
 
 @dataclass(frozen=True)
 class RangeCurve:
-    """A policy's metrics against R_c: ``mean[metric][k]`` at ``ranges[k]`` over ``seeds[k]`` seeds."""
+    """A policy's metrics against R_c: ``mean[metric][k]`` and ``std[metric][k]`` (the spread over seeds,
+    sample std; 0 for one seed) at ``ranges[k]`` over ``seeds[k]`` seeds."""
 
     label: str
     ranges: np.ndarray
     mean: dict[str, np.ndarray]
-    half_width: dict[str, np.ndarray]
+    std: dict[str, np.ndarray]
     seeds: np.ndarray
 
 
 def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
-    """Per policy label, each metric against R_c, averaged over evaluation seeds."""
-    grouped: dict[str, dict[float, list[EvaluationRow]]] = {}
+    """Per policy label, each metric against R_c. A trained policy's seeds are its training runs, each
+    counted by its mean over its evaluation seeds; a heuristic's are the evaluation seeds."""
+    grouped: dict[str, dict[float, dict[str, list[EvaluationRow]]]] = {}
     for row in rows:
-        grouped.setdefault(row.label or policy_label(row.policy), {}).setdefault(row.comm_range, []).append(
-            row
-        )
+        unit = str(row.seed) if row.is_heuristic else (row.run or row.policy)
+        by_range = grouped.setdefault(row.label or policy_label(row.policy), {})
+        by_range.setdefault(row.comm_range, {}).setdefault(unit, []).append(row)
     return {
-        label: _curve(label, by_range, lambda r, m: r.means.get(m)) for label, by_range in grouped.items()
+        label: _curve(label, {rc: list(units.values()) for rc, units in by_range.items()}, _unit_mean)
+        for label, by_range in grouped.items()
     }
+
+
+def _unit_mean(unit: list[EvaluationRow], metric: str) -> float | None:
+    """One seed's value: the mean of its evaluations (a training run evaluated on several seeds)."""
+    values = [v for row in unit if (v := row.means.get(metric)) is not None]
+    return float(np.mean(values)) if values else None
 
 
 def _curve(label: str, by_range: dict, value_of) -> RangeCurve:
@@ -54,7 +63,7 @@ def _curve(label: str, by_range: dict, value_of) -> RangeCurve:
         for r in ranges:
             values = np.array([v for x in by_range[r] if (v := value_of(x, metric)) is not None])
             m.append(values.mean() if len(values) else np.nan)
-            h.append(confidence_half_width(values[:, None])[0] if len(values) > 1 else 0.0)
+            h.append(values.std(ddof=1) if len(values) > 1 else 0.0)
         mean[metric], half[metric] = np.array(m), np.array(h)
     seeds = np.array([len(by_range[r]) for r in ranges])
     return RangeCurve(label, ranges, mean, half, seeds)
@@ -81,13 +90,13 @@ def plot_range_curves(curves: dict[str, RangeCurve], path: Path, title: str) -> 
         for k, (label, c) in enumerate(sorted(curves.items())):
             colour = plt.cm.tab10(k % 10)
             ax.plot(c.ranges, c.mean[metric], "o-", color=colour, label=label, ms=3)
-            lo, hi = c.mean[metric] - c.half_width[metric], c.mean[metric] + c.half_width[metric]
+            lo, hi = c.mean[metric] - c.std[metric], c.mean[metric] + c.std[metric]
             ax.fill_between(c.ranges, lo, hi, color=colour, alpha=0.2)
         ax.set_xlabel("communication range R_c (cells)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(title + "  (mean over seeds, 95 % confidence band)", fontsize=10)
+    fig.suptitle(title + "  (mean over seeds, band: ± std over seeds)", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)

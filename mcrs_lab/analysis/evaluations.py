@@ -1,18 +1,66 @@
 """Evaluations on fixed episodes (``mcrs-eval`` runs and their records) as report rows: the heuristics
 (each evaluation seed one sample) and trained policies (each trained run one sample), and the heuristics as
-the horizontal reference lines of the learning curves."""
+the horizontal reference lines of the learning curves.
+
+A :data:`Layout` names the episodes a number comes from: the task played (the env config), the evaluation
+seed and the number of episodes. Two evaluations with the same layout played the same episodes: a
+learner's periodic evaluation during training (``train.eval_seed``, ``train.eval_episodes``) and
+``mcrs-eval seed=<train.eval_seed> episodes=<train.eval_episodes>`` on the same env config reset to the same
+maps, targets and start positions."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from mcrs.env.config import EnvConfig, with_legacy_values
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Reference, confidence_half_width
 from mcrs_lab.analysis.runs import EvaluationRow
 
 HEURISTIC_ORDER = ("random", "lawnmower", "greedy", "coverage")
+#: (the task as canonical JSON, evaluation seed, episodes): the episodes an evaluation played.
+Layout = tuple[str, int, int]
+#: Env fields that change neither the episodes nor their scores: runtime fields, pictures, a policy's
+#: wider view of its own map (what an agent reads: ``mcrs.policies.policy_env``).
+NOT_THE_TASK = ("num_envs", "device", "expose_beliefs", "invalid_action", "far_view")
+
+
+def task_key(env: Any) -> str | None:
+    """The task an env config describes, as canonical JSON: the fields it predates take the values it was
+    made under, fields added since take today's defaults, numbers compare as floats. None: no env config."""
+    if not isinstance(env, dict) or "name" not in env:
+        return None
+    defaults = {
+        f.name: f.default for f in dataclasses.fields(EnvConfig) if f.default is not dataclasses.MISSING
+    }
+    full = {**defaults, **with_legacy_values(env)[0]}
+    plain = {
+        k: float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+        for k, v in full.items()
+        if k not in NOT_THE_TASK
+    }
+    return json.dumps(plain, sort_keys=True, default=str)
+
+
+def evaluation_layout(row: EvaluationRow) -> Layout | None:
+    """The episodes an ``mcrs-eval`` row played; None where its env config is unknown."""
+    key = task_key(row.env)
+    return None if key is None else (key, int(row.seed), int(row.episodes))
+
+
+def training_layout(config: dict[str, Any]) -> Layout | None:
+    """The episodes a training run's periodic evaluations play (its env, ``train.eval_seed`` and
+    ``train.eval_episodes``); None where its config lacks one of them."""
+    train = config.get("train")
+    key = task_key(config.get("env"))
+    if key is None or not isinstance(train, dict) or "eval_seed" not in train or "eval_episodes" not in train:
+        return None
+    return (key, int(train["eval_seed"]), int(train["eval_episodes"]))
 
 
 def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None) -> dict[str, list[EvaluationRow]]:
@@ -34,6 +82,18 @@ def heuristic_samples(
         f"{policy} (heuristic)": np.array([g.means[name] for g in group if name in g.means])
         for policy, group in _heuristics(evaluations, comm_range).items()
     }
+
+
+def heuristic_layout_values(
+    evaluations: list[EvaluationRow], comm_range: float | None, name: str
+) -> dict[str, tuple[tuple[Layout, float], ...]]:
+    """Per heuristic (``greedy (heuristic)``), its mean of metric ``name`` on each layout it played (rows
+    whose env config is unknown are left out): what a learner on the same episodes is compared with."""
+    out = {}
+    for policy, group in _heuristics(evaluations, comm_range).items():
+        pairs = [(evaluation_layout(g), g.means[name]) for g in group if name in g.means]
+        out[f"{policy} (heuristic)"] = tuple((lay, v) for lay, v in pairs if lay is not None)
+    return out
 
 
 def heuristic_rows(evaluations: list[EvaluationRow], comm_range: float | None) -> list[dict[str, object]]:
@@ -90,6 +150,17 @@ def trained_samples(evaluations: list[EvaluationRow], name: str) -> dict[str, np
     return out
 
 
+def trained_layouts(evaluations: list[EvaluationRow]) -> dict[str, frozenset[Layout]]:
+    """Per trained method, the layouts every one of its runs was evaluated on; empty where a run's env
+    config is unknown or its runs played different episodes."""
+    out: dict[str, frozenset[Layout]] = {}
+    for method, runs in _trained_groups(evaluations).items():
+        sets = {frozenset(evaluation_layout(g) for g in group) for group in runs.values()}
+        only = sets.pop() if len(sets) == 1 else frozenset()
+        out[method] = frozenset() if None in only else only
+    return out
+
+
 def trained_rows(evaluations: list[EvaluationRow]) -> list[dict[str, object]]:
     """Trained policies on fixed evaluation episodes: each run counts by its mean over its evaluation seeds;
     mean and std over the runs (training seeds)."""
@@ -120,7 +191,11 @@ def heuristic_references(
                 half = float(confidence_half_width(values[:, None])[0])
                 out.setdefault(panel, []).append(
                     Reference(
-                        f"{policy} (heuristic)", float(values.mean()), half, len(values), "evaluation seeds"
+                        f"{policy} (heuristic)",
+                        float(values.mean()),
+                        half,
+                        len(values),
+                        "evaluation seeds" if len(values) > 1 else "evaluation seed",
                     )
                 )
     return out

@@ -3,6 +3,7 @@
     mcrs-report outputs/experiments/baselines --out outputs/reports/baselines_map10 --env map10
     mcrs-report outputs/experiments/delta outputs/eval/comm_range --out outputs/reports/delta
     mcrs-report outputs/experiments/baselines --out outputs/reports/tsne --tsne       (figure 9, from saved buffers)
+    mcrs-report results/records/paper/fig9 --out outputs/reports/fig9                 (figure 9, from its record)
     mcrs-report outputs/experiments/baselines --out outputs/reports/b --marl-eval outputs/reports/b/marl_eval.json
 
 It reads every ``mcrs-train`` run and ``mcrs-eval`` result under the paths (see mcrs_lab.analysis.runs),
@@ -26,7 +27,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
   several ranges, and from training runs that differ in ``env.comm_range``;
-- ``tsne.png``, ``tsne.md`` (``--tsne``): figure 9;
+- ``tsne.png``, ``tsne.md``: figure 9, drawn from a t-SNE record (``tsne.npz``, written by a campaign:
+  mcrs_lab.campaign.figure9) found under the paths, or with ``--tsne`` computed from saved buffers;
 - ``evaluations.md``: when the paths hold evaluations only, the heuristics and trained policies evaluated
   by ``mcrs-eval``;
 - ``report.md``: all of it, plus every run that was skipped and why;
@@ -68,6 +70,8 @@ from mcrs_lab.analysis.sensors import sensor_table
 from mcrs_lab.analysis.step_notation import parse_step_list
 from mcrs_lab.analysis.versus import versus_evaluated
 
+TSNE_RECORD = "tsne.npz"
+
 
 def milestone_list(text: str) -> list[int]:
     """--milestones' type: :func:`parse_step_list`, its error a usage error naming the option."""
@@ -104,6 +108,7 @@ def report_comm_range(report: Report) -> bool:
         for k, rc in enumerate(c.ranges):
             row = {"policy": label, "comm_range": float(rc), "seeds": int(c.seeds[k])}
             row.update({f"{m}_mean": float(c.mean[m][k]) for m in cr.RANGE_METRICS})
+            row.update({f"{m}_std": float(c.std[m][k]) for m in cr.RANGE_METRICS})
             rows.append(row)
             table.append(
                 [label, f"{rc:g}", str(c.seeds[k]), *(f"{c.mean[m][k]:.2f}" for m in cr.RANGE_METRICS)]
@@ -164,6 +169,50 @@ def report_tsne(report: Report, samples: int, seed: int) -> None:
     )
     (report.out / "tsne.md").write_text(f"{source_text}\n\n{md}\n")
     report.add("t-SNE of memory states (figure 9)", f"![t-SNE]({png.name})\n\n{source_text}\n\n{md}")
+
+
+def find_tsne_records(paths: list[Path]) -> list[Path]:
+    """The t-SNE records (``tsne.npz``) under ``paths``, each a record or a folder holding them."""
+    found: list[Path] = []
+    for root in paths:
+        if root.is_file() and root.name.endswith(".npz"):
+            found.append(root)
+        elif root.is_dir():
+            found += sorted(p for p in root.rglob(TSNE_RECORD) if p.is_file())
+    return list(dict.fromkeys(found))
+
+
+def report_tsne_record(report: Report, path: Path) -> None:
+    """Figure 9 from a t-SNE record alone."""
+    arrays, meta = tsne.read_npz_record(path, tsne.TSNE_FORMAT)
+    panels = {p["name"]: arrays["xy"][k] for k, p in enumerate(meta["panels"])}
+    scores = {p["name"]: float(p["locality_tsne"]) for p in meta["panels"]}
+    returns = arrays["returns"].astype(np.float64)
+    png = tsne.plot_tsne(panels, returns, scores, report.out / "tsne.png")
+    md = tsne.tsne_table(meta["panels"])
+    states = meta.get("states") or {}
+    embeddings = ", ".join(f"{a}: `{p}`" for a, p in (meta.get("embeddings") or {}).items())
+    source_text = (
+        f"{len(returns)} states drawn from the D_E of `{states.get('run')}` ({states.get('algo')}, "
+        f"{states.get('memory_size')} entries), the same states in every panel; keys of the trained "
+        f"embeddings of {embeddings or 'none'}; record `{path}`. Return locality: mean |H_i - H_j| over "
+        "the 10 nearest neighbours / over random pairs (1 = no relation between distance and return)."
+    )
+    (report.out / "tsne.md").write_text(f"{source_text}\n\n{md}\n")
+    report.add("t-SNE of memory states (figure 9)", f"![t-SNE]({png.name})\n\n{source_text}\n\n{md}")
+
+
+def _tsne_records_of(paths: list[Path], env_name: str | None) -> list[tuple[Path, str]]:
+    """The t-SNE records under ``paths`` with their map (``env_name``: that map's only)."""
+    out = []
+    for path in find_tsne_records(paths):
+        try:
+            _, meta = tsne.read_npz_record(path, tsne.TSNE_FORMAT)
+        except tsne.TsneRecordError as error:
+            raise SystemExit(f"mcrs-report: error: {error}") from None
+        if env_name is None or meta.get("env") == env_name:
+            out.append((path, str(meta.get("env"))))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ CLI
@@ -251,6 +300,15 @@ def make_report(args: argparse.Namespace) -> int:
         raise SystemExit(f"mcrs-report: error: {error}") from None
     training_of_every_map = list(runs.training)  # --marl-eval: every map (a task each); the report keeps one
     env_name = select_map(runs, args.env)
+    tsne_records = _tsne_records_of(args.paths, args.env or env_name)
+    if (env_name is None or (not runs.training and not runs.evaluations)) and tsne_records:
+        env_name = tsne_records[0][1]  # a t-SNE record alone: figure 9
+        report = Report(args.out, env_name, runs, [], args.milestones)
+        for path, env in tsne_records:
+            if env == env_name:
+                report_tsne_record(report, path)
+        print(f"\nreport: {report.write()}", flush=True)
+        return 0
     if env_name is None or (not runs.training and not runs.evaluations):
         reasons = "; ".join(sorted({f"{s.path}: {s.reason}" for s in runs.skipped})) or "none found"
         where = f"map {args.env}" if args.env else "the paths"
@@ -278,7 +336,10 @@ def make_report(args: argparse.Namespace) -> int:
     if sensors is not None:
         (report.out / "sensors.md").write_text(sensors + "\n")
         report.add("The heuristics and the bound by sensor model", sensors)
-    if args.tsne:
+    for path, env in tsne_records:
+        if env == env_name:
+            report_tsne_record(report, path)
+    if args.tsne and not tsne_records:
         try:
             report_tsne(report, args.tsne_samples, args.seed)
         except (ValueError, CheckpointError) as error:  # an empty or unreadable buffer: say so, keep the rest

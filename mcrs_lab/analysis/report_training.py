@@ -8,7 +8,7 @@ from mcrs.experiment.util.tables import markdown, mean_std, write_csv
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
 from mcrs_lab.analysis.claims import CLAIM_Q_TOT, claims_table
 from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_steps, milestone_values
-from mcrs_lab.analysis.evaluations import heuristic_references, heuristic_rows
+from mcrs_lab.analysis.evaluations import Layout, heuristic_references, heuristic_rows, training_layout
 from mcrs_lab.analysis.report_document import Report
 from mcrs_lab.analysis.runs import Skipped, TrainingRun, default_labels, label_fields, run_labels
 from mcrs_lab.analysis.step_notation import format_steps, step_labels
@@ -121,7 +121,10 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
         by_name[CLAIM_Q_TOT] = q_tot  # figure 8b's claim is on the mean Q_tot (a training scalar)
         aliases = default_labels(runs.training)
-        md = claims_table(report.claims, by_name, runs.evaluations, comm_range, budget, aliases=aliases)
+        layouts = {label: _layouts(members) for label, members in groups.items()}
+        md = claims_table(
+            report.claims, by_name, runs.evaluations, comm_range, budget, aliases=aliases, layouts=layouts
+        )
         (report.out / "claims.md").write_text(md + "\n")
         report.add("The paper's claims, checked", md)
     if q_tot:
@@ -153,6 +156,12 @@ def _report_sweeps(
             f"{report.env_name}: episode reward against {symbol}",
         )
         report.add(f"Episode reward against {symbol}", f"![{symbol}]({png.name})\n\n{md}")
+
+
+def _layouts(runs: list[TrainingRun]) -> frozenset[Layout]:
+    """The episodes a method's periodic evaluations played; empty where a run's config does not say."""
+    found = [training_layout(run.config) for run in runs]
+    return frozenset() if None in found else frozenset(found)
 
 
 def report_versus(report: Report, results: list[Versus], title: str) -> None:

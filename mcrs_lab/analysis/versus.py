@@ -1,7 +1,7 @@
 """Learners against the heuristics (``versus.md|csv`` of ``mcrs-report``): for every learner, heuristic and
 evaluation metric, whether the learner ends better, worse or level, and from which env step it is better.
 
-"Ends": the claims' test (:func:`mcrs_lab.analysis.claims.compare`), each seed's mean over the last tenth
+"Ends": the claims' test (:func:`mcrs_lab.analysis.pairwise.compare`), each seed's mean over the last tenth
 of the budget against the heuristic's evaluation seeds, Welch's two-sided t-test at ``ALPHA``. "From which
 step": the first evaluation from which the learner's mean over seeds, averaged over the tenth of the budget
 before each evaluation (the test's window, sliding; step 0's evaluation, the untrained policy, stands
@@ -20,8 +20,9 @@ import numpy as np
 from mcrs.env.metrics import METRIC_BETTER, METRIC_LABELS, METRICS
 from mcrs.experiment.util.tables import markdown
 from mcrs.viz.learning_curves import Curve
-from mcrs_lab.analysis.claims import END_FRACTION, Samples, compare, window_samples
+from mcrs_lab.analysis.claims import END_FRACTION, window_samples
 from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
+from mcrs_lab.analysis.pairwise import Samples, compare
 from mcrs_lab.analysis.runs import EvaluationRow
 from mcrs_lab.analysis.step_notation import format_steps
 

@@ -6,6 +6,7 @@
     mcrs-campaign run --hours 2.5 --fill --finish-first  the same, the runs that can end by then started first
     mcrs-campaign run --hours 2 --jobs 1 --threads 2 --only <point>   one slow point on both cores
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
+    mcrs-campaign tsne                                  the file's t-SNE records (figure 9) the runs allow
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
 
@@ -25,6 +26,7 @@ from mcrs.experiment.run import checkpoint as ckpt
 from mcrs.experiment.run.rundir import describe_os_error
 from mcrs.experiment.util.tables import markdown
 from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
+from mcrs_lab.campaign import figure9
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
 from mcrs_lab.campaign.pace import left_line
@@ -95,6 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--evaluation", action="append", default=[], help="only these evaluations (default: all)"
     )
     evaluation.add_argument("--dry-run", action="store_true", help="list the commands, run nothing")
+    tsne = sub.add_parser(
+        "tsne", help="record the states and t-SNE of the file's tsne entries (figure 9) that the runs allow"
+    )
+    tsne.add_argument("--matrix", type=Path, default=DEFAULT_MATRIX, help="the campaign file")
+    tsne.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs are")
+    tsne.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
     record = sub.add_parser("record", help="record mcrs-train runs or mcrs-eval results")
     record.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     record.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
@@ -142,6 +150,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     print(left_line(campaign.left_s(states), args.jobs))
     for line in summary(_evaluations(args), points, args.records):
         print(line)
+    for line in figure9.summary(_tsne(args), args.records):
+        print(line)
     return 0
 
 
@@ -169,7 +179,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     points, total = _points(args)
     evaluations = [] if args.no_evaluate else _evaluations(args)
     campaign = Campaign(
-        points, args.outputs, args.records, total, args.jobs, not args.keep_replay, evaluations, args.threads
+        points,
+        args.outputs,
+        args.records,
+        total,
+        args.jobs,
+        not args.keep_replay,
+        evaluations,
+        args.threads,
+        _tsne(args),
+        make_tsne=not args.no_evaluate,
     )
     if args.dry_run:
         print("\n".join(campaign.dry_run(args.hours, args.fill, args.finish_first)))
@@ -189,6 +208,19 @@ def _evaluations(args: argparse.Namespace) -> list[Evaluation]:
             f"--evaluation={','.join(unknown)}: allowed values are {', '.join(names) or 'none'}"
         )
     return [e for e in evaluations if not chosen or e.name in chosen]
+
+
+def _tsne(args: argparse.Namespace) -> list[figure9.TsneEntry]:
+    """The campaign file's tsne entries, resolved against all of its points."""
+    return figure9.load_tsne(args.matrix, load_matrix(args.matrix)[0])
+
+
+def cmd_tsne(args: argparse.Namespace) -> int:
+    """Every t-SNE record the finished runs allow; 0, or 1 if one failed."""
+    lines = figure9.pending(_tsne(args), args.outputs, args.records)
+    for line in lines:
+        print(line, flush=True)
+    return 1 if any(line.startswith("failed: ") for line in lines) else 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -266,11 +298,12 @@ def main(argv: list[str] | None = None) -> int:
             "status": cmd_status,
             "run": cmd_run,
             "evaluate": cmd_evaluate,
+            "tsne": cmd_tsne,
             "record": cmd_record,
             "report": cmd_report,
         }
         return commands[args.command](args)
-    except (MatrixError, CampaignBusy, RecordError) as error:
+    except (MatrixError, CampaignBusy, RecordError, figure9.tsne.TsneRecordError) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None
 
 

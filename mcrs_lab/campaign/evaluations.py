@@ -2,8 +2,12 @@
 
 A question asked of trained policies after training, such as "does the no-fly shield at test time make
 a learner beat the greedy heuristic?", is a named entry under ``evaluations:`` of the campaign file: the
-figures whose finished points it evaluates, the heuristics evaluated beside them, the episodes and
-evaluation seeds, and its variants (each a list of ``mcrs-eval`` overrides). Each (variant, policy) is
+figures whose finished points it evaluates (``algo``: only these algorithms' points), the heuristics
+evaluated beside them, the episodes and evaluation seeds, and its variants (each a list of ``mcrs-eval``
+overrides). With ``trained: false`` only the heuristics run, on the maps of those figures: at
+``seeds: [1000000]`` and ``episodes: 32`` they play the episodes every learner's periodic evaluation plays
+during training (``train.eval_seed`` and ``train.eval_episodes``), so a learner and a heuristic are
+compared on the same layouts. Each (variant, policy) is
 one ``mcrs-eval -m`` over the seeds on the point's map; each seed's result is recorded under
 
     <records>/<evaluation>/<variant>/eval/<map>/<policy>_rc<R_c>_seed<k>.json
@@ -34,9 +38,17 @@ from mcrs_lab.analysis.records import (
     write_record,
 )
 from mcrs_lab.analysis.runs import is_heuristic_policy, read_record
-from mcrs_lab.campaign.matrix import MAX_SEED, MatrixError, Point, check_overrides, load_campaign_file, plain
+from mcrs_lab.campaign.matrix import (
+    MAX_SEED,
+    MatrixError,
+    Point,
+    check_overrides,
+    figure_option,
+    load_campaign_file,
+    plain,
+)
 
-EVALUATION_KEYS = {"title", "of", "heuristics", "episodes", "seeds", "variants"}
+EVALUATION_KEYS = {"title", "of", "algo", "heuristics", "episodes", "seeds", "variants", "trained"}
 #: What ``EvaluationJob.command`` sets for each job: a variant's overrides may not.
 EVAL_KEYS = ("policy", "env", "episodes", "seed", "figures")
 
@@ -52,6 +64,12 @@ class Evaluation:
     episodes: int
     seeds: tuple[int, ...]
     variants: tuple[tuple[str, tuple[str, ...]], ...]  # (variant, its mcrs-eval overrides)
+    algos: tuple[str, ...] = ()  # only these algorithms' points (empty: every algorithm of the figures)
+    trained: bool = True  # False: the heuristics alone, on the maps of the figures in ``of``
+
+    def evaluates(self, point: Point) -> bool:
+        """Whether ``point`` is one of the finished policies this evaluation asks for."""
+        return bool(set(point.figures) & set(self.of)) and (not self.algos or point.algo in self.algos)
 
 
 @dataclass(frozen=True)
@@ -135,6 +153,7 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             raise MatrixError(
                 f"{where}: of={list(of)}: name figures of the file ({', '.join(sorted(figures))})"
             )
+        algos = tuple(figure_option("algo", a, where) for a in _as_tuple(entry.get("algo", ())))
         variants = entry.get("variants") or {}
         if not isinstance(variants, dict) or not variants:
             raise MatrixError(
@@ -157,6 +176,11 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
             isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_SEED for s in seeds
         ):
             raise MatrixError(f"{where}: seeds={list(seeds)}: whole numbers in [0, 2**63 - 1]")
+        trained = entry.get("trained", True)
+        if not isinstance(trained, bool):
+            raise MatrixError(f"{where}: trained={trained!r}: true or false")
+        if not trained and not entry.get("heuristics"):
+            raise MatrixError(f"{where}: trained: false needs heuristics to evaluate")
         out.append(
             Evaluation(
                 name=str(name),
@@ -169,6 +193,8 @@ def load_evaluations(path: Path, figures: set[str]) -> list[Evaluation]:
                     (str(v), check_overrides(ov or (), f"{where}: variant {v}", EVAL_KEYS))
                     for v, ov in variants.items()
                 ),
+                algos=algos,
+                trained=trained,
             )
         )
     return out
@@ -193,14 +219,14 @@ def plan(
     jobs: list[EvaluationJob] = []
     left_out: list[str] = []
     for evaluation in evaluations:
-        chosen = [p for p in points if set(p.figures) & set(evaluation.of)]
+        chosen = [p for p in points if evaluation.evaluates(p)]
         policies: list[tuple[str, str, str, tuple[str, ...]]] = []  # (map, policy, label, settings)
         for env in dict.fromkeys(p.env for p in chosen):
             # The heuristics share the scenario overrides that every point of the map has (a penalty rule).
             on_map = [{o for o in p.overrides if o.startswith("env.")} for p in chosen if p.env == env]
             shared = tuple(sorted(set.intersection(*on_map)))
             policies += [(env, h, h, shared) for h in evaluation.heuristics]
-        for point in chosen:
+        for point in chosen if evaluation.trained else ():
             record_path = point.record_path(records)
             record = read_record(record_path) if record_path.is_file() else None
             if record is None or record.get("status") != "finished":

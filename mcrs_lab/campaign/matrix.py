@@ -24,7 +24,7 @@ from mcrs_lab.analysis.records import point_name, swept_fields
 #: a config group.
 DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
 FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also", "seeds"}
-FILE_KEYS = {"budget", "seeds", "figures", "overrides", "evaluations"}
+FILE_KEYS = {"budget", "seeds", "figures", "overrides", "evaluations", "tsne"}
 
 
 class MatrixError(ValueError):
@@ -51,7 +51,8 @@ def load_campaign_file(path: Path) -> dict[str, Any]:
         raise MatrixError(str(error)) from None
     if not isinstance(spec, dict) or "figures" not in spec:
         raise MatrixError(
-            f"{path}: not a campaign file: a mapping with figures (and budget, seeds, overrides, evaluations)"
+            f"{path}: not a campaign file: a mapping with figures (and budget, seeds, overrides, evaluations, "
+            "tsne)"
         )
     unknown = sorted(str(k) for k in set(spec) - FILE_KEYS)
     if unknown:
@@ -66,6 +67,10 @@ def _option(group: str, value: Any, where: str) -> str:
     if name not in allowed:
         raise MatrixError(f"{where}: {group}={name!r}: allowed values are {', '.join(allowed)}")
     return name
+
+
+#: A config group's option as a campaign file names it (an evaluation's ``algo`` too).
+figure_option = _option
 
 
 def _seed(value: Any, where: str) -> int:

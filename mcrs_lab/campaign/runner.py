@@ -13,7 +13,9 @@ Each child runs in its own session (process group), with one torch thread (``thr
 exit status, commit, machine). On SIGINT or SIGTERM the children get SIGINT, are waited for, and are
 recorded as stopped: their last checkpoint stays, and the next ``run`` resumes them. A run that
 finishes is then evaluated as the campaign file's ``evaluations:`` ask (mcrs_lab.campaign.evaluations),
-while the other jobs go on.
+while the other jobs go on. Where a ``tsne:`` entry samples a finished run's episodic memory, its states
+are recorded before the run is pruned, and the t-SNE once its embedding runs have finished too
+(mcrs_lab.campaign.figure9).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from mcrs_lab.analysis.records import (
     make_record,
     write_record,
 )
+from mcrs_lab.campaign import figure9
 from mcrs_lab.campaign.evaluations import Evaluation, plan, run_pending
 from mcrs_lab.campaign.matrix import Point
 from mcrs_lab.campaign.pace import Pace, left_line
@@ -51,6 +54,9 @@ STOP_GRACE_S = 120.0
 #: With ``fill``: no start with less time than this left before the deadline (a run's set-up, its
 #: first evaluation and its checkpoint would be most of it).
 FILL_FLOOR_S = 600.0
+#: No t-SNE (figure 9) with less time than this left before the deadline: at one thread beside two runs, a
+#: 20k-state panel took 385 s here, four panels about half an hour; a later run makes it.
+TSNE_FLOOR_S = 3600.0
 LOG = "campaign.log"
 #: Under the records folder: one lock file per point being trained, shared by every runner that records
 #: there (the lock per outputs folder cannot see a runner with other --outputs).
@@ -149,11 +155,16 @@ class Campaign:
         prune: bool = True,
         evaluations: list[Evaluation] | None = None,
         threads: int = 1,
+        tsne: list[figure9.TsneEntry] | None = None,
+        make_tsne: bool = True,
     ) -> None:
         self.points, self.outputs, self.records = points, outputs, records
         self.total, self.jobs, self.prune, self.threads = total_env_steps, jobs, prune, threads
         self.evaluations = evaluations or []
+        # the states of a tsne entry are always sampled before pruning; the t-SNE itself with make_tsne
+        self.tsne, self.make_tsne = tsne or [], make_tsne
         self.stop_signal: int | None = None
+        self.deadline = float("inf")  # set by run
         self.failed = 0  # runs of this campaign that ended with a non-zero exit status (not stopped by it)
 
     def status(self) -> list[Progress]:
@@ -261,7 +272,7 @@ class Campaign:
             return self._run(hours, fill, finish_first)
 
     def _run(self, hours: float, fill: bool, finish_first: bool) -> int:
-        deadline = time.time() + hours * 3600
+        deadline = self.deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
             self._record(state.point)
@@ -420,6 +431,8 @@ class Campaign:
         _print(f"{outcome} {path} ({record['status']} at {record['checkpoint_env_steps']} env steps)")
         if record["status"] != "finished":
             return
+        for line in figure9.before_prune(self.tsne, point, self.outputs, self.records):
+            _print(line)
         if self.prune:
             before, after = ckpt.prune_bulk(run_dir)
             if after < before:
@@ -430,6 +443,14 @@ class Campaign:
             run_pending(
                 plan(self.evaluations, [point], self.records, self.outputs)[0], self.outputs, self.records
             )
+        if self.tsne and self.make_tsne and self.stop_signal is None:
+            if self.deadline - time.time() < TSNE_FLOOR_S:
+                _print(
+                    f"tsne: not now ({_hours(TSNE_FLOOR_S)} needed before the deadline); a later run makes it"
+                )
+                return
+            for line in figure9.pending(self.tsne, self.outputs, self.records):
+                _print(line)
 
     def _stop(self, running: list[Job]) -> None:
         for job in running:
