@@ -35,7 +35,6 @@ from mcrs.experiment.commands.cli import one_line_errors, remove_refused_dirs
 from mcrs.experiment.run.rundir import describe_os_error, register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.training import evaluation
-from mcrs.experiment.training.evaluation import final_metrics
 from mcrs.experiment.util.messages import ranked
 from mcrs.experiment.util.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
@@ -165,7 +164,7 @@ def episode_metrics(
     # the environments are seeded once: each further batch goes on from where the generator stands
     step = None if progress is None else (lambda: progress.update(1))
     chunks = [
-        final_metrics(env, policy, seed if k == 0 else None, on_step=step)
+        evaluation.final_metrics(env, policy, seed if k == 0 else None, on_step=step)
         for k in range(math.ceil(episodes / batch))
     ]
     return {name: torch.cat([chunk[name] for chunk in chunks])[:episodes] for name in METRICS}
