@@ -38,7 +38,7 @@ def default_episodes_seed(names: list[str]) -> tuple[int, int]:
 
 def policy_label(name: str) -> str:
     """A policy as tables name it: a heuristic by its name, a trained run by its run name (its folder),
-    with its algorithm when the name does not hold it (``2026-11-28_10-00-00_4711_seed0 (qmix)``), a
+    with its algorithm when the name does not hold it (``<date>_<time>_<pid>_seed0 (qmix)``), a
     checkpoint file of a run as ``<run>/<file stem>`` and an exported agent by its file name."""
     from mcrs.policies.trained import is_exported, looks_like_checkpoint
 
