@@ -47,7 +47,7 @@ def reference_lookups(memory: EpisodicMemory, keys: torch.Tensor) -> tuple[str, 
         )
     stored = memory.index.standardise(memory.keys[slots]).numpy()
     returns = memory.returns[slots].numpy()
-    tolerance = memory.delta
+    tolerance = memory.tolerance
     start = time.perf_counter()
     tree = cKDTree(stored)
     build = time.perf_counter() - start
@@ -103,7 +103,7 @@ def kdtree_batched(
     slots = memory.live_slots()
     stored = memory.index.standardise(memory.keys[slots]).numpy()
     z = memory.index.standardise(keys).numpy()
-    radius = memory.delta * (1 + 1e-6)  # float64 tree vs float32 test: the exact test decides
+    radius = memory.tolerance * (1 + 1e-6)  # float64 tree vs float32 test: the exact test decides
     start = time.perf_counter()
     tree = cKDTree(stored)
     build = time.perf_counter() - start
@@ -138,7 +138,7 @@ def faiss_flat(memory: EpisodicMemory, keys: torch.Tensor) -> dict[str, float | 
     slots = memory.live_slots()
     stored = np.ascontiguousarray(memory.index.standardise(memory.keys[slots]).numpy())
     z = np.ascontiguousarray(memory.index.standardise(keys).numpy())
-    radius = memory.delta * (1 + 1e-6)
+    radius = memory.tolerance * (1 + 1e-6)
     box = memory.shape == "box"
     index = faiss.IndexFlat(stored.shape[1], faiss.METRIC_Linf if box else faiss.METRIC_L2)
     index.add(stored)

@@ -183,7 +183,7 @@ def evaluate(self):  # "window": after the last batch's checkpoint, before the f
     return real_evaluate(self)
 
 def save(self, name="last.pt"):  # "evaluated": the final evaluation logged, not yet saved
-    if point == "evaluated" and self.state.evaluated_at == total:
+    if point == "evaluated" and self.evaluated_at == total:
         kill()
     return real_save(self, name)
 
