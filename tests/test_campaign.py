@@ -325,10 +325,10 @@ def test_fill_keeps_the_slots_busy_and_stops_the_runs_at_the_deadline(
     outputs, records = tmp_path / "outputs", tmp_path / "records"
     args = ["--matrix", str(matrix), "--outputs", str(outputs), "--records", str(records)]
     monkeypatch.setattr(runner, "FILL_FLOOR_S", 0.0)  # the budget below is under the 10-minute floor
-    # 144 s: long enough for the child to be training when it is stopped, far too short for its budget.
-    assert campaign_main(["run", *args, "--hours", "0.04", "--fill"]) == 0
+    # 72 s: long enough for the child to be training when it is stopped, far too short for its budget.
+    assert campaign_main(["run", *args, "--hours", "0.02", "--fill"]) == 0
     out = capsys.readouterr().out
-    assert f"started {point.id} " in out and "campaign: the 0.04 h are over: stopping 1 runs (--fill)" in out
+    assert f"started {point.id} " in out and "campaign: the 0.02 h are over: stopping 1 runs (--fill)" in out
     assert "campaign: 0 runs ended, 1 stopped at the deadline (resumable), 0 not started" in out
     record = read_record(point.record_path(records))
     assert record["status"] == "stopped" and 0 < record["checkpoint_env_steps"] < 200_000
