@@ -143,6 +143,10 @@ BAD_CAMPAIGN_FILES: list[tuple[str, str]] = [
     ("root:x:0:0:root:/root:/bin/bash\n", "not a campaign file"),  # any file, read as a mapping
     (POINTS.replace("figures:", "figure:"), "not a campaign file"),
     (POINTS + "evaluation: {}\n", "unknown keys ['evaluation']; allowed: ['budget', 'evaluations',"),
+    ("name: '../../x'\n" + POINTS, "name='../../x': must be a plain name"),  # it names the roots
+    ("name: /etc\n" + POINTS, "name='/etc': must be a plain name"),
+    ("name: '..'\n" + POINTS, "name='..': must be a plain name"),
+    ("name: [a]\n" + POINTS, "name"),
     *BAD_CAMPAIGN_OVERRIDES,
     (ALIAS_BOMB, "holds YAML anchors or aliases"),
     (DEEP, "is nested deeper than 32 levels"),

@@ -19,13 +19,15 @@ from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
 from mcrs_lab.campaign import runner
 from mcrs_lab.campaign.cli import main as campaign_main
-from mcrs_lab.campaign.matrix import MatrixError, load_matrix, select
+from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, campaign_roots, load_matrix, select
 from tests.test_report import read_csv
 from tests.train_helpers import compose_config
 
 pytestmark = pytest.mark.slow
 
-NEAR_MATRIX = Path(__file__).resolve().parents[1] / "mcrs_lab" / "campaign" / "section6_near.yaml"
+CAMPAIGNS = Path(__file__).resolve().parents[1] / "mcrs_lab" / "campaign"
+NEAR_MATRIX = CAMPAIGNS / "section6_near.yaml"
+LURED_MATRIX = CAMPAIGNS / "section6.yaml"
 OLD_TASK = ("env.safety_rule=near", "algo.time_limit=bootstrap")
 
 TWO_POINTS = """
@@ -54,7 +56,7 @@ def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
     """The landed campaign: the paper's penalty and horizon (the defaults), and the no-fly and r2 reading it
     ran under, which the defaults no longer are (docs/ENVIRONMENT.md, "No-fly cells and the discovery
     reward"): every point says so in its overrides."""
-    points, titles = load_matrix()
+    points, titles = load_matrix(LURED_MATRIX)
     assert list(titles) == ["fig7", "table4", "fig6", "fig8"]
     assert len(points) == 21 + 9 + 18 + 6 and len({p.id for p in points}) == len(points)
     assert all(p.budget == "campaign" for p in points)
@@ -77,6 +79,32 @@ def test_section6_matrix_on_the_papers_task_and_its_shared_points() -> None:
     cfg = compose_config("algo=emu", "env=map20", tiny=False)
     assert cfg.algo.incentive_threshold == 365.0 and cfg.env.safety_rule == "enter"
     assert str(cfg.algo.time_limit) == "terminal"
+
+
+def test_a_campaign_files_name_chooses_its_roots_and_the_default_file_is_the_papers(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """Without --records and --outputs a file named ``probe`` trains in outputs/probe/ and records in
+    results/records/probe/; a file without a name keeps results/records/ and outputs/campaign/; the
+    flags win over both."""
+    assert campaign_roots(DEFAULT_MATRIX) == (Path("results/records/paper"), Path("outputs/paper"))
+    assert load_matrix()[1].keys() == load_matrix(CAMPAIGNS / "section6_paper.yaml")[1].keys()
+    assert campaign_roots(LURED_MATRIX) == (Path("results/records"), Path("outputs/campaign"))
+    monkeypatch.chdir(tmp_path)
+    Path("m.yaml").write_text("name: probe\n" + TWO_POINTS)
+    assert campaign_main(["run", "--matrix", "m.yaml", "--hours", "1", "--dry-run"]) == 0
+    dirs = [w.split("=", 1)[1] for w in capsys.readouterr().out.split() if w.startswith("hydra.run.dir=")]
+    assert dirs == [f"outputs/probe/comm_range/smoke/map10_qmix_rc{r}_seed0" for r in (0, 2)]
+    record = Path("results/records/probe/comm_range/smoke/map10_qmix_rc0_seed0.json")
+    fields = {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x"}
+    write_record(record, {**fields, **RECORD_FIELDS, "status": "finished"})
+    campaign_main(["status", "--matrix", "m.yaml"])
+    assert "1 done" in capsys.readouterr().out
+    campaign_main(["status", "--matrix", "m.yaml", "--records", "elsewhere", "--outputs", "other"])
+    assert "0 done" in capsys.readouterr().out
+    Path("m.yaml").write_text(TWO_POINTS)
+    campaign_main(["run", "--matrix", "m.yaml", "--hours", "1", "--dry-run"])
+    assert "hydra.run.dir=outputs/campaign/comm_range/smoke/" in capsys.readouterr().out
 
 
 def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:

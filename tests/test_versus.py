@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from mcrs.viz.learning_curves import curve_of
+from mcrs_lab.analysis.evaluations import task_key
 from mcrs_lab.analysis.runs import EvaluationRow
 from mcrs_lab.analysis.versus import better_since, versus, versus_evaluated, versus_table
 
@@ -74,12 +76,38 @@ def test_versus_judges_every_learner_against_every_heuristic() -> None:
     lines = [[c.strip() for c in line.strip("|").split("|")] for line in md.splitlines()]
     assert lines[0] == ["metric", "method", "greedy", "coverage"]
     by_method = {tuple(line[:2]): line[2:] for line in lines[2:]}
-    assert by_method["episode reward", "good"][0] == f"**better** (p = {win.p:.3f}) from 40"
+    assert by_method["episode reward", "good"][0] == f"**better** (p = {win.p:.3f}, other episodes) from 40"
     assert by_method["episode reward", "short"] == ["not run to the end", "not run to the end"]
     assert by_method["collisions", "good"][1] == "-"
     assert {(r["metric"], r["method"], r["heuristic"], r["outcome"]) for r in rows} >= {
         ("episode_reward", "bad", "greedy (heuristic)", "worse")
     }
+
+
+def test_a_heuristic_on_the_learners_own_episodes_is_one_score_the_seeds_are_tested_against() -> None:
+    """The heuristic played the learners' evaluation episodes once: a Welch test would have one number on
+    its side (no test); the seeds are tested against its score on those episodes instead."""
+    env = {"name": "map20"}
+    layout = (task_key(env), 1_000_000, 32)
+    assert layout[0] is not None
+    heuristic = EvaluationRow(
+        Path("/eval/greedy"), "greedy", "map20", 5.0, 1_000_000, 32, {"episode_reward": 5.0}, env=env
+    )
+    good = _curve(*([0, 1, 2, 3, 6, 6, 6, 6, 6, 6, 6 + d] for d in (0.1, 0.2, 0.3)))
+    curves = {"eval/episode_reward": {"good": good}}
+    (paired,) = versus(curves, ["good"], [heuristic], 5.0, 100, {"good": frozenset({layout})})
+    assert (paired.outcome, paired.test, paired.heuristic_mean, paired.since) == (
+        "better",
+        "one-sample",
+        5.0,
+        40,
+    )
+    window_means = [6.05, 6.1, 6.15]  # each seed over the last tenth: its evaluations at 90 and 100
+    assert paired.p == pytest.approx(stats.ttest_1samp(window_means, 5.0).pvalue)
+    assert paired.text() == f"**better** (p = {paired.p:.3f}) from 40"
+    other = (task_key({"name": "map20", "comm_range": 3}), 1_000_000, 32)  # another task: other episodes
+    (unpaired,) = versus(curves, ["good"], [heuristic], 5.0, 100, {"good": frozenset({other})})
+    assert (unpaired.outcome, unpaired.test) == ("one seed", "none")
 
 
 def test_trained_policies_on_fixed_episodes_count_one_sample_per_training_run() -> None:

@@ -20,7 +20,8 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   when delta was swept, and on map20 (with the paper's table 4 beside ours) wherever a memory method
   ran (mcrs_lab.analysis.table4);
 - ``versus.md|csv``: every learner against every heuristic on every metric: better, worse or level at
-  the end (Welch over seeds) and from which env step it is better (mcrs_lab.analysis.versus); for
+  the end (one-sample test against a heuristic's score on the learners' own episodes, Welch over seeds where
+  it played others) and from which env step it is better (mcrs_lab.analysis.versus); for
   evaluations only, every trained policy against the heuristics evaluated with it;
 - ``claims.md``: the paper's claims about this map (``--claims``, default
   ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
@@ -356,7 +357,8 @@ def make_report(args: argparse.Namespace) -> int:
         report_versus(
             report,
             versus_evaluated(runs.evaluations),
-            "Trained policies against the heuristics (Welch over trained runs, p < 0.05)",
+            "Trained policies against the heuristics (each trained run one sample, p < 0.05: one-sample "
+            "against the heuristic's score on the same episodes, Welch where it played others)",
         )
         if report.claims and args.claims is not None:  # the paper's claims are about training curves
             md = claims_table(report.claims, {}, runs.evaluations, None, 0, "on the same fixed episodes")

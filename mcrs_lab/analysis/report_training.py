@@ -110,10 +110,12 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
     )
     _report_milestones(report, groups, panels["episode reward"], order)
     budget = max(int(c.steps[-1]) for c in panels["episode reward"].values())
+    layouts = {label: _layouts(members) for label, members in groups.items()}
     report_versus(
         report,
-        versus(finals, order, runs.evaluations, comm_range, budget),
-        "Learners against the heuristics (last tenth of the budget, Welch p < 0.05)",
+        versus(finals, order, runs.evaluations, comm_range, budget, layouts),
+        "Learners against the heuristics (last tenth of the budget, p < 0.05: one-sample against the "
+        "heuristic's score on the learners' episodes, Welch where it played others)",
     )
     _report_sweeps(report, groups, panels["episode reward"], budget)
     q_tot = aggregate(groups, Q_TOT, [])
@@ -121,7 +123,6 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
         by_name = {metric.split("/")[-1]: curves for metric, curves in finals.items()}
         by_name[CLAIM_Q_TOT] = q_tot  # figure 8b's claim is on the mean Q_tot (a training scalar)
         aliases = default_labels(runs.training)
-        layouts = {label: _layouts(members) for label, members in groups.items()}
         md = claims_table(
             report.claims, by_name, runs.evaluations, comm_range, budget, aliases=aliases, layouts=layouts
         )

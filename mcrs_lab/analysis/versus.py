@@ -1,19 +1,20 @@
 """Learners against the heuristics (``versus.md|csv`` of ``mcrs-report``): for every learner, heuristic and
 evaluation metric, whether the learner ends better, worse or level, and from which env step it is better.
 
-"Ends": the claims' test (:func:`mcrs_lab.analysis.pairwise.compare`), each seed's mean over the last tenth
-of the budget against the heuristic's evaluation seeds, Welch's two-sided t-test at ``ALPHA``. "From which
+"Ends": each seed's mean over the last tenth of the budget, tested as the claims test a pair
+(:func:`mcrs_lab.analysis.pairwise.pairwise_test`, two-sided, at ``ALPHA``, no correction): against the
+heuristic's score on the learner's own evaluation episodes where the heuristic played them (one-sample
+t-test), else against the heuristic's evaluation seeds (Welch; the cell says "other episodes"). "From which
 step": the first evaluation from which the learner's mean over seeds, averaged over the tenth of the budget
-before each evaluation (the test's window, sliding; step 0's evaluation, the untrained policy, stands
-for itself alone), stays better than the heuristic's mean to the end; a learner that crossed back and
-forth is dated by its last crossing. Which way is better is the metric's
-(:data:`mcrs.env.metrics.METRIC_BETTER`). Trained policies evaluated on fixed episodes (``mcrs-eval``)
-are judged the same way, each training run one sample, without a date."""
+before each evaluation (step 0's evaluation, the untrained policy, stands alone), stays better than the
+heuristic's score to the end; a learner that crossed back and forth is dated by its last crossing. Which
+way is better is the metric's (:data:`mcrs.env.metrics.METRIC_BETTER`). Trained policies evaluated on
+fixed episodes (``mcrs-eval``) are judged the same way, each training run one sample, without a date."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -21,8 +22,14 @@ from mcrs.env.metrics import METRIC_BETTER, METRIC_LABELS, METRICS
 from mcrs.experiment.util.tables import markdown
 from mcrs.viz.learning_curves import Curve
 from mcrs_lab.analysis.claims import END_FRACTION, window_samples
-from mcrs_lab.analysis.evaluations import heuristic_samples, trained_samples
-from mcrs_lab.analysis.pairwise import Samples, compare
+from mcrs_lab.analysis.evaluations import (
+    Layout,
+    heuristic_layout_values,
+    heuristic_samples,
+    trained_layouts,
+    trained_samples,
+)
+from mcrs_lab.analysis.pairwise import Samples, pairwise_test
 from mcrs_lab.analysis.runs import EvaluationRow
 from mcrs_lab.analysis.step_notation import format_steps
 
@@ -38,10 +45,11 @@ class Versus:
     heuristic: str
     metric: str
     outcome: str  # better | worse | level | one seed | unfinished
-    p: float  # Welch's p-value (NaN when not tested)
+    p: float  # the test's two-sided p-value (NaN when not tested)
     method_mean: float
-    heuristic_mean: float
+    heuristic_mean: float  # its score on the learner's episodes, or its mean over its evaluation seeds
     since: int | None = None  # env step from which the learner stays better (only when it ends better)
+    test: str = "none"  # one-sample (the learner's episodes) | welch (other episodes) | none
 
     def text(self) -> str:
         if self.outcome == "unfinished":
@@ -50,7 +58,8 @@ class Versus:
             return "one seed"
         word = f"**{self.outcome}**" if self.outcome == "better" else self.outcome
         since = "" if self.since is None else f" from {format_steps(self.since)}"
-        return f"{word} (p = {self.p:.3f}){since}"
+        other = ", other episodes" if self.test == "welch" else ""
+        return f"{word} (p = {self.p:.3f}{other}){since}"
 
 
 def better_since(curve: Curve, target: float, better: str, window: float) -> int | None:
@@ -75,16 +84,20 @@ def versus(
     evaluations: list[EvaluationRow],
     comm_range: float | None,
     budget: int,
+    layouts: dict[str, frozenset[Layout]] | None = None,
 ) -> list[Versus]:
     """Every learner of ``order`` against every heuristic evaluated at ``comm_range``, on every metric both
-    have (``curves``: ``eval/<metric>`` -> label -> curve), metric by metric in METRICS' order."""
+    have (``curves``: ``eval/<metric>`` -> label -> curve), metric by metric in METRICS' order.
+    ``layouts``: per label, the episodes its periodic evaluations played (empty or absent: unknown)."""
     out = []
     for metric in METRICS:
         by_label = curves.get(f"eval/{metric}", {})
-        heuristics = heuristic_samples(evaluations, comm_range, metric)
+        heuristics = _heuristics(evaluations, comm_range, metric)
         for label in (label for label in order if label in by_label):
             curve = by_label[label]
-            ours = window_samples(curve, "end", budget)
+            ours = replace(
+                window_samples(curve, "end", budget), layouts=(layouts or {}).get(label, frozenset())
+            )
             out += _against(label, ours, metric, heuristics, curve, END_FRACTION * budget)
     return out
 
@@ -93,18 +106,29 @@ def versus_evaluated(evaluations: list[EvaluationRow]) -> list[Versus]:
     """Every trained policy evaluated on fixed episodes (each training run one sample: its mean over the
     evaluation seeds) against every heuristic evaluated with it, on every metric; no date (no curve)."""
     out = []
+    layouts = trained_layouts(evaluations)
     for metric in METRICS:
-        heuristics = heuristic_samples(evaluations, None, metric)
+        heuristics = _heuristics(evaluations, None, metric)
         for label, values in trained_samples(evaluations, metric).items():
-            out += _against(label, Samples(label, values), metric, heuristics)
+            ours = Samples(label, values, layouts=layouts.get(label, frozenset()))
+            out += _against(label, ours, metric, heuristics)
     return out
+
+
+def _heuristics(evaluations: list[EvaluationRow], comm_range: float | None, metric: str) -> list[Samples]:
+    """Each heuristic's evaluation seeds and its score on every layout it played."""
+    on_layouts = heuristic_layout_values(evaluations, comm_range, metric)
+    return [
+        Samples(name, values, on_layouts=on_layouts.get(name, ()), heuristic=True)
+        for name, values in heuristic_samples(evaluations, comm_range, metric).items()
+    ]
 
 
 def _against(
     label: str,
     ours: Samples,
     metric: str,
-    heuristics: dict[str, np.ndarray],
+    heuristics: list[Samples],
     curve: Curve | None = None,
     window: float = 0.0,
 ) -> list[Versus]:
@@ -112,16 +136,21 @@ def _against(
     better."""
     better = METRIC_BETTER[metric]
     out = []
-    for name, values in heuristics.items():
-        if not len(values):
+    for heuristic in heuristics:
+        if not len(heuristic.values):
             continue
-        target = float(values.mean())
         if not ours.complete or not len(ours.values):
-            out.append(Versus(label, name, metric, "unfinished", math.nan, math.nan, target))
+            out.append(
+                Versus(label, heuristic.label, metric, "unfinished", math.nan, math.nan, heuristic.mean)
+            )
             continue
-        outcome, p = compare(ours, Samples(name, values), better)
-        since = better_since(curve, target, better, window) if outcome == "holds" and curve else None
-        out.append(Versus(label, name, metric, OUTCOME_WORDS[outcome], p, ours.mean, target, since))
+        result = pairwise_test(ours, heuristic, better)
+        target = result.score if result.test == "one-sample" else heuristic.mean
+        since = better_since(curve, target, better, window) if result.outcome == "holds" and curve else None
+        word = OUTCOME_WORDS[result.outcome]
+        out.append(
+            Versus(label, heuristic.label, metric, word, result.p, ours.mean, target, since, result.test)
+        )
     return out
 
 
@@ -145,6 +174,7 @@ def versus_table(results: list[Versus]) -> tuple[list[dict[str, object]], str]:
             "method_mean": r.method_mean,
             "heuristic_mean": r.heuristic_mean,
             "since": r.since if r.since is not None else "",
+            "test": r.test,
         }
         for r in results
     ]

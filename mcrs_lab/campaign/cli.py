@@ -1,4 +1,4 @@
-"""``mcrs-campaign``: the section-6 campaign (mcrs_lab/campaign/section6.yaml) on one machine.
+"""``mcrs-campaign``: the section-6 campaign (mcrs_lab/campaign/section6_paper.yaml) on one machine.
 
     mcrs-campaign status [--only fig7]                  which points are done, partial or missing, which training
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
@@ -10,7 +10,8 @@
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
 
-Records go to results/records/ (commit them); runs to outputs/campaign/. See docs/RESULTS.md.
+A campaign file named ``paper`` keeps its records in results/records/paper/ (commit them) and its runs in
+outputs/paper/; --records and --outputs say otherwise. See docs/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -28,12 +29,19 @@ from mcrs.experiment.util.tables import markdown
 from mcrs_lab.analysis.records import RECORDS_DIR, RecordError, make_record, write_record
 from mcrs_lab.campaign import figure9
 from mcrs_lab.campaign.evaluations import Evaluation, evaluate, load_evaluations, summary
-from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, Point, budget_steps, load_matrix, select
+from mcrs_lab.campaign.matrix import (
+    DEFAULT_MATRIX,
+    MatrixError,
+    Point,
+    budget_steps,
+    campaign_roots,
+    load_matrix,
+    select,
+)
 from mcrs_lab.campaign.pace import left_line
 from mcrs_lab.campaign.progress import STATES, Progress
 from mcrs_lab.campaign.runner import FILL_FLOOR_S, Campaign, CampaignBusy, claim_holder
 
-OUTPUTS_DIR = Path("outputs/campaign")
 #: --hours beyond a year is a typo (and time.time() + inf never ends).
 MAX_HOURS = 24 * 366
 
@@ -51,8 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
             help="points to keep: a figure, experiment, map, algorithm, seed<k> or point id (a figure's "
             "name means the figure where an experiment has the same name); comma = or, repeated = and",
         )
-        p.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs go")
-        p.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
+        p.add_argument("--outputs", type=Path, help="where the runs go (default: the file's, see above)")
+        p.add_argument("--records", type=Path, help="where the records go (default: the file's)")
 
     status = sub.add_parser(
         "status", help="done, unrecorded, partial or missing, per point, and who trains it now"
@@ -101,8 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
         "tsne", help="record the states and t-SNE of the file's tsne entries (figure 9) that the runs allow"
     )
     tsne.add_argument("--matrix", type=Path, default=DEFAULT_MATRIX, help="the campaign file")
-    tsne.add_argument("--outputs", type=Path, default=OUTPUTS_DIR, help="where the runs are")
-    tsne.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
+    tsne.add_argument("--outputs", type=Path, help="where the runs are (default: the file's)")
+    tsne.add_argument("--records", type=Path, help="where the records go (default: the file's)")
     record = sub.add_parser("record", help="record mcrs-train runs or mcrs-eval results")
     record.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     record.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
@@ -302,6 +310,10 @@ def main(argv: list[str] | None = None) -> int:
             "record": cmd_record,
             "report": cmd_report,
         }
+        if getattr(args, "matrix", None) is not None:
+            records, outputs = campaign_roots(args.matrix)
+            args.records = args.records or records
+            args.outputs = args.outputs or outputs
         return commands[args.command](args)
     except (MatrixError, CampaignBusy, RecordError, figure9.tsne.TsneRecordError) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None

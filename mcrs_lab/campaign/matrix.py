@@ -1,4 +1,4 @@
-"""The campaign's points (mcrs_lab/campaign/section6.yaml): which mcrs-train runs make which figure.
+"""The campaign's points (mcrs_lab/campaign/section6_paper.yaml): which mcrs-train runs make which figure.
 
 A point is one run: an experiment preset, a map, an algorithm, its swept values and a seed, at the
 campaign's budget. Its run directory and its record path follow from it, so whether it is done can be
@@ -18,13 +18,15 @@ from omegaconf import OmegaConf
 from mcrs.experiment.commands.cli import file_override_problem
 from mcrs.experiment.schema import CONFIG_DIR
 from mcrs.experiment.util.untrusted import UntrustedInput, finite_number, plain_name, read_yaml
-from mcrs_lab.analysis.records import point_name, swept_fields
+from mcrs_lab.analysis.records import RECORDS_DIR, point_name, swept_fields
 
-#: The section-6 campaign: beside this module, not in conf/, where Hydra would offer it to mcrs-train as
-#: a config group.
-DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6.yaml"
+#: The section-6 campaign on the paper's task: beside this module, not in conf/, where Hydra would offer
+#: it to mcrs-train as a config group.
+DEFAULT_MATRIX = Path(__file__).resolve().parent / "section6_paper.yaml"
+#: Where a campaign file without a ``name`` keeps its runs.
+OUTPUTS_DIR = Path("outputs/campaign")
 FIGURE_KEYS = {"title", "experiment", "env", "algo", "sweep", "also", "seeds"}
-FILE_KEYS = {"budget", "seeds", "figures", "overrides", "evaluations", "tsne"}
+FILE_KEYS = {"name", "budget", "seeds", "figures", "overrides", "evaluations", "tsne"}
 
 
 class MatrixError(ValueError):
@@ -51,8 +53,8 @@ def load_campaign_file(path: Path) -> dict[str, Any]:
         raise MatrixError(str(error)) from None
     if not isinstance(spec, dict) or "figures" not in spec:
         raise MatrixError(
-            f"{path}: not a campaign file: a mapping with figures (and budget, seeds, overrides, evaluations, "
-            "tsne)"
+            f"{path}: not a campaign file: a mapping with figures (and name, budget, seeds, overrides, "
+            "evaluations, tsne)"
         )
     unknown = sorted(str(k) for k in set(spec) - FILE_KEYS)
     if unknown:
@@ -67,6 +69,26 @@ def _option(group: str, value: Any, where: str) -> str:
     if name not in allowed:
         raise MatrixError(f"{where}: {group}={name!r}: allowed values are {', '.join(allowed)}")
     return name
+
+
+def campaign_roots(path: Path) -> tuple[Path, Path]:
+    """The records and outputs folders of a campaign file: ``results/records/<name>`` and ``outputs/<name>``
+    for a file with a ``name``, ``results/records`` and ``outputs/campaign`` for one without.
+
+    The name is a plain name, never a path, so a file cannot send its runs outside these roots."""
+    _check_file(path)
+    name = load_campaign_file(path).get("name")
+    if name is None:
+        return RECORDS_DIR, OUTPUTS_DIR
+    name = plain(name, f"{path}: name")
+    return RECORDS_DIR / name, Path("outputs") / name
+
+
+def _check_file(path: Path) -> None:
+    if path.is_dir():
+        raise MatrixError(f"--matrix={path}: a folder: name the campaign file (a .yaml) in it")
+    if not path.is_file():
+        raise MatrixError(f"--matrix={path}: no such file")
 
 
 #: A config group's option as a campaign file names it (an evaluation's ``algo`` too).
@@ -192,10 +214,7 @@ def _overrides(spec: Any, path: Path) -> dict[str, tuple[str, ...]]:
 def load_matrix(path: Path = DEFAULT_MATRIX) -> tuple[list[Point], dict[str, str]]:
     """Every point of the campaign file (each once, in the file's order, seed by seed within a
     figure), and each figure's title."""
-    if path.is_dir():
-        raise MatrixError(f"--matrix={path}: a folder: name the campaign file (a .yaml) in it")
-    if not path.is_file():
-        raise MatrixError(f"--matrix={path}: no such file")
+    _check_file(path)
     spec = load_campaign_file(path)
     budget = plain(spec.get("budget", "campaign"), f"{path}: budget")
     seeds = [_seed(s, str(path)) for s in _as_list(spec.get("seeds", [0]))]
