@@ -273,22 +273,6 @@ def test_whole_batch_errors_name_the_nearest_whole_batches() -> None:
     assert whole_batch_errors(map20, {"train.total_env_steps"}) == []  # 8 x 100 = 800: 4000 is five batches
 
 
-def test_the_schema_choices_are_the_implementations() -> None:
-    """The schema writes the choices out (so composing loads no torch); they must stay the modules' own."""
-    from mcrs.experiment import config
-    from mcrs.experiment.training.replay import TIME_LIMITS
-    from mcrs.memory.delta import DELTA_RULES
-    from mcrs.memory.index import SHAPES
-    from mcrs.models.embeddings import EMBEDDINGS
-    from mcrs.models.mixers import MIXERS
-    from mcrs.objectives.value_factorisation import ValueFactorisationLoss
-
-    assert (config.MIXERS, config.EMBEDDINGS, config.DELTA_RULES, config.SHAPES, config.TIME_LIMITS) == (
-        MIXERS, EMBEDDINGS, DELTA_RULES, SHAPES, TIME_LIMITS,
-    )  # fmt: skip
-    assert config.INCENTIVES == ValueFactorisationLoss.INCENTIVES
-
-
 @pytest.mark.parametrize(
     ("module", "listed", "not_listed"),
     [

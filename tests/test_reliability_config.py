@@ -67,7 +67,7 @@ BAD_VALUES: list[tuple[str, str]] = [
     ("algo.curiosity_decay_cycle=0", f"algo.curiosity_decay_cycle=0: {POSITIVE}"),
     ("algo.curiosity_tau=-0.1", f"algo.curiosity_tau=-0.1: {UNIT}"),
     ("algo.curiosity_tau=1.1", f"algo.curiosity_tau=1.1: {UNIT}"),
-    # algo.memory (checked by _memory_errors whether or not the memory is enabled)
+    # algo.memory (checked by MemoryConfig.errors whether or not the memory is enabled)
     ("algo.memory.key_dim=0", f"algo.memory.key_dim=0: {POSITIVE}"),
     ("algo.memory.key_dim=-1", f"algo.memory.key_dim=-1: {POSITIVE}"),
     ("algo.memory.hidden_dim=0", f"algo.memory.hidden_dim=0: {POSITIVE}"),

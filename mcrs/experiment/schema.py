@@ -1,16 +1,19 @@
 """The typed schemas of the training config, registered in Hydra's ConfigStore, and their conversions.
 
 One typed node per concept: ``env`` (the scenario, :class:`mcrs.env.ScenarioConfig`), ``algo`` (with
-``algo.memory``), ``model``, ``train``, ``logger``; choices are enums, so Hydra refuses unknown keys, wrong
-types and unknown choices while composing. The checks of values, and of what the machine can give, are
-:func:`mcrs.experiment.config.validate`'s: they need the runtime modules (threads, resources, the
-embedding), and those modules need these schemas, so the schemas live apart from the checks and import
-none of them (tests/test_layering.py refuses import cycles between modules). Import the names from
-:mod:`mcrs.experiment.config`, which re-exports them.
+``algo.memory``), ``model``, ``train``, ``logger``; choices are enums over the lists of :mod:`mcrs.choices`,
+so Hydra refuses unknown keys, wrong types and unknown choices while composing. Each node checks its own
+values (``errors()``, one message per problem, each naming the field by its path in the config). The rules
+that span nodes (the memory against the scenario, the labels that name run directories) and those of the
+machine (threads, device) are :func:`mcrs.experiment.config.validate`'s: the machine's need runtime
+modules, and those modules need these schemas, so the schemas import none of them (tests/test_layering.py
+refuses import cycles between modules). Import the names from :mod:`mcrs.experiment.config`, which
+re-exports them.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -20,17 +23,20 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from mcrs.choices import (
+    COLLECTORS,
+    DELTA_RULES,
+    EMBEDDINGS,
+    INCENTIVES,
+    LOGGER_BACKENDS,
+    MIXERS,
+    MODEL_NAMES,
+    OPTIMIZERS,
+    SHAPES,
+    TIME_LIMITS,
+    WANDB_MODES,
+)
 from mcrs.env.config import FieldsOnly, ScenarioConfig
-
-# The choices, as the modules that implement them define them (mcrs.models.mixers.MIXERS, ...; a test keeps
-# them equal): written out here so that composing and checking a config imports neither torch nor TorchRL,
-# and a mistyped override is refused in a second, not after the whole stack has loaded.
-MIXERS = ("qmix", "vdn", "qplex")
-EMBEDDINGS = ("random", "fc", "cnn")
-DELTA_RULES = ("volume", "literal")
-SHAPES = ("ball", "box")
-TIME_LIMITS = ("terminal", "bootstrap")
-INCENTIVES = ("none", "fixed", "change")
 
 
 class Choice(str, Enum):
@@ -49,11 +55,11 @@ def _choices(name: str, values: tuple[str, ...]) -> type[Choice]:
 
 
 Mixer = _choices("Mixer", MIXERS)
-Optimizer = _choices("Optimizer", ("rmsprop", "adam"))
-LoggerBackend = _choices("LoggerBackend", ("csv", "wandb", "tensorboard"))
-WandbMode = _choices("WandbMode", ("offline", "online"))
-ModelName = _choices("ModelName", ("gru",))
-Collector = _choices("Collector", ("single", "multiprocess"))
+Optimizer = _choices("Optimizer", OPTIMIZERS)
+LoggerBackend = _choices("LoggerBackend", LOGGER_BACKENDS)
+WandbMode = _choices("WandbMode", WANDB_MODES)
+ModelName = _choices("ModelName", MODEL_NAMES)
+Collector = _choices("Collector", COLLECTORS)
 Embedding = _choices("Embedding", EMBEDDINGS)  # random (EMC) | fc (SEMU) | cnn (CNN-SEMU)
 Incentive = _choices("Incentive", INCENTIVES)
 DeltaRule = _choices("DeltaRule", DELTA_RULES)
@@ -63,6 +69,7 @@ MAX_SEED = 2**63 - 1  # batch seeds are taken modulo 2**63; torch's generator ta
 MAX_MEMORY_CAPACITY = 2**31 - 1  # slots of the episodic memory are int32
 MAX_STEPS_LIMIT = 2**15  # the episodic memory stores an entry's step as int16 (mcrs.memory.episodic)
 MAX_EVAL_EPISODES = 100_000  # mcrs-eval keeps every episode's metrics; more is several runs with other seeds
+MAX_LR = 1.0  # learning rates above this are refused: no optimiser here takes a step beyond the parameters
 # The Hydra configs, the one CONFIG_DIR of every command and tool: mcrs/conf links to the repo's conf/ (and is
 # copied into wheels as package data). An absolute directory, because Hydra's pkg:// lookup of "mcrs.conf"
 # needs an __init__.py that conf/ lacks.
@@ -86,6 +93,31 @@ RESUME_MUTABLE = (
 
 class ConfigError(ValueError):
     """A config that cannot run; the message lists every problem."""
+
+
+def _positive(errors: list[str], name: str, value: float, allow_zero: bool = False) -> None:
+    """Add a message when ``value`` is not > 0 (>= 0 with ``allow_zero``) or not finite."""
+    ok = value >= 0 if allow_zero else value > 0
+    if not ok or (isinstance(value, float) and not math.isfinite(value)):
+        errors.append(f"{name}={value}: must be {'>= 0' if allow_zero else '> 0'}")
+
+
+def _fraction(errors: list[str], name: str, value: float) -> None:
+    """Add a message when ``value`` is not in [0, 1]."""
+    if not 0.0 <= value <= 1.0:
+        errors.append(f"{name}={value}: must be in [0, 1]")
+
+
+def _choice(errors: list[str], name: str, value: Any, allowed: type[Choice]) -> None:
+    """Add a message when a choice of a :class:`Config` built in Python is not one of ``allowed``.
+
+    OmegaConf never sees such a config (``as_typed`` returns it as it is); a composed config's choices were
+    refused by OmegaConf's structured schema already. OmegaConf's own check of such an instance
+    (``OmegaConf.structured``) stops at the first bad field and names it without its node (``mixer``, not
+    ``algo.mixer``), so every bad choice is named here, in full."""
+    values = [member.value for member in allowed]
+    if str(value) not in values:
+        errors.append(f"{name}={str(value)!r}: allowed values are {', '.join(values)}")
 
 
 @dataclass
@@ -112,6 +144,46 @@ class MemoryConfig(FieldsOnly):
     state_weight: float = 0.1  # lambda_1 of eq. 31: weight of the state reconstruction
     embedding_grad_clip: float = 10.0  # gradient-norm clip of the embedding's training (EMU: pymarl's 10)
     counter_reset: bool = False  # EMU's flag_memory_cnt_reset: a desirability shift restarts N_call, N_xi
+
+    def errors(self) -> list[str]:
+        """The problems of these fields, one message each (``algo.memory.<field>=<value>: ...``). Whether
+        the memory fits the scenario (its steps, its counts) is :func:`mcrs.experiment.config.validate`'s."""
+        errors: list[str] = []
+        _choice(errors, "algo.memory.embedding", self.embedding, Embedding)
+        _choice(errors, "algo.memory.delta_rule", self.delta_rule, DeltaRule)
+        _choice(errors, "algo.memory.neighbourhood", self.neighbourhood, Neighbourhood)
+        if self.delta <= 0 or not math.isfinite(self.delta):
+            errors.append(f"algo.memory.delta={self.delta}: must be > 0")
+        if self.capacity < 1:
+            errors.append(f"algo.memory.capacity={self.capacity}: must be >= 1 entry")
+        elif self.capacity > MAX_MEMORY_CAPACITY:
+            errors.append(f"algo.memory.capacity={self.capacity}: must be <= 2**31 - 1 entries (int32 slots)")
+        for name in ("key_dim", "hidden_dim", "embedding_interval", "embedding_samples", "embedding_batch"):
+            _positive(errors, f"algo.memory.{name}", getattr(self, name))
+        _positive(errors, "algo.memory.embedding_lr", self.embedding_lr)
+        lr = self.embedding_lr
+        if math.isfinite(lr) and lr > MAX_LR:  # RMSprop's squared gradients overflow at 1e300
+            errors.append(
+                f"algo.memory.embedding_lr={lr}: must be <= {MAX_LR:g} (a larger step diverges at once)"
+            )
+        _positive(errors, "algo.memory.state_weight", self.state_weight, allow_zero=True)
+        if not self.embedding_grad_clip > 0:
+            errors.append(
+                f"algo.memory.embedding_grad_clip={self.embedding_grad_clip}: must be > 0 (inf: no clipping)"
+            )
+        channels = self.cnn_channels
+        if len(channels) != 3 or any(c < 1 for c in channels):
+            errors.append(f"algo.memory.cnn_channels={list(channels)}: must be 3 positive channel counts")
+        if self.embedding_batch > self.embedding_samples > 0:
+            errors.append(
+                f"algo.memory.embedding_batch={self.embedding_batch} > algo.memory.embedding_samples="
+                f"{self.embedding_samples}: each training of the embedding draws its batches from the samples"
+            )
+        if self.enabled and self.key_dim > 8:
+            errors.append(
+                f"algo.memory.key_dim={self.key_dim}: at most 8 (each look-up checks 2^key_dim grid cells)"
+            )
+        return errors
 
 
 @dataclass
@@ -146,6 +218,38 @@ class AlgoConfig(FieldsOnly):
     # (mcrs.experiment.training.algorithms): +algo.options.<key>=<value>; a run's config.yaml holds all of them
     options: dict[str, Any] = field(default_factory=dict)
 
+    def errors(self) -> list[str]:
+        """The problems of these fields and of ``memory``'s, one message each (``algo.<field>=<value>: ...``).
+        ``name`` is a label of run directories, checked with the others by
+        :func:`mcrs.experiment.config.validate`; ``options`` are the algorithm's own to check."""
+        errors: list[str] = []
+        _choice(errors, "algo.mixer", self.mixer, Mixer)
+        _choice(errors, "algo.time_limit", self.time_limit, TimeLimit)
+        if self.hypernet_layers not in (1, 2):
+            errors.append(f"algo.hypernet_layers={self.hypernet_layers}: allowed values are 1, 2")
+        if self.qplex_adv_layers not in (1, 2, 3):
+            errors.append(f"algo.qplex_adv_layers={self.qplex_adv_layers}: allowed values are 1, 2, 3")
+        for name in ("mixing_embed_dim", "hypernet_embed", "qplex_kernels", "reward_scale"):
+            _positive(errors, f"algo.{name}", getattr(self, name))
+        for name in ("gamma", "td_lambda"):
+            _fraction(errors, f"algo.{name}", getattr(self, name))
+        _choice(errors, "algo.incentive", self.incentive, Incentive)
+        if self.memory_weight < 0 or not math.isfinite(self.memory_weight):
+            errors.append(f"algo.memory_weight={self.memory_weight}: must be >= 0 (lambda of eq. 32)")
+        _positive(errors, "algo.curiosity_scale", self.curiosity_scale, allow_zero=True)
+        _positive(errors, "algo.curiosity_decay_cycle", self.curiosity_decay_cycle)
+        for name in ("curiosity_decay_rate", "curiosity_tau"):
+            _fraction(errors, f"algo.{name}", getattr(self, name))
+        uses_memory = self.memory_weight > 0 or str(self.incentive) != "none"
+        if uses_memory and not self.memory.enabled:
+            errors.append(
+                f"algo.memory.enabled=false, but algo.memory_weight={self.memory_weight} and "
+                f"algo.incentive={self.incentive!r} need the episodic memory: set algo.memory.enabled=true"
+            )
+        if not math.isfinite(self.incentive_threshold):
+            errors.append(f"algo.incentive_threshold={self.incentive_threshold}: must be a finite return")
+        return errors + self.memory.errors()
+
 
 @dataclass
 class ModelConfig(FieldsOnly):
@@ -155,6 +259,13 @@ class ModelConfig(FieldsOnly):
     hidden_dim: int = 64
     agent_id: bool = True  # one-hot agent id as input
     last_action: bool = True  # one-hot last action as input
+
+    def errors(self) -> list[str]:
+        """The problems of these fields, one message each (``model.<field>=<value>: ...``)."""
+        errors: list[str] = []
+        _choice(errors, "model.name", self.name, ModelName)
+        _positive(errors, "model.hidden_dim", self.hidden_dim)
+        return errors
 
 
 @dataclass
@@ -167,6 +278,16 @@ class LoggerConfig(FieldsOnly):
     log_interval: int = 2000  # env steps between train/ and time/ log rows (means over the interval)
     progress_bar: bool = True
     video: bool = False  # one greedy evaluation episode as a video at every evaluation (GIF; tb, wandb)
+
+    def errors(self) -> list[str]:
+        """The problems of these fields, one message each (``logger.<field>=<value>: ...``)."""
+        errors: list[str] = []
+        _choice(errors, "logger.backend", self.backend, LoggerBackend)
+        _choice(errors, "logger.wandb_mode", self.wandb_mode, WandbMode)
+        _positive(errors, "logger.log_interval", self.log_interval)
+        if not str(self.project).strip():
+            errors.append(f"logger.project={self.project!r}: must be a non-empty name")
+        return errors
 
 
 @dataclass
@@ -200,6 +321,49 @@ class TrainConfig(FieldsOnly):
         Collector.single
     )  # single (one process) | multiprocess (TorchRL MultiSyncCollector)
     collector_workers: int = 2  # multiprocess: worker processes, each collecting num_envs / workers episodes
+
+    def errors(self) -> list[str]:
+        """The problems of these fields, one message each (``train.<field>=<value>: ...``). Whether whole
+        collector batches fit the run's length is the command line's check (``mcrs.train``)."""
+        errors: list[str] = []
+        _choice(errors, "train.optimizer", self.optimizer, Optimizer)
+        for name in (
+            "total_env_steps", "num_envs", "batch_episodes", "replay_episodes", "lr", "optim_eps",
+            "grad_clip", "eps_anneal_steps", "target_update_episodes", "eval_interval", "eval_episodes",
+            "checkpoint_interval",
+        ):  # fmt: skip
+            _positive(errors, f"train.{name}", getattr(self, name))
+        if math.isfinite(self.lr) and self.lr > MAX_LR:  # RMSprop's squared gradients overflow at 1e300
+            errors.append(f"train.lr={self.lr}: must be <= {MAX_LR:g} (a larger step diverges at once)")
+        _positive(errors, "train.updates_per_episode", self.updates_per_episode, allow_zero=True)
+        _positive(errors, "train.checkpoint_minutes", self.checkpoint_minutes, allow_zero=True)
+        if self.keep_checkpoints < 0:
+            errors.append(
+                f"train.keep_checkpoints={self.keep_checkpoints}: must be >= 0 (0 keeps every weight file)"
+            )
+        for name in ("eps_start", "eps_end", "rmsprop_alpha"):
+            _fraction(errors, f"train.{name}", getattr(self, name))
+        if self.eps_end > self.eps_start:
+            errors.append(
+                f"train.eps_end={self.eps_end} > train.eps_start={self.eps_start}: epsilon only decays"
+            )
+        if self.replay_episodes < self.batch_episodes:
+            errors.append(
+                f"train.replay_episodes={self.replay_episodes} < train.batch_episodes={self.batch_episodes}: "
+                "the buffer must hold a whole batch"
+            )
+        _choice(errors, "train.collector", self.collector, Collector)
+        workers = self.collector_workers
+        if workers < 1:
+            errors.append(f"train.collector_workers={workers}: must be >= 1")
+        elif str(self.collector) == "multiprocess" and self.num_envs % workers:
+            errors.append(
+                f"train.num_envs={self.num_envs} is not divisible by train.collector_workers={workers}: "
+                "each worker collects the same number of whole episodes"
+            )
+        if not 0 <= self.eval_seed <= MAX_SEED:
+            errors.append(f"train.eval_seed={self.eval_seed}: must be in [0, 2**63 - 1]")
+        return errors
 
 
 @dataclass

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 
-DELTA_RULES = ("volume", "literal")
+from mcrs.choices import DELTA_RULES
 
 
 def unit_ball_volume(dim: int) -> float:

@@ -58,6 +58,7 @@ from typing import NamedTuple
 
 import torch
 
+from mcrs.choices import SHAPES
 from mcrs.memory.sorted_records import (
     Records,
     flatnonzero,
@@ -78,7 +79,6 @@ RECENT_SHARE = 16  # recent records are merged into the main ones beyond 1/16 of
 RECENT_MIN = 4096  # ... and this many (each merge copies every record: amortised over many insertions)
 PREFIX_BITS = 31  # the prefix field of a sort key: (prefix << 32) + order < 2^63
 NO_MATCH = torch.iinfo(torch.int64).max
-SHAPES = ("ball", "box")  # Euclidean ball of radius delta | EMU's per-dimension box of half-side delta
 
 
 def squared_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -30,9 +30,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from mcrs.choices import EMBEDDINGS
 from mcrs.env.layout import MapImage
-
-EMBEDDINGS = ("random", "fc", "cnn")
 
 Kernel = int | tuple[int, int]
 

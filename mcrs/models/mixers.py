@@ -42,7 +42,8 @@ from torch import nn
 from torchrl.modules.models.multiagent import Mixer, VDNMixer
 from torchrl.modules.models.multiagent import QMixer as TorchRLQMixer
 
-MIXERS = ("qmix", "vdn", "qplex")
+from mcrs.choices import MIXERS
+
 #: What a mixer's inputs usually come from, for the errors of :func:`mixer_module` users and of the loss.
 KEY_ORIGINS = {
     "chosen_action_value": "written by TorchRL's QValueModule/QValueActor (and by QMixerLoss for the taken "

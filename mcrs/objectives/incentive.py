@@ -20,6 +20,8 @@ from collections.abc import Callable
 
 import torch
 
+from mcrs.choices import INCENTIVES
+
 
 class Incentive:
     """No incentive: the base of the strategies, and the strategy of every algorithm but EMU.
@@ -106,7 +108,6 @@ INCENTIVE_TYPES: dict[str, Callable[[float], Incentive]] = {
     "fixed": FixedThreshold,
     "change": lambda threshold: EvaluationThreshold(),
 }
-INCENTIVES = tuple(INCENTIVE_TYPES)
 
 
 def make_incentive(name: str | Incentive, threshold: float = 365.0) -> Incentive:

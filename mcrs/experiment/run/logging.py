@@ -35,6 +35,8 @@ import numpy as np
 from omegaconf import OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
+from mcrs.choices import LOGGER_BACKENDS, WANDB_MODES
+
 
 def make_logger(
     backend: str, run_dir: Path, config: dict[str, Any], project: str = "mcrs", mode: str = "offline"
@@ -48,8 +50,8 @@ def make_logger(
     elif backend == "tensorboard":
         logger = TensorboardLogger(exp_name="logs", log_dir=str(run_dir))
     elif backend == "wandb":
-        if mode not in ("offline", "online"):
-            raise ValueError(f"logger.wandb_mode={mode!r}: allowed values are offline, online")
+        if mode not in WANDB_MODES:
+            raise ValueError(f"logger.wandb_mode={mode!r}: allowed values are {', '.join(WANDB_MODES)}")
         os.environ.setdefault("WANDB_SILENT", "true")
         return WandbLoggerWithHistory(
             run_dir,
@@ -60,7 +62,7 @@ def make_logger(
             config=config,
         )
     else:
-        raise ValueError(f"logger.backend={backend!r}: allowed values are csv, wandb, tensorboard")
+        raise ValueError(f"logger.backend={backend!r}: allowed values are {', '.join(LOGGER_BACKENDS)}")
     logger.log_hparams(_hparams(config))
     return logger
 

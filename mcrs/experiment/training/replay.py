@@ -20,11 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer
 
-#: How a transition that ends an episode by the time limit (``("next", "truncated")``) enters the TD target
-#: (``algo.time_limit``, docs/MEMORY.md "The horizon"): ``terminal``: T ends the task, no bootstrap, as the
-#: episodic memory's returns H, cut at T, assume; ``bootstrap``: the target bootstraps from s_T (pymarl's
-#: and the EMC/EMU code's convention), so near T it and the memory's target disagree.
-TIME_LIMITS = ("terminal", "bootstrap")
+from mcrs.choices import TIME_LIMITS
 
 #: Keys read at every step (kept for steps 0..T).
 STEP_KEYS: tuple[NestedKey, ...] = (("agents", "observation"), ("agents", "action_mask"), "state")
