@@ -2,15 +2,9 @@
 
 Rooms, bottom to top (tests/test_layering.py keeps the order):
 
-- ``util``: small helpers that know nothing of a run: atomic writes, untrusted text, tables, thread counts,
-  one-line messages.
+- ``util``: small helpers that know nothing of a run.
 - ``schema`` and ``config`` (modules here): the typed config and the checks of its values.
-- ``run``: the run on disk: its directory, checkpoints, the replay's files, logs, counters and the state
-  a checkpoint holds (``RunState``).
-- ``training``: the loop: ``Experiment``, the learner, algorithms, callbacks, episodic memory, tasks,
-  collection, replay and evaluation.
-- ``commands``: the command lines' Hydra glue: one-line errors, the run directory check, sweeps, the log
-  format.
-
-``training`` and ``commands`` stand side by side: neither imports the other.
+- ``run``: the run on disk: its directory, checkpoints, replay files, logs and saved state.
+- ``training``: the loop: ``Experiment`` and the parts it builds.
+- ``commands``: the command lines' Hydra glue. It and ``training`` never import each other.
 """

@@ -1,15 +1,10 @@
 """What the Hydra command lines share: a refused command is one line of ours and leaves no directory.
 
-Hydra reports a misspelled key as ``Could not override 'env.comm_rage'. To append to your config use
-+env.comm_rage=3`` followed by the schema's internals and a ``HYDRA_FULL_ERROR`` hint, and an unknown
-option with its config search path. :func:`~mcrs.experiment.util.messages.describe` turns each
-composition error into one line that names the key, group or override and lists what is allowed.
-
-:func:`one_line_errors` wraps a ``@hydra.main`` entry point with it (``mcrs-train``, ``mcrs-eval``,
-``mcrs-render``). :class:`RunDirCheck`, a Hydra callback, creates the run (or sweep) directory before
-Hydra does, refusing an unwritable one in one line, and remembers the directories it made, so that
-:func:`remove_refused_dirs` can take them away again when the command is refused. A sweep's jobs are
-claimed by the file handler of ``mcrs-train``'s log (:class:`mcrs.experiment.run.rundir.RunLogHandler`).
+Hydra reports a misspelt key or an unknown option with a page of internals; :func:`one_line_errors` wraps a
+``@hydra.main`` entry point so that each composition error is one line naming the key and what is allowed
+(:func:`~mcrs.experiment.util.messages.describe`). :class:`RunDirCheck`, a Hydra callback, creates the run or
+sweep directory before Hydra does, refusing an unwritable one, and remembers what it made so that
+:func:`remove_refused_dirs` can remove it when the command is refused.
 """
 
 from __future__ import annotations
@@ -22,10 +17,12 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from hydra import compose
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, OverrideType
 from hydra.errors import HydraException
 from hydra.experimental.callback import Callback
+from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -45,23 +42,15 @@ from mcrs.experiment.util.messages import GRAMMAR, describe
 from mcrs.experiment.util.untrusted import PLAIN_NAME
 
 F = TypeVar("F", bound=Callable[..., Any])
-#: Files Hydra (and the sweep's progress, mcrs.experiment.commands.sweep) writes into a run or sweep directory before
-#: the task runs: they do not make it a run.
+#: Files Hydra and the sweep's progress write into a run or sweep directory before the task runs.
 HYDRA_FILES = (".hydra", "multirun.yaml", ".sweep")
 
 
 def one_line_errors(command: str, interrupted: str | None = None) -> Callable[[F], F]:
-    """Wrap a ``@hydra.main`` function: a composition error becomes ``<command>: error: <one line>``
-    (exit status 1), and the directories the refused command made are removed. With ``interrupted``, a
-    Ctrl-C that reaches the wrapper (Hydra composing, the task's first imports) prints ``<command>: SIGINT:
-    <interrupted>``, removes what the command made and exits 130, without a traceback.
-
-    Before Hydra starts, the command line's overrides of Hydra's own config are judged
-    (:func:`command_line_problems`): a callback would run, and a log or ``.hydra/`` moved out of the run
-    would be written, before any check of the command's.
-
-    Hydra prints its own report unless ``HYDRA_FULL_ERROR=1``, in which case it re-raises: the wrapper
-    sets it for the call so that it receives the exception. A user who sets it gets Hydra's full trace.
+    """Wrap a ``@hydra.main`` function so that a composition error exits with ``<command>: error: <one line>``
+    and removes the directories the command made. With ``interrupted``, Ctrl-C prints ``<command>: SIGINT:
+    <interrupted>`` and exits 130. Overrides of Hydra's own config are judged before Hydra starts, since a
+    callback would run before any check. ``HYDRA_FULL_ERROR=1`` is set for the call so that Hydra re-raises.
     """
 
     def wrap(hydra_main: F) -> F:
@@ -117,7 +106,8 @@ def _parsed(overrides: Sequence[str]) -> list[Override]:
 
 
 def _inside_path(value: object) -> bool:
-    """A path that stays inside the folder it is joined to: relative, no ``..``, no ``~`` or ``${``."""
+    """Whether ``value`` is a path that stays inside the folder it is joined to: relative, no ``..``, ``~`` or
+    ``${``."""
     if not isinstance(value, str) or not value or "${" in value or value.startswith("~"):
         return False
     path = Path(value)
@@ -125,9 +115,9 @@ def _inside_path(value: object) -> bool:
 
 
 def hydra_override_problem(override: Override) -> str | None:
-    """What is wrong with a command-line override of Hydra's own config: a callback (code Hydra
-    instantiates before the command checks anything), a log handler, or Hydra's files or log moved out of
-    the run directory. ``hydra.run.dir``, the launcher, the sweeper and the levels of the logs stay free."""
+    """What is wrong with a command-line override of Hydra's own config: a callback, which Hydra runs before
+    any check, a log handler, or Hydra's files or log moved out of the run directory. The run directory,
+    launcher, sweeper and log levels stay free."""
     key, text = override.key_or_group, override.input_line or override.key_or_group
     if "hydra" in str(override.package or "").split("."):
         return f"{text}: a config placed into Hydra's own settings: refused"
@@ -158,17 +148,16 @@ def hydra_override_problem(override: Override) -> str | None:
 
 
 def command_line_problems(argv: Sequence[str], tasks: bool = False) -> list[str]:
-    """The overrides of a command line (``key=value`` and ``~key`` arguments, not options) that
-    :func:`hydra_override_problem` refuses and, for a command that takes ``task=`` (``tasks``), a key of a
-    task set with no task chosen, each one line."""
+    """The overrides of a command line that :func:`hydra_override_problem` refuses and, when the command takes
+    ``task=`` (``tasks``), a task key set with no task chosen, one line each."""
     texts = [a for a in argv if ("=" in a or a.startswith("~")) and not a.startswith("-")]
     problems = [p for p in map(hydra_override_problem, _parsed(texts)) if p]
     return problems + (_unchosen_task(texts) if tasks else [])
 
 
 def _unchosen_task(texts: Sequence[str]) -> list[str]:
-    """``task.<key>=...`` without ``task=<name>``: the ``task`` node is empty until a task is chosen, and
-    OmegaConf's refusal of a key under it is an AssertionError that names nothing."""
+    """``task.<key>=...`` without ``task=<name>``, which OmegaConf would refuse with an AssertionError that
+    names nothing."""
     keys = [t.split("=", 1)[0] for t in texts]
     if any(k.lstrip("+~") == "task" for k in keys):
         return []
@@ -191,10 +180,9 @@ def _strings(value: object) -> list[str]:
 
 
 def file_override_problem(text: object, reserved: Collection[str]) -> str | None:
-    """What is wrong with an override read from a file someone else wrote (a campaign file): it sets config
-    values only. No Hydra setting (``hydra.*``, ``+hydra.*``, ``~hydra.*``, ``hydra/...``: callbacks, output
-    and log folders), no ``resume``/``overwrite``, none of ``reserved`` (what the tool sets for each run),
-    no interpolation and no value that names a path."""
+    """What is wrong with an override read from a file someone else wrote, such as a campaign file, which sets
+    config values only: no Hydra setting, no ``resume``/``overwrite`` or ``reserved`` key, no interpolation
+    and no path."""
     if not isinstance(text, str):
         return f"{text!r}: an override is a string key=value"
     parsed = _parsed([text])
@@ -228,15 +216,13 @@ _CREATED: list[tuple[Path, Path]] = []
 
 
 class RunDirCheck(Callback):
-    """A Hydra callback (``hydra.callbacks`` in the command's config): before Hydra creates the run (or
-    sweep) directory, create it and check that it can be written, so that a read-only or impossible path is
-    one line, not Hydra's traceback; the directories made are remembered for :func:`remove_refused_dirs`."""
+    """A Hydra callback that creates the run or sweep directory before Hydra does and checks that it can be
+    written, so that a bad path is one line; what it makes is remembered for :func:`remove_refused_dirs`."""
 
     def __init__(self, command: str = "mcrs", fresh_run: bool = False, validate: str | None = None) -> None:
         self.command = command
         self.fresh_run = fresh_run  # mcrs-train: the directory of a fresh run is checked as Experiment does
-        # mcrs-train: the command's own early check (``mcrs.train.early_errors``, named, not imported: it
-        # sits above this package), asked first when the run directory already holds a run
+        # mcrs-train's early check (mcrs.train.early_errors), named because it sits above this package
         self.validate = validate
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -261,12 +247,10 @@ class RunDirCheck(Callback):
                 raise SystemExit(f"{self.command}: error: {error}") from None
 
     def _invalid(self, config: DictConfig, run_dir: Path) -> str | None:
-        """A config the command will refuse, judged before Hydra rewrites the ``.hydra/`` files of the run
-        already in ``run_dir`` (``overwrite=true``); elsewhere the command's own check is enough."""
+        """The refusal of a config the command will refuse, judged before Hydra rewrites the ``.hydra/`` files
+        of a run already in ``run_dir``."""
         if self.validate is None or not (run_dir.is_dir() and any(run_dir.iterdir())):
             return None
-        from hydra.utils import get_method
-
         job_config = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
         problems = get_method(self.validate)(job_config, list(config.hydra.overrides.task))
         if not problems:
@@ -282,14 +266,11 @@ class RunDirCheck(Callback):
         self._make(Path(str(config.hydra.sweep.dir)))
 
     def _invalid_job(self, config: DictConfig) -> str | None:
-        """The first job of the sweep whose config the command will refuse (``validate``), composed as the
-        job will be; a job that does not compose is left to say so itself."""
+        """The first sweep job whose config the command will refuse, composed as the job will be; a job that
+        does not compose reports that itself."""
         jobs = sweep_jobs(config) if self.validate is not None else None
         if not jobs:
             return None
-        from hydra import compose
-        from hydra.utils import get_method
-
         check, name = get_method(self.validate), str(config.hydra.job.config_name)
         shared = set.intersection(*(set(job) for job in jobs))
         for num, overrides in enumerate(jobs):
@@ -330,14 +311,9 @@ def make_run_dir(directory: Path) -> None:
 
 
 def remove_refused_dirs(run_dir: Path | None = None) -> None:
-    """Remove what a refused command made: each directory :class:`RunDirCheck` made, and ``run_dir`` where
-    it lies in one of them (a sweep's job directory), when it holds nothing but Hydra's own files, then the
-    empty parents this process created for it.
-
-    Only what this process created goes: a directory that was there before the command (``out=`` or
-    ``hydra.run.dir=`` naming a folder of one's own) is left as it is, Hydra's files in it included; a
-    directory with a run's lock or any other file is kept (a run may be starting in it). The run directory
-    this process claimed is released first (its lock file goes if the claim made it)."""
+    """Remove what a refused command made: each directory :class:`RunDirCheck` made, and ``run_dir`` inside
+    one of them, when it holds only Hydra's files, then the empty parents this process created. Directories
+    that existed before, or hold a lock or other files, stay."""
     release_claims()
     if run_dir is not None:
         run_dir = Path(os.path.abspath(run_dir))

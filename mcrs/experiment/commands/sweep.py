@@ -1,17 +1,14 @@
-"""A Hydra sweep's overall progress and its summary (``hydra.callbacks.sweep_progress`` of ``mcrs-train`` and
+"""A Hydra sweep's progress and summary (``hydra.callbacks.sweep_progress`` of ``mcrs-train`` and
 ``mcrs-eval``): after each job, one line on the console::
 
     mcrs-train sweep: 2 of 6 done, elapsed 0:24:10, ETA 0:48:20; job 1 (seed=1): reward 12.31
 
-and, when the sweep ends, a one-table summary (one row per job: its overrides, final evaluation reward,
-no-fly violations, wall time and status) printed and written to ``<sweep dir>/sweep_summary.md``.
+and at the end a table with one row per job, printed and written to ``<sweep dir>/sweep_summary.md``.
 
-Jobs may run in other processes (joblib, Ray, Slurm launchers), where the launcher's callback object is a
-copy: each job writes its own row under ``<sweep dir>/.sweep/`` (hidden: ``mcrs-report`` skips it) and
-counts the rows there, and the sweep's start (time, number of jobs) is written there by the launching
-process. Every row rewrites ``sweep_summary.md`` too, so a sweep that stops on a failed job still has
-its table. The job count is the basic sweeper's (every launcher here runs behind it); another sweeper's
-count is unknown and the lines say only how many are done.
+A launcher may run jobs in other processes, where the callback is a copy, so each job writes its row under
+``<sweep dir>/.sweep/`` and counts the rows there. Every row rewrites the table, so a sweep that stops on a
+failed job still has it. The job count is the basic sweeper's; with another sweeper only the jobs done are
+counted.
 """
 
 from __future__ import annotations
@@ -22,7 +19,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from mcrs.experiment.util.atomic import write_text_atomic
@@ -36,9 +35,9 @@ COLUMNS = ["job", "overrides", "episode reward", "no-fly violations", "wall time
 
 
 class SweepProgress(Callback):
-    """The Hydra callback: ``on_multirun_start`` notes the start and the job count, ``on_job_start`` /
-    ``on_job_end`` (in the job's process) time the job, write its row and print the progress line,
-    ``on_multirun_end`` prints the table. Outside a multirun it does nothing."""
+    """The Hydra callback: notes the sweep's start and job count, times each job in its own process, writes
+    its row and prints the progress line, and prints the table at the end. Outside a multirun it does nothing.
+    """
 
     def __init__(self, command: str = "mcrs") -> None:
         self.command = command
@@ -93,15 +92,13 @@ class SweepProgress(Callback):
 
 # ---------------------------------------------------------------------------------------- the rows
 def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
-    """Each job's overrides as the basic sweeper makes them of ``hydra.sweeper.params`` and the command
-    line's overrides (the product of the swept values), or None for another sweeper or overrides it cannot
-    read (each job then meets them itself)."""
+    """Each job's overrides as the basic sweeper makes them, or None for another sweeper or unreadable
+    overrides."""
     target = str(OmegaConf.select(config, "hydra.sweeper._target_", default="") or "")
     if not target.endswith("BasicSweeper"):
         return None
     try:
-        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-        from hydra.core.override_parser.overrides_parser import OverridesParser
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper  # private: may fail
 
         params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
         arguments = [f"{k}={v}" for k, v in params.items()]
@@ -113,15 +110,14 @@ def sweep_jobs(config: DictConfig) -> list[list[str]] | None:
 
 
 def sweep_size(config: DictConfig) -> int | None:
-    """How many jobs the basic sweeper makes (:func:`sweep_jobs`), or None when that is unknown."""
+    """How many jobs the basic sweeper makes, or None when that is unknown."""
     jobs = sweep_jobs(config)
     return None if jobs is None else len(jobs)
 
 
 def job_results(output_dir: Path, returned: Any = None) -> tuple[str, str]:
-    """The job's final evaluation (episode reward, no-fly violations) as table cells: an ``mcrs-train``
-    run's last ``eval/`` scalars, an ``mcrs-eval`` result's ``metrics.csv`` (a cell per policy when it
-    evaluated several), else the job's return value; ``""`` where there is none."""
+    """The job's final episode reward and no-fly violations as table cells, from an ``mcrs-train`` run's last
+    ``eval/`` scalars, an ``mcrs-eval`` ``metrics.csv``, or the job's return value."""
     scalars = output_dir / "logs" / "scalars" / "eval"
     if (scalars / "episode_reward.csv").is_file():
         return _last_scalar(scalars / "episode_reward.csv"), _last_scalar(scalars / "no_fly_violations.csv")
@@ -167,8 +163,8 @@ def read_start(state: Path) -> dict[str, Any]:
 
 
 def progress_line(rows: list[dict[str, Any]], start: dict[str, Any], final: bool = False) -> str:
-    """``2 of 6 done (1 failed), elapsed 0:24:10, ETA 0:48:20`` (the ETA: the mean wall-clock time per
-    job so far, times the jobs left)."""
+    """``2 of 6 done (1 failed), elapsed 0:24:10, ETA 0:48:20``; the ETA is the mean time per job so far times
+    the jobs left."""
     total = start.get("jobs")
     done = len(rows)
     failed = sum(1 for r in rows if r.get("status") != "done")
@@ -185,7 +181,7 @@ def progress_line(rows: list[dict[str, Any]], start: dict[str, Any], final: bool
 
 
 def summary_table(rows: list[dict[str, Any]]) -> str:
-    """The markdown table, one row per job; the overrides every job shares are said once above it."""
+    """The markdown table, one row per job; the overrides all jobs share are said once above it."""
     lists = [list(r.get("overrides") or []) for r in rows]
     common = [o for o in lists[0] if all(o in other for other in lists[1:])] if len(lists) > 1 else []
     body = []
@@ -210,7 +206,7 @@ def write_summary(sweep_dir: Path, rows: list[dict[str, Any]]) -> Path:
 
 
 def clock(seconds: float) -> str:
-    """``1:02:03`` / ``2:03``."""
+    """``1:02:03`` or ``2:03``."""
     seconds = round(seconds)
     hours, rest = divmod(seconds, 3600)
     minutes, secs = divmod(rest, 60)
@@ -223,8 +219,6 @@ def _state_dir(config: DictConfig) -> Path:
 
 
 def _multirun(config: DictConfig) -> bool:
-    from hydra.types import RunMode
-
     mode = OmegaConf.select(config, "hydra.mode", default=None)
     return mode == RunMode.MULTIRUN or str(mode) in ("MULTIRUN", "RunMode.MULTIRUN")
 

@@ -1,10 +1,8 @@
-"""Checkpoints: written atomically, read with ``weights_only=True`` (no code runs while loading).
+"""Checkpoints: written atomically, read with ``weights_only=True`` so that no code runs while loading.
 
-A checkpoint is a plain dict of tensors, numbers, strings and nested dicts; ``FORMAT`` and ``VERSION``
-mark it as ours so a foreign or truncated file is refused with a clear error instead of a crash later.
-Each top-level entry's data (tensor bytes included: torch reads a zip member without checking its CRC)
-has a SHA-256 written with the file (``checksum``) and checked before the entry is used, so a flipped
-byte is refused naming the entry instead of resuming with damaged weights.
+A checkpoint is a plain dict of tensors, numbers, strings and nested dicts, marked by ``FORMAT`` and
+``VERSION``. Each top-level entry has a SHA-256 of its data (``checksum``), checked before use, because torch
+does not check a zip member's CRC.
 """
 
 from __future__ import annotations
@@ -20,7 +18,8 @@ from typing import Any
 
 import torch
 
-from mcrs.experiment.run.history import current_config
+from mcrs.experiment.run.history import BEFORE_CALLBACKS_REFUSAL, before_callbacks, current_config
+from mcrs.experiment.run.rundir import first_difference
 from mcrs.experiment.util.untrusted import check_archive
 
 FORMAT = "mcrs-checkpoint"
@@ -28,9 +27,9 @@ VERSION = 1
 LAST = "last.pt"
 
 
-#: The hash of each entry's data (``checksum.entries``); a file without ``checksum`` predates them.
+#: The hash of each entry's data (``checksum.entries``).
 CHECKSUM = "sha256"
-#: Folders whose checkpoints were said to predate checksums (said once per folder, not per file).
+#: Folders already logged as holding unverified checkpoints (history.OLD_FORMS["no checksum"]).
 _UNVERIFIED: set[Path] = set()
 
 
@@ -39,8 +38,8 @@ class CheckpointError(ValueError):
 
 
 def digest(value: Any) -> str:
-    """SHA-256 of ``value``'s data: every tensor's dtype, shape and bytes, every other value's type and
-    ``repr``, mappings and sequences in their order (which ``torch.save`` and ``torch.load`` keep)."""
+    """SHA-256 of ``value``'s data: tensors' dtype, shape and bytes, other values' type and ``repr``, in
+    order."""
     sha = hashlib.sha256()
     _feed(sha, value)
     return sha.hexdigest()
@@ -69,12 +68,10 @@ def _feed(sha: Any, value: Any) -> None:
 
 
 def verify(state: Mapping[str, Any], path: str | Path, entries: Any = None) -> None:
-    """Check ``entries`` of ``state`` (all of them by default) against the checksum written with the file;
-    refuse a damaged entry in one line naming the file and the entry. A file written before checksums
-    existed is read as before, said once in the run's log."""
+    """Check ``entries`` of ``state`` (all by default) against the checksum; refuse a damaged entry naming it."""
     path = Path(path)
     checksum = state.get("checksum")
-    if checksum is None:
+    if checksum is None:  # history.OLD_FORMS["no checksum"]
         if path.parent not in _UNVERIFIED:
             _UNVERIFIED.add(path.parent)
             logging.getLogger("mcrs.run").info(
@@ -132,8 +129,7 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
 
 
 class _Writer:
-    """A file for ``torch.save`` that keeps the ``OSError`` of a failed write (disk full, file too
-    large), which torch turns into a ``RuntimeError`` without the reason."""
+    """A file for ``torch.save`` that keeps a failed write's ``OSError``, which torch hides."""
 
     def __init__(self, handle: Any) -> None:
         self.handle, self.error = handle, None
@@ -150,11 +146,7 @@ class _Writer:
 
 
 def remove_stale_temporaries(directory: str | Path) -> list[Path]:
-    """Delete half-written checkpoint temporaries left in ``directory`` by a writer killed mid-save.
-
-    A run writes its checkpoints from one process, one at a time, so a temporary that exists before a
-    save is garbage from a crash; resume never reads one, and deleting them keeps the disk from filling.
-    """
+    """Delete temporaries left by a writer killed mid-save; a run saves from one process, one file at a time."""
     stale = list(Path(directory).glob(".*.pt.*.tmp"))
     for tmp in stale:
         tmp.unlink(missing_ok=True)
@@ -167,10 +159,8 @@ def load(
     mmap: bool = False,
     verify_data: bool | None = None,
 ) -> dict[str, Any]:
-    """Read a checkpoint without executing code; refuse anything that is not ours. ``mmap=True`` maps
-    the tensors instead of reading them (cheap when only a part, e.g. the counters, is needed).
-    ``verify_data`` (default: unless mapped, where reading every byte would undo the saving) checks every
-    entry against its checksum (:func:`verify`); a caller that maps and then uses an entry verifies it."""
+    """Read a checkpoint without executing code; refuse anything that is not ours. ``mmap=True`` maps the
+    tensors instead of reading them; ``verify_data`` defaults to checking every entry unless mapped."""
     path = Path(path)
     try:
         if not path.is_file():
@@ -201,7 +191,7 @@ def load(
 
 
 def _unreadable_reason(error: Exception) -> str:
-    """One line on why ``torch.load(weights_only=True)`` refused a file (torch's own text is a page long)."""
+    """One line on why ``torch.load(weights_only=True)`` refused a file."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(error))
     blocked = re.search(r"unsupported GLOBAL (\S+) whose module (\S+) is blocked", text)
     if blocked:  # torch's text advises weights_only=False: we never load a checkpoint that way
@@ -223,19 +213,14 @@ def checkpoint_path(run_dir: str | Path, name: str = LAST) -> Path:
     return Path(run_dir) / "checkpoints" / name
 
 
-#: Where a checkpoint keeps the bulk that only resuming needs: the replay buffer and the episodic memory's
-#: entries (the memory's embedding weights stay). Dotted paths into ``last.pt``; one place to change when
-#: the layout does (e.g. a replay kept in separate files).
+#: Dotted paths into ``last.pt`` of the bulk only resuming needs: the replay and the episodic memory's entries
+#: (its embedding weights stay). ``episodic.memory`` is history.OLD_FORMS["before callbacks"].
 BULK = ("replay", "replay_blocks", "callbacks.memory.memory", "episodic.memory")
 
 
 def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
-    """Drop the replay (inline, or its block files) and the episodic memory's entries from ``run_dir``'s
-    ``last.pt``, atomically.
-
-    A finished run keeps its weights, optimiser, counters and logs; it can no longer be resumed. Returns
-    the file's size in bytes before and after (equal when there was nothing to drop).
-    """
+    """Drop :data:`BULK` from ``run_dir``'s ``last.pt`` atomically; the run can no longer be resumed. Returns
+    the file's size before and after."""
     path = checkpoint_path(run_dir)
     before = path.stat().st_size if path.is_file() else 0
     state = load(path, mmap=True)  # the bulk is mapped, never read into memory
@@ -255,32 +240,22 @@ def prune_bulk(run_dir: str | Path) -> tuple[int, int]:
     state["pruned"] = {"dropped": dropped, "bytes_before": before}
     state = {k: v for k, v in state.items() if k not in ("format", "version", "checksum")}
     save_atomic(state, path)
-    if (
-        "replay_blocks" in dropped
-    ):  # the replay's block files beside last.pt (mcrs.experiment.run.replay_store)
+    if "replay_blocks" in dropped:  # the block files beside last.pt (mcrs.experiment.run.replay_store)
         for block in path.parent.glob("replay_*_*.pt"):
             block.unlink(missing_ok=True)
     return before, path.stat().st_size
 
 
 def refuse_pre_release(state: dict[str, Any], path: str | Path) -> dict[str, Any]:
-    """``state`` itself, unless a pre-release mcrs wrote it (the episodic memory under ``episodic``, EMC's
-    curiosity inside the learner's state, no ``callbacks``): such a run cannot be resumed or read as
-    today's, and is refused in one line. Weights files (``model_*.pt``) have no callbacks and pass."""
-    learner = state.get("learner")
-    old = "episodic" in state or (isinstance(learner, dict) and "curiosity" in learner)
-    if old and "callbacks" not in state:
-        raise CheckpointError(
-            f"{path} was written by a pre-release mcrs (its memory and curiosity are not in "
-            "'callbacks'); it cannot be resumed: start a new run"
-        )
+    """``state``, unless its layout is from before callbacks (history.OLD_FORMS["before callbacks"])."""
+    if before_callbacks(state):
+        raise CheckpointError(f"{path} {BEFORE_CALLBACKS_REFUSAL}")
     return state
 
 
 def awaits_final_evaluation(state: Mapping[str, Any]) -> bool:
-    """Whether ``state`` (a ``last.pt``) was saved after the run's last collector batch but before its
-    final evaluation: a kill in that window leaves a run at its length that is not finished. A checkpoint
-    written before ``last_eval_step`` was saved says nothing here (False)."""
+    """Whether a ``last.pt`` was saved after the last collector batch but before the final evaluation, which a
+    kill can leave."""
     counters = state.get("counters")
     step = state.get("last_eval_step", -1)
     if not isinstance(counters, Mapping) or step == -1:
@@ -289,13 +264,12 @@ def awaits_final_evaluation(state: Mapping[str, Any]) -> bool:
 
 
 def weights_path(run_dir: str | Path, env_steps: int) -> Path:
-    """``checkpoints/model_<steps>.pt``: the policy's weights at ``env_steps`` (what ``mcrs-eval`` loads)."""
+    """``checkpoints/model_<steps>.pt``: the policy's weights at ``env_steps``."""
     return checkpoint_path(run_dir, f"model_{env_steps:09d}.pt")
 
 
 def prune_weights(run_dir: str | Path, keep: int) -> list[Path]:
-    """Delete all but the newest ``keep`` weight files of ``run_dir`` (0 keeps them all); returns the
-    deleted paths. ``last.pt`` is never touched."""
+    """Delete all but the newest ``keep`` weight files (0 keeps all); returns them."""
     if keep <= 0:
         return []
     files = sorted(checkpoint_path(run_dir).parent.glob("model_*.pt"))  # zero-padded steps sort in order
@@ -312,16 +286,11 @@ def load_resumable(
     map_location: str | torch.device,
     advice: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
-    """``path``'s state, if it belongs to the run whose fingerprint is ``expected`` and can resume it.
-
-    ``fingerprint_of(config, learner)`` derives a fingerprint for checkpoints written before they carried one;
-    ``advice[field]`` ends the refusal of a checkpoint that differs first in ``field``.
-    """
-    from mcrs.experiment.run.rundir import first_difference
-
+    """``path``'s state, if it can resume the run whose fingerprint is ``expected``. ``fingerprint_of(config,
+    learner)`` derives a missing fingerprint; ``advice[field]`` ends a refusal on ``field``."""
     state = refuse_pre_release(load(path, map_location=map_location), path)
     saved = state.get("fingerprint")
-    if saved is None:  # written before fingerprints: derived from the config and weights it holds
+    if saved is None:  # history.OLD_FORMS["no fingerprint"]
         saved = fingerprint_of(current_config(state.get("config", {})), state.get("learner", {}))
     difference = first_difference(saved, expected)
     if difference is not None:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 @dataclass
 class Counters:
-    """Progress of a run; saved in every checkpoint."""
+    """Progress of a run, saved in every checkpoint."""
 
     env_steps: int = 0
     episodes: int = 0
@@ -21,5 +21,5 @@ class Counters:
 
 
 def batch_seed(seed: int, iteration: int) -> int:
-    """Seed of the environments of collector batch ``iteration`` (a run-local, reproducible stream)."""
+    """Seed of the environments of collector batch ``iteration``: a reproducible stream per run."""
     return (seed * 1_000_003 + iteration) % (2**63)

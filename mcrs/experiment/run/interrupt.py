@@ -1,10 +1,8 @@
-"""Stopping a run cleanly on Ctrl-C (SIGINT) or SIGTERM: the signal only asks for a stop; the training loop
-finishes the collector batch it is in, writes a checkpoint at that consistent point (counters, replay, random
-state: a resume continues exactly) and raises :class:`RunInterrupted`, which ``mcrs-train`` turns into one
-line, the resume command and exit status 128 + the signal (130, 143).
+"""Stopping a run cleanly on Ctrl-C (SIGINT) or SIGTERM.
 
-A second signal while the checkpoint is written is noted and ignored, so it cannot cut the save short (the
-writes are atomic anyway: an interrupted write leaves the previous checkpoint as it was).
+The signal only asks for a stop: the loop finishes its collector batch, writes a checkpoint there so a resume
+continues exactly, and raises :class:`RunInterrupted`. ``mcrs-train`` then exits with 128 + the signal. A
+second signal during the save is ignored.
 """
 
 from __future__ import annotations
@@ -18,11 +16,8 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class RunInterrupted(KeyboardInterrupt):
-    """A run stopped by a signal after writing its checkpoint.
-
-    A ``KeyboardInterrupt``, so that code that stops on Ctrl-C (a notebook, a script's ``except
-    KeyboardInterrupt``) still stops; ``exit_code`` is the shell's 128 + signal number.
-    """
+    """A run stopped by a signal after its checkpoint; a ``KeyboardInterrupt`` so that code that stops on
+    Ctrl-C still stops."""
 
     def __init__(self, signum: int, run_dir: Path, env_steps: int, checkpoint: Path) -> None:
         self.signum, self.run_dir, self.env_steps, self.checkpoint = signum, run_dir, env_steps, checkpoint
@@ -41,8 +36,7 @@ class RunInterrupted(KeyboardInterrupt):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM outside the training loop (while the run is built, or while its report is written), raised
-    where Ctrl-C's ``KeyboardInterrupt`` would be, so both stop the same way; ``exit_code`` is 143."""
+    """SIGTERM outside the training loop, raised where Ctrl-C's ``KeyboardInterrupt`` would be."""
 
     signal_name = "SIGTERM"
     exit_code = 128 + signal.SIGTERM
@@ -53,9 +47,7 @@ def _raise_terminated(signum: int, frame: FrameType | None) -> None:
 
 
 class TerminateAsInterrupt:
-    """While active (a context manager), SIGTERM raises :class:`Terminated` instead of killing the process
-    without a word; :class:`StopSignals` takes over inside the training loop. Outside the main thread it
-    does nothing."""
+    """A context in which SIGTERM raises :class:`Terminated`; does nothing outside the main thread."""
 
     def __init__(self) -> None:
         self._previous: object | None = None
@@ -74,9 +66,8 @@ class TerminateAsInterrupt:
 
 
 class StopSignals:
-    """While active (a context manager), SIGINT and SIGTERM set :attr:`signum` instead of stopping the
-    process; the previous handlers come back on exit. Outside the main thread (where Python cannot
-    install handlers) it does nothing and the signals keep their usual effect."""
+    """A context in which SIGINT and SIGTERM set :attr:`signum` instead of stopping; does nothing outside the
+    main thread."""
 
     def __init__(self) -> None:
         self.signum: int | None = None

@@ -1,22 +1,11 @@
-"""Metric logging through TorchRL's loggers, with grouped names (``train/``, ``eval/``, ``time/``), and the
+"""Metric logging through TorchRL's loggers with grouped names (``train/``, ``eval/``, ``time/``), and the
 run's text log.
 
-``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``; ``tensorboard`` writes ``<run>/logs/``;
-``wandb`` runs offline into ``<run>/wandb/`` unless ``logger.wandb_mode=online``, and keeps the same CSV
-files as ``csv`` beside it (the history that ``mcrs-report`` and a resume read).
-
-Videos (``logger.video=true``: one greedy evaluation episode per evaluation) are animated GIFs encoded
-with Pillow, written to ``<run>/videos/`` with every backend and also sent to TensorBoard (an image
-summary holding the GIF: TensorBoard's own video format, shown in its Images tab) and wandb
-(``wandb.Video``). TorchRL's ``log_video`` is not used: it needs moviepy (TensorBoard's encoder even
-moviepy 1.x), which nothing else here needs.
-
-The text log is Python's ``logging``: the trainer says what it did (each evaluation, each checkpoint) at
-INFO through :func:`log_event` (logger ``mcrs.run``). The commands' Hydra job-logging config (``conf/hydra/job_logging/mcrs.yaml``) writes every record to
-``<run dir>/train.log`` (``evaluate.log`` for ``mcrs-eval``) through :class:`~mcrs.experiment.commands.console.PlainFormatter`
-(no colour codes), and warnings to the console through :class:`~mcrs.experiment.commands.console.TqdmHandler` (above the progress bar, not through it).
-TorchRL's own logger prints an INFO line in colour when the replay storage is built; :func:`quiet_torchrl`
-keeps it to warnings unless ``RL_LOGGING_LEVEL`` (TorchRL's own setting) asks otherwise.
+``csv`` writes ``<run>/logs/scalars/<group>/<name>.csv``, ``tensorboard`` writes ``<run>/logs/``, and
+``wandb`` runs offline into ``<run>/wandb/`` with the same CSV files beside it, which ``mcrs-report`` and a
+resume read. Videos are GIFs encoded with Pillow in ``<run>/videos/``, also sent to TensorBoard and wandb;
+TorchRL's ``log_video`` would need moviepy. The text log is the ``mcrs.run`` logger (:func:`log_event`), which
+``conf/hydra/job_logging/mcrs.yaml`` writes to ``<run>/train.log``.
 """
 
 from __future__ import annotations
@@ -34,6 +23,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
+from tqdm.auto import tqdm
 
 from mcrs.choices import LOGGER_BACKENDS, WANDB_MODES
 
@@ -41,8 +31,7 @@ from mcrs.choices import LOGGER_BACKENDS, WANDB_MODES
 def make_logger(
     backend: str, run_dir: Path, config: dict[str, Any], project: str = "mcrs", mode: str = "offline"
 ) -> Logger:
-    """A TorchRL logger for the run; the resolved config is logged as hyper-parameters. TorchRL's own text
-    logger is kept to warnings (:func:`quiet_torchrl`): its INFO line would break the progress bar."""
+    """A TorchRL logger for the run, with the resolved config logged as hyper-parameters."""
     quiet_torchrl()
     name = run_dir.name
     if backend == "csv":
@@ -68,10 +57,8 @@ def make_logger(
 
 
 class WandbLoggerWithHistory(WandbLogger):
-    """TorchRL's ``WandbLogger`` that also keeps every scalar where the CSV logger puts it
-    (``<run>/logs/scalars/``). That copy is the run's history for ``mcrs-report`` and for a resume (which
-    drops the rows logged after its checkpoint): wandb's own ``.wandb`` file has no public reader (the
-    wandb 0.31 installed here has none in Python), and an offline run is on no server to ask."""
+    """TorchRL's ``WandbLogger`` that also keeps every scalar in ``<run>/logs/scalars/``, since wandb's
+    ``.wandb`` file has no public reader."""
 
     def __init__(self, run_dir: Path, **kwargs: Any) -> None:
         super().__init__(**kwargs)
@@ -84,7 +71,7 @@ class WandbLoggerWithHistory(WandbLogger):
 
 
 def flatten_config(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"algo.memory.delta": 0.0013, ...}``: nested dicts become dotted names, values are kept."""
+    """``{"algo.memory.delta": 0.0013}``: nested dicts become dotted names."""
     out: dict[str, Any] = {}
     for key, value in config.items():
         name = f"{prefix}{key}"
@@ -111,7 +98,7 @@ def log_event(message: str) -> None:
 
 
 def metrics_line(metrics: dict[str, float]) -> str:
-    """``"episode_reward 11.04, uncertainty 76.26, ..."``: an evaluation's means, for the text log."""
+    """``"episode_reward 11.04, uncertainty 76.26"``: an evaluation's means for the text log."""
     return ", ".join(f"{k} {v:.4g}" for k, v in metrics.items() if not k.endswith("_std"))
 
 
@@ -121,10 +108,8 @@ def log_scalars(logger: Logger, values: dict[str, float], step: int) -> None:
 
 
 def close_log_files(logger: Logger) -> None:
-    """Close the CSV logger's open files now. A write the disk refused leaves data in a file's buffer, and
-    TorchRL closes its files only when the logger is collected, where a second failure prints
-    ``Exception ignored in CSVExperiment.__del__`` after the run's one-line error: closing here, with that
-    error dropped (the run has already said it), leaves nothing to fail then. Another write reopens."""
+    """Close the CSV logger's files now; TorchRL closes them at collection, where a failed flush would print
+    after the run's one-line error."""
     files = getattr(getattr(logger, "experiment", None), "files", None)
     if not isinstance(files, dict):
         return
@@ -137,8 +122,8 @@ def close_log_files(logger: Logger) -> None:
 def log_video(
     logger: Logger, run_dir: Path, name: str, frames: list[np.ndarray], step: int, fps: int = 5
 ) -> Path:
-    """Log ``frames`` (``[H, W, 3]`` uint8 each) as the video ``name`` (``eval/video``) at ``step``: a GIF
-    in ``<run>/videos/`` and, for TensorBoard and wandb, the same GIF in the run's log."""
+    """Log ``frames`` (``[H, W, 3]`` uint8) as the GIF ``name`` at ``step``, in ``<run>/videos/`` and
+    TensorBoard's or wandb's log."""
     from mcrs.env.render import encode_gif  # matplotlib and Pillow: only for videos
 
     gif = encode_gif(frames, fps)
@@ -174,17 +159,13 @@ def progress_bar(
     plain: bool | None = None,
     interval: float = PLAIN_INTERVAL_S,
 ):
-    """Progress over ``total`` units (env steps; ``logger.progress_bar``): tqdm's bar, with its elapsed
-    time, rate and ETA and the caller's postfix (the latest evaluation), when the console is a terminal;
-    else (``plain``; by default: stderr is no terminal, as under nohup or in a log file, or this is one of
-    several jobs a parallel sweep launcher runs at once) a :class:`PlainProgress` line every ``interval``
-    seconds. Disabled, it costs nothing and prints nothing."""
+    """Progress over ``total`` units: a tqdm bar on a terminal, else a :class:`PlainProgress` line every
+    ``interval`` seconds. ``plain`` defaults to True when stderr is no terminal or parallel sweep jobs share
+    it."""
     if plain is None:
         plain = not _is_terminal(sys.stderr) or parallel_sweep_job()
     if enabled and plain:
         return PlainProgress(total, initial, description, unit, interval)
-    from tqdm.auto import tqdm
-
     return tqdm(
         total=total,
         initial=initial,
@@ -198,14 +179,11 @@ def progress_bar(
 
 
 class PlainProgress:
-    """The progress bar as plain lines on stderr, for a console that is no terminal (a bar there would be a
-    stream of carriage returns, or nothing)::
+    """The progress bar as plain lines on stderr, for a console that is no terminal::
 
         qmix map20: 120k/2M steps (6%), 1.92k steps/s, elapsed 0:01:03, ETA 0:16:29, eps=0.050, eval_reward=12.3
 
-    One line when it starts, then at most one every ``interval`` seconds as :meth:`update` is called, and
-    one when it closes. The methods the trainer calls on a tqdm bar (``update``, ``set_postfix``,
-    ``set_description``, ``close``) do the same here."""
+    One line at the start, at most one every ``interval`` seconds, and one at the close."""
 
     def __init__(self, total: int, initial: int, description: str, unit: str = "step",
                  interval: float = PLAIN_INTERVAL_S) -> None:  # fmt: skip
@@ -241,9 +219,7 @@ class PlainProgress:
         self.close()
 
     def line(self) -> str:
-        """The current line (without the newline)."""
-        from tqdm import tqdm
-
+        """The current line, without the newline."""
         elapsed = time.monotonic() - self.start
         rate = (self.n - self.initial) / elapsed if elapsed > 0 else 0.0
 
@@ -265,7 +241,7 @@ class PlainProgress:
 
 
 def _scaled(x: float) -> str:
-    """``2M``, ``120k``, ``1.92k``, ``200``, ``14.2``: three significant digits and a k/M/G suffix."""
+    """``2M``, ``120k``, ``1.92k``, ``14.2``: three significant digits and a k/M/G suffix."""
     for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
         if abs(x) >= scale:
             return f"{x / scale:.3g}{suffix}"
@@ -280,9 +256,9 @@ def _is_terminal(stream: Any) -> bool:
 
 
 def parallel_sweep_job() -> bool:
-    """Whether this process runs one job of a Hydra sweep whose launcher runs several at once (joblib, Ray,
-    Slurm): their bars would overwrite each other's on one terminal, so each prints plain lines."""
-    from hydra.core.hydra_config import HydraConfig
+    """Whether a sweep launcher (joblib, Ray, Slurm) runs this job beside others, whose bars would overwrite
+    each other."""
+    from hydra.core.hydra_config import HydraConfig  # Hydra only matters under a command
     from hydra.types import RunMode
 
     if not HydraConfig.initialized():
@@ -295,23 +271,23 @@ def parallel_sweep_job() -> bool:
 
 
 def quiet_torchrl() -> None:
-    """TorchRL's INFO lines (``Initialized LazyTensorStorage ...``) off, unless ``RL_LOGGING_LEVEL`` is set."""
+    """Turn TorchRL's INFO lines off, which would break the progress bar, unless ``RL_LOGGING_LEVEL`` is set."""
     if "RL_LOGGING_LEVEL" not in os.environ:
         logger = logging.getLogger("torchrl")
         logger.setLevel(max(logger.level, logging.WARNING))
 
 
 class ScalarFileError(ValueError):
-    """A CSV-logger file with a row that is not ``step,value`` numbers (naming the file and the line)."""
+    """A CSV-logger file with a row that is not ``step,value`` numbers."""
 
 
 def scalar_file(run_dir: Path, name: str) -> Path:
-    """Where ``csv`` (and ``wandb``) log the metric ``name`` (``eval/episode_reward``) of a run."""
+    """Where ``csv`` and ``wandb`` log the metric ``name`` (``eval/episode_reward``) of a run."""
     return run_dir / "logs" / "scalars" / f"{name}.csv"
 
 
 def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
-    """The ``step,value`` rows of a CSV-logger file in the order written (a resumed run repeats steps)."""
+    """The ``step,value`` rows of a CSV-logger file in the order written; a resumed run repeats steps."""
     out = []
     with open(path, newline="", errors="replace") as f:
         for line, row in enumerate(csv.reader(f), start=1):
@@ -328,7 +304,7 @@ def read_scalar_rows(path: Path) -> list[tuple[int, float]]:
 
 
 def sorted_points(rows: list[tuple[int, float]] | list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
-    """``(steps, values)`` sorted by step; a repeated step (a resumed run) keeps the last value."""
+    """``(steps, values)`` sorted by step; a repeated step keeps the last value."""
     points = {int(step): float(value) for step, value in rows}
     steps = np.array(sorted(points), dtype=np.int64)
     return steps, np.array([points[s] for s in steps], dtype=np.float64)

@@ -1,17 +1,10 @@
 """The replay buffer saved incrementally, in blocks of slots beside ``last.pt``.
 
-Why: a full map20 replay is about 3.3 GB; writing it into every checkpoint makes frequent checkpoints
-cost minutes and gigabytes. Here the storage's slots are cut into fixed blocks of ``block_episodes``;
-each block is one checkpoint file (``checkpoints/replay_<block>_<generation>.pt``), and a save rewrites
-only the blocks holding episodes written since the previous save. ``last.pt`` carries a manifest (the
-files of every block, the buffer's length and writer state) instead of the episodes.
-
-Crash safety: a save writes its new block files under new names (the generation), then the caller
-writes ``last.pt`` atomically, then :meth:`ReplayStore.commit` deletes the files no longer referenced.
-A crash at any point leaves the previous ``last.pt`` with all the files it names.
-
-Also here: the replay as plain tensors (:func:`flat_episodes`, :func:`replay_state_dict`), the form every
-checkpoint stores it in, inline or in blocks.
+A full map20 replay is about 3.3 GB, too much to write into every checkpoint. Its slots are cut into blocks,
+one file each (``checkpoints/replay_<block>_<generation>.pt``), and a save rewrites only the blocks written
+since the last one; ``last.pt`` carries their manifest. New blocks get new names, ``last.pt`` is written
+atomically, and then :meth:`ReplayStore.commit` deletes the files no longer named, so a crash leaves the
+previous ``last.pt`` whole.
 """
 
 from __future__ import annotations
@@ -27,16 +20,15 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import ReplayBuffer
 
 from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import first_difference
 
 #: How nested keys are written in a saved replay: ``("agents", "observation")`` as ``"agents/observation"``.
 KEY_SEPARATOR = "/"
 
 
 def flat_episodes(episodes: TensorDictBase) -> dict[str, torch.Tensor]:
-    """``episodes`` as a flat ``{"agents/observation": tensor, ...}`` dict: what a checkpoint stores
-    (plain tensors under string keys, read back with ``weights_only=True``). Only the episodes given are
-    written: TorchRL's ``ReplayBuffer.state_dict()`` would write the whole allocated storage
-    (docs/PERFORMANCE.md, "Saving the replay")."""
+    """``episodes`` as a flat ``{"agents/observation": tensor}`` dict, the form checkpoints store. Unlike
+    ``ReplayBuffer.state_dict()``, only the episodes given are written."""
     return dict(episodes.flatten_keys(KEY_SEPARATOR).items())
 
 
@@ -46,7 +38,7 @@ def episodes_from_flat(flat: dict[str, torch.Tensor], batch_size: Sequence[int])
 
 
 def replay_state_dict(buffer: ReplayBuffer) -> dict:
-    """The stored episodes (only the filled part, not the whole capacity) and the writer's position."""
+    """The filled part of the storage and the writer's position."""
     n = len(buffer)
     state: dict = {"length": n, "writer": buffer.writer.state_dict()}
     if n:
@@ -74,12 +66,7 @@ _BLOCK_FILE = re.compile(r"^replay_\d+_\d+\.pt$")
 
 
 class ReplayStore:
-    """Tracks the slots written since the last save and writes only their blocks.
-
-    Args:
-        directory: the run's ``checkpoints/`` directory.
-        block_episodes: slots per block file.
-    """
+    """Tracks the slots written since the last save and writes only their blocks to ``directory``."""
 
     def __init__(self, directory: str | Path, block_episodes: int = BLOCK_EPISODES) -> None:
         if block_episodes < 1:
@@ -97,9 +84,8 @@ class ReplayStore:
         self._dirty.update(int(b) for b in blocks)
 
     def save(self, buffer: ReplayBuffer, fingerprint: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Write the blocks changed since the last commit; return the manifest for ``last.pt``. Each block
-        carries ``fingerprint`` (the run's, as ``last.pt`` does), so a block copied from another run is
-        refused by :meth:`load`."""
+        """Write the blocks changed since the last commit, each with the run's ``fingerprint``; returns the
+        manifest."""
         n = len(buffer)
         n_blocks = math.ceil(n / self.block_episodes)
         self.generation += 1
@@ -127,11 +113,11 @@ class ReplayStore:
             "block_episodes": self.block_episodes,
             "generation": self.generation,
             "files": list(files),
-            "fingerprinted": fingerprint is not None,  # blocks written before fingerprints carry none
+            "fingerprinted": fingerprint is not None,
         }
 
     def commit(self) -> None:
-        """Call once ``last.pt`` naming the new manifest is on disk: delete the files it no longer names."""
+        """Delete the files the new manifest no longer names, once ``last.pt`` naming it is on disk."""
         if self._pending is None:
             return
         self.files, self._pending = self._pending, None
@@ -144,11 +130,7 @@ class ReplayStore:
     def load(
         self, buffer: ReplayBuffer, manifest: dict[str, Any], fingerprint: dict[str, Any] | None = None
     ) -> None:
-        """Refill an empty ``buffer`` from a manifest: same slots, same next write position. Each block
-        must be the one the manifest names (its index) and, when the manifest says its blocks carry
-        fingerprints, carry ``fingerprint`` (checked like ``last.pt``'s)."""
-        from mcrs.experiment.run.rundir import first_difference
-
+        """Refill an empty ``buffer`` from a manifest, checking each block's index and fingerprint."""
         if len(buffer):
             raise ValueError("ReplayStore.load needs an empty buffer")
         check_manifest(manifest)
@@ -167,6 +149,7 @@ class ReplayStore:
                 raise ckpt.CheckpointError(
                     f"{path} is not block {block} of this run's replay (it says {payload.get('replay_block')!r})"
                 )
+            # history.OLD_FORMS["unfingerprinted replay blocks"]
             if manifest.get("fingerprinted") and fingerprint is not None:
                 saved = payload.get("fingerprint")
                 difference = (
@@ -188,9 +171,8 @@ class ReplayStore:
 
 
 def check_manifest(manifest: Any) -> None:
-    """A ``replay_blocks`` manifest read from ``last.pt``: whole numbers >= 0 and block files named as this
-    module names them (a plain name in the run's ``checkpoints/``), so that a manifest naming
-    ``../../other_run/...`` never reads another run's replay. Refused naming the entry."""
+    """Check a ``replay_blocks`` manifest: whole numbers >= 0 and plain block file names, never
+    ``../other_run``."""
     if not isinstance(manifest, dict):
         raise ckpt.CheckpointError("entry replay_blocks: not a mapping")
     for key in ("length", "block_episodes", "generation"):

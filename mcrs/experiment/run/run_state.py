@@ -1,12 +1,9 @@
 """The run's state in checkpoints: what :class:`~mcrs.experiment.training.trainer.Experiment` saves, checks
 and restores.
 
-Apart from the loop because it is the other half of a run's life: the loop changes the state, this module
-writes it (``last.pt`` with the replay's block files, the weights at each step, ``last_good.pt`` inline),
-judges a checkpoint against the run (the fingerprint) and puts it back, the random state last. The file
-formats are :mod:`mcrs.experiment.run.checkpoint`'s. :class:`RunState` owns the run's bookkeeping (the
-counters, the last evaluation, the rows logged) and reads the parts the experiment built through the
-declared interface :class:`RunParts`.
+:class:`RunState` writes ``last.pt`` (with the replay's block files), the weights at each step and
+``last_good.pt``, checks a checkpoint's fingerprint against the run and puts the state back, the random state
+last. It reads the experiment's parts through :class:`RunParts`.
 """
 
 from __future__ import annotations
@@ -24,7 +21,7 @@ from torchrl.data import ReplayBuffer
 from mcrs.experiment.config import RESUME_MUTABLE, as_dictconfig, to_container
 from mcrs.experiment.run import checkpoint as ckpt
 from mcrs.experiment.run.counters import Counters
-from mcrs.experiment.run.history import LEGACY_EVAL_STEP, class_path
+from mcrs.experiment.run.history import LEGACY_EVAL_STEP, class_path, final_evaluation_from_log
 from mcrs.experiment.run.logging import log_event
 from mcrs.experiment.run.replay_store import ReplayStore, load_replay_state_dict, replay_state_dict
 from mcrs.experiment.run.rundir import fingerprint, io_errors, truncate_csv_logs
@@ -51,9 +48,8 @@ def _whole(value: Any) -> bool:
 
 
 def check_resume_state(state: dict[str, Any], path: Path) -> None:
-    """The counters, random state and bookkeeping of a checkpoint, checked for type, sign, size and
-    finiteness before any is used: a damaged or edited file is one line naming the file and the entry,
-    not a run that counts from -1000, a NaN credit of updates or a traceback from torch."""
+    """Check a checkpoint's counters, random state and bookkeeping before use, so an edited file is refused in
+    one line."""
 
     def refuse(entry: str, value: Any, rule: str) -> None:
         shown = (
@@ -131,7 +127,7 @@ class Schedule(Protocol):
 
 
 class RunParts(Protocol):
-    """What the run's state reads of the experiment it saves: the parts built from the config."""
+    """What the run's state reads of the experiment."""
 
     config: Config
     run_dir: Path
@@ -145,13 +141,7 @@ class RunParts(Protocol):
 
 
 class RunState:
-    """The run's bookkeeping and its checkpoints: :meth:`state_dict`, :meth:`load_state_dict`, :meth:`save`,
-    :meth:`fingerprint` and the resume's random state.
-
-    Args:
-        parts: the experiment's parts (:class:`RunParts`), read when a checkpoint is written or loaded.
-        counters: the run's counters at its start.
-    """
+    """The run's bookkeeping (counters, last evaluation, rows logged) and its checkpoints."""
 
     def __init__(self, parts: RunParts, counters: Counters) -> None:
         self.parts = parts
@@ -169,7 +159,8 @@ class RunState:
         return self.parts.run_dir
 
     def write_config(self) -> None:
-        """Write ``config.yaml``: the config, without the ``task`` key of an MCRS run (as before tasks)."""
+        """Write ``config.yaml``; an MCRS run's has no ``task`` key (history.OLD_FORMS["no task in the
+        fingerprint"])."""
         config = self.parts.config
         node = as_dictconfig(config)
         if config.task is None:
@@ -179,8 +170,7 @@ class RunState:
             (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(node, resolve=True))
 
     def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
-        """The whole run; the replay's episodes inline, or (``replay_inline=False``) the manifest of the
-        block files that :meth:`save` writes for ``last.pt``."""
+        """The whole run, with the replay inline or as the manifest of its block files."""
         state = {
             "config": to_container(self.parts.config),
             "fingerprint": self.fingerprint(),
@@ -204,8 +194,8 @@ class RunState:
     def fingerprint(
         self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
     ) -> dict:
-        """What a checkpoint must share with this run (:func:`mcrs.experiment.run.rundir.fingerprint`): of this
-        run, or of a checkpoint's ``config`` and ``learner`` state (checkpoints written before fingerprints)."""
+        """What a checkpoint must share with this run, or with a checkpoint's ``config`` and ``learner``
+        state."""
         learner = self.parts.learner.weights() if learner is None else learner
         config = to_container(self.parts.config) if config is None else config
         networks = {name: learner[name] for name in ("agent", "mixer") if name in learner}
@@ -220,13 +210,9 @@ class RunState:
         }
 
     def save(self, name: str = ckpt.LAST) -> Path:
-        """Atomically write the full state (``checkpoints/last.pt``) and the weights at this step.
-
-        An I/O error (a full disk, a read-only directory) stops the run in one line; the atomic write
-        leaves the previous checkpoint as it was and no temporary behind. ``last.pt`` names the replay's
-        block files (only the changed blocks are written); any other name (``last_good.pt``) carries the
-        episodes inline, so it stays whole whatever later saves delete.
-        """
+        """Atomically write ``checkpoints/<name>`` and, for ``last.pt``, the weights at this step. Only
+        ``last.pt`` uses the replay's block files, so ``last_good.pt`` stays whole whatever later saves
+        delete."""
         target = ckpt.checkpoint_path(self.run_dir, name)
         with io_errors(f"write checkpoint {target}", self.intact):  # judged after the failure
             path = self._save(name)
@@ -234,7 +220,7 @@ class RunState:
         return path
 
     def intact(self, advice: str = "free space or fix the directory, then ") -> str:
-        """What survives an I/O error (or a dead collector worker): the checkpoint a resume would start from."""
+        """The checkpoint a resume would start from, said after an I/O error."""
         last = ckpt.checkpoint_path(self.run_dir)
         if not last.is_file():
             return "; no checkpoint had been written yet"
@@ -259,14 +245,13 @@ class RunState:
         return path
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a checkpoint's state (after :meth:`fingerprint` has matched); the random state is
-        restored by the caller once everything is built."""
+        """Restore a checkpoint whose fingerprint matched, but not its random state."""
         saved = state.get("callbacks", {})
         self._check_callbacks(saved)  # before anything is restored
         self.parts.learner.load_state_dict(state["learner"])
         if "replay_blocks" in state:
             self.replay_store.load(self.parts.replay, state["replay_blocks"], self.fingerprint())
-        else:  # the episodes inline (checkpoints written before the block files, last_good.pt)
+        else:  # last_good.pt; history.OLD_FORMS["inline replay"]
             load_replay_state_dict(self.parts.replay, state["replay"])
         for callback in self.parts.callbacks:
             if callback.name in saved:
@@ -280,15 +265,14 @@ class RunState:
         self.parts.epsilon.set_env_steps(self.counters.env_steps)
 
     def _check_callbacks(self, saved: dict[str, Any]) -> None:
-        """No callback's saved state is dropped, and no callback with state starts from nothing; a stateless
-        callback may join a resumed run."""
+        """Refuse to drop a callback's saved state or start a callback with state from nothing."""
         names = {callback.name for callback in self.parts.callbacks}
         lost = [name for name, value in saved.items() if name not in names and value]
         if lost:
             raise ckpt.CheckpointError(
                 f"the checkpoint holds the state of the callback {lost[0]!r}, which this run does not have: "
                 "build the run with it (Experiment(..., callbacks=[...]), or its algorithm)"
-                + (  # saved before a Callback subclass without a name was named after its class
+                + (  # history.OLD_FORMS["callback state under 'callback'"]
                     f"; a callback class without its own name saved its state as {lost[0]!r}: set "
                     f"name = {lost[0]!r} on that class"
                     if lost[0] == "callback"
@@ -303,8 +287,8 @@ class RunState:
                 )
 
     def load(self, path: Path) -> None:
-        """Check the checkpoint at ``path`` against this run and restore it (the random state waits for
-        :meth:`restore_rng`); the logs lose the rows written after it."""
+        """Check the checkpoint at ``path`` against this run and restore it; the logs lose the rows written
+        after it."""
         state = ckpt.load_resumable(
             path, self.fingerprint(), self.fingerprint, self.parts.device, advice=RESUME_ADVICE
         )
@@ -312,7 +296,7 @@ class RunState:
         self._resume_rng = state["rng"]  # restored last (restore_rng), once everything is built
         saved, ours = state.get("fingerprint") or {}, self.fingerprint()
         added = [k for k in ours if k.startswith("algo.options.") and saved and k not in saved]
-        if added:  # settings the algorithm gained after the checkpoint: their defaults, said (not compared)
+        if added:  # history.OLD_FORMS["config field on one side only"]
             values = ", ".join(f"{k}={ours[k]!r}" for k in added)
             log_event(f"the checkpoint predates these settings of its algorithm: resumed with {values}")
         try:
@@ -327,30 +311,20 @@ class RunState:
             self.log_rows = truncate_csv_logs(self.run_dir, rows, self.counters.env_steps)
 
     def final_evaluation_written(self) -> bool:
-        """Whether the run's final evaluation is done: its last evaluation is at the current env step.
-
-        A run killed between its last checkpoint (at ``train.total_env_steps`` when that is a multiple of
-        ``checkpoint_interval``) and its final evaluation has reached its length without it. A checkpoint
-        written before ``last_eval_step`` was saved is judged by the last row of its evaluation log (CSV);
-        without that log, by whether it holds an evaluation, as before."""
+        """Whether the run's final evaluation is done; a kill after the last checkpoint can leave it out."""
         step = self.counters.env_steps
         if self.last_eval_step != LEGACY_EVAL_STEP:
             return bool(self.last_eval) and self.last_eval_step == step
-        rows = self.log_rows.get("eval/episode_reward")
-        log = self.run_dir / "logs" / "scalars" / "eval" / "episode_reward.csv"
-        if not rows or not log.is_file():
-            return bool(self.last_eval)
-        log_event(f"{ckpt.checkpoint_path(self.run_dir)} was written before checkpoints named their last "
-                  f"evaluation's step: judged by {log}")  # fmt: skip
-        with open(log) as f:
-            kept = [line for line in f.read().splitlines() if line][:rows]
-        try:
-            return bool(kept) and float(kept[-1].split(",")[0]) == step
-        except ValueError:
-            return bool(self.last_eval)
+        return final_evaluation_from_log(  # history.OLD_FORMS["no last_eval_step"]
+            self.run_dir,
+            ckpt.checkpoint_path(self.run_dir),
+            self.log_rows.get("eval/episode_reward"),
+            step,
+            bool(self.last_eval),
+        )
 
     def restore_rng(self) -> None:
-        """The checkpoint's random state, put back last: building the run may draw random numbers."""
+        """Put the checkpoint's random state back, last, since building the run may draw random numbers."""
         rng, self._resume_rng = self._resume_rng, None
         if rng is None:
             return

@@ -1,24 +1,16 @@
 """A run directory belongs to one run: unique names, one writer at a time, no mixing with an old run.
 
-- :func:`register_resolvers` adds ``${mcrs.pid:}`` to the run-directory names (``conf/config.yaml``,
-  ``conf/eval.yaml``, ``conf/render.yaml``): two commands started in the same second on one machine get
-  different directories; ``${mcrs.run_dir:...}`` puts a resumed run back into its own directory and
-  ``${mcrs.beside_run:...}`` an evaluation or rendering of a run inside that run's directory.
-- :class:`RunLock` is an exclusive ``flock`` on ``<run>/.mcrs.lock``, held by the process that writes the
-  run; the kernel drops it when that process dies (even by SIGKILL), so a crashed run can be resumed at
-  once, while a second writer or a resume of a live run is refused, naming the holder's PID.
-- :class:`RunLogHandler`, the file handler of ``mcrs-train``'s log, claims a sweep job's directory before
-  Hydra writes into it (a single run is claimed earlier, by :class:`mcrs.experiment.commands.cli.RunDirCheck`).
-- :func:`prepare_fresh` refuses a non-empty directory unless ``overwrite=true``, and then clears only what
-  a run writes.
-- :func:`truncate_csv_logs` drops the CSV rows written after the checkpoint a run resumes from.
-- :func:`fingerprint` and :func:`first_difference`: what a checkpoint must share with the run it resumes.
+:class:`RunLock` is an exclusive ``flock`` on ``<run>/.mcrs.lock``. The kernel drops it when its process dies,
+even by SIGKILL, so a crashed run can be resumed at once while a second writer is refused.
+:func:`prepare_fresh` refuses a non-empty directory unless ``overwrite=true``, and then clears only what a run
+writes. :func:`fingerprint` says what a checkpoint must share with the run it resumes.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import fcntl
 import logging
 import os
 import shutil
@@ -26,6 +18,8 @@ import socket
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
+
+# omegaconf and hydra are imported where used: this module needs only the standard library.
 
 LOCK = ".mcrs.lock"
 #: What ``mcrs-train`` writes into a run directory, with ``mcrs-eval``'s and ``mcrs-render``'s results of
@@ -42,10 +36,9 @@ class RunDirError(RuntimeError):
 
 
 def register_resolvers() -> None:
-    """``${mcrs.pid:}``: this process's id, cached like Hydra's ``${now:}`` so that every job of a sweep
-    (which copies the launcher's resolver cache) sees the launcher's value; ``${mcrs.num:x}``: a number as
-    directory names write it (5.0 -> 5, 0.13 -> 0.13, inf -> inf); ``${mcrs.config_groups:}``: the config
-    groups of a command's ``--help`` (:func:`config_groups_help`)."""
+    """Register the ``${mcrs.*:}`` resolvers of the configs' run-directory names and ``--help`` texts.
+    ``${mcrs.pid:}`` is cached like ``${now:}``, so a sweep's jobs share the launcher's value and two commands
+    started in one second get different directories."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("mcrs.pid"):
@@ -67,8 +60,7 @@ def register_resolvers() -> None:
 
 
 def task_name(task: Any, env_name: str) -> str:
-    """``${mcrs.task_name:${task},${env.name}}``: a run directory's task part, the task node's ``name`` (else
-    its class's name), or the map's name for an MCRS run (``task`` null)."""
+    """The task part of a run directory's name: the task's ``name`` or class, or the map for an MCRS run."""
     if task is None:
         return str(env_name)
     name = task.get("name") if hasattr(task, "get") else None
@@ -76,11 +68,8 @@ def task_name(task: Any, env_name: str) -> str:
 
 
 def config_groups_help(*, _root_: Any) -> str:
-    """``${mcrs.config_groups:}`` in a command's ``hydra.help.template``: the config groups that command
-    accepts (those of its defaults list, ``hydra.runtime.choices``), one ``group: option, option`` line
-    each, as Hydra's ``$APP_CONFIG_GROUPS`` writes them. Hydra's own list names every group in the config
-    folder, which ``mcrs-train``, ``mcrs-eval`` and ``mcrs-render`` share: ``mcrs-train --help`` listed
-    mcrs-eval's ``study``, which mcrs-train refuses."""
+    """The config groups a command accepts, one ``group: option, option`` line each, for its ``--help``.
+    Hydra's ``$APP_CONFIG_GROUPS`` lists every group of the shared config folder, even another command's."""
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.object_type import ObjectType
     from omegaconf import OmegaConf
@@ -99,16 +88,12 @@ def config_groups_help(*, _root_: Any) -> str:
 
 
 def resumed_run_dir(resume: Any, fresh: str) -> str:
-    """``hydra.run.dir`` of ``mcrs-train``: the run being resumed (its session appends to its own
-    ``train.log``; no stray directory is made), else ``fresh``, the name of a new run."""
+    """``hydra.run.dir`` of ``mcrs-train``: the run being resumed, else ``fresh``, a new run's name."""
     return fresh if resume in (None, "") else str(Path(str(resume)).expanduser())
 
 
 def resume_problem(resume: Any) -> str | None:
-    """Why ``resume=<dir>`` cannot be resumed (not a directory, not an ``mcrs-train`` run), or None.
-
-    Checked before Hydra makes or writes anything (:class:`mcrs.experiment.commands.cli.RunDirCheck`): a mistyped
-    path is one line, not a new empty directory."""
+    """Why ``resume=<dir>`` cannot be resumed, or None; checked before Hydra makes or writes anything."""
     run_dir = Path(str(resume)).expanduser()
     if not run_dir.is_dir():
         return f"resume={resume}: no such directory"
@@ -118,8 +103,7 @@ def resume_problem(resume: Any) -> str | None:
 
 
 def run_of(policy: Any) -> Path | None:
-    """The ``mcrs-train`` run directory that ``policy`` names (the run itself, or a checkpoint in its
-    ``checkpoints/``), or None for a heuristic or a checkpoint outside any run."""
+    """The ``mcrs-train`` run that ``policy`` names (the run or a checkpoint in it), or None."""
     path = Path(str(policy)).expanduser()
     candidates = (
         (path.parent.parent,) if path.suffix == ".pt" and path.parent.name == "checkpoints" else (path,)
@@ -131,8 +115,8 @@ def run_of(policy: Any) -> Path | None:
 
 
 def beside_run(policy: Any, kind: str, default: str) -> str:
-    """Where ``mcrs-eval`` / ``mcrs-render`` write: ``<run>/<kind>`` when the policy is a trained run's
-    (its results stay with the run), else ``default`` (``outputs/eval``, ``outputs/render``)."""
+    """Where ``mcrs-eval`` and ``mcrs-render`` write: ``<run>/<kind>`` for a trained run's policy, else
+    ``default``."""
     run = run_of(policy)
     return str(run / kind) if run is not None else default
 
@@ -147,10 +131,8 @@ def _key(run_dir: str | Path) -> Path:
 
 
 def claim_run_dir(run_dir: str | Path) -> None:
-    """Take ``run_dir``'s lock now, before Hydra writes ``.hydra/`` and the log there: a second command
-    started into the same directory (while this one still loads torch) is refused before it writes
-    anything. :class:`RunLock` of this process then takes the claim over; :func:`release_claims` drops it
-    for a command refused before it ran. Raises :class:`RunDirError` naming the holder."""
+    """Take ``run_dir``'s lock before Hydra writes there, so a second command started into it is refused
+    before it writes anything. This process's :class:`RunLock` takes the claim over."""
     key = _key(run_dir)
     if key in _CLAIMED:
         return
@@ -159,12 +141,12 @@ def claim_run_dir(run_dir: str | Path) -> None:
 
 
 def claimed(run_dir: str | Path) -> bool:
-    """Whether this process claimed ``run_dir`` (:func:`claim_run_dir`) and no lock has taken it over yet."""
+    """Whether this process claimed ``run_dir`` and no lock has taken the claim over yet."""
     return _key(run_dir) in _CLAIMED
 
 
 def release_claims() -> None:
-    """Drop the claims of a command refused before its run started; a lock file the claim created goes."""
+    """Drop the claims of a command refused before its run started, with any lock file a claim created."""
     for key, (lock, created) in list(_CLAIMED.items()):
         if created and lock.fd is not None:
             (key / LOCK).unlink(missing_ok=True)  # while still held: no other process relies on it
@@ -176,8 +158,6 @@ class RunLock:
     """An exclusive advisory lock on a run directory, held until :meth:`release` or process exit."""
 
     def __init__(self, run_dir: str | Path) -> None:
-        import fcntl
-
         self.fd: int | None = None
         self.path = Path(run_dir) / LOCK
         claimed = _CLAIMED.pop(_key(run_dir), None)
@@ -207,7 +187,7 @@ class RunLock:
         self.fd = fd
 
     def release(self) -> None:
-        """Drop the lock (closing the descriptor releases the flock); the file stays, it holds no state."""
+        """Drop the lock; the file stays, it holds no state."""
         if self.fd is not None:
             os.close(self.fd)
             self.fd = None
@@ -217,10 +197,7 @@ class RunLock:
 
 
 def lock_holder(run_dir: str | Path) -> str | None:
-    """``"process 7438"`` when a live process holds ``run_dir``'s lock, else None (nothing is created:
-    a directory without a lock file has no writer). For tools that must not touch a run in use."""
-    import fcntl
-
+    """``"process 7438"`` when a live process holds ``run_dir``'s lock, else None; creates nothing."""
     try:
         fd = os.open(Path(run_dir) / LOCK, os.O_RDWR)
     except OSError:
@@ -247,14 +224,9 @@ def in_use_problem(run_dir: Path) -> str | None:
 
 
 class RunLogHandler(logging.FileHandler):
-    """The file handler of ``mcrs-train``'s log (``hydra.job_logging`` in ``conf/config.yaml``): it claims
-    the run directory before it opens the log.
-
-    For each job Hydra makes the folder, then sets up the job's log, then writes ``.hydra/`` there, in the
-    process that runs the job (whatever the launcher). A single run is already claimed; a sweep's job is
-    claimed here. A job whose folder a live process holds, or that holds another run (without
-    ``overwrite=true``), stops the sweep in one line, and nothing is written into the folder. A sweep that
-    went on would leave a hole its summary hides."""
+    """The file handler of ``mcrs-train``'s log, which claims a sweep job's directory before Hydra writes
+    there. A job whose folder is in use or holds another run stops the sweep, which would otherwise leave a
+    hole its summary hides."""
 
     def __init__(self, filename: str, overwrite: bool = False, **kwargs: Any) -> None:
         run_dir = Path(filename).parent
@@ -289,9 +261,7 @@ def _fresh_entries(run_dir: Path) -> list[str]:
 
 
 def fresh_problem(run_dir: Path, overwrite: bool) -> str | None:
-    """Why a fresh run may not start in ``run_dir`` (:func:`prepare_fresh`), or None (also when it does
-    not exist). :class:`mcrs.experiment.commands.cli.RunDirCheck` asks before Hydra writes its ``.hydra/`` files
-    there, so that a refused command leaves an existing run as it was."""
+    """Why a fresh run may not start in ``run_dir``, or None; asked before Hydra writes there."""
     if not run_dir.is_dir():
         return None
     entries = _fresh_entries(run_dir)
@@ -314,11 +284,8 @@ def fresh_problem(run_dir: Path, overwrite: bool) -> str | None:
 
 
 def prepare_fresh(run_dir: Path, overwrite: bool) -> None:
-    """Refuse a run directory that holds anything but Hydra's files, or clear a previous run from it.
-
-    With ``overwrite`` only a previous run's own files are removed (:data:`RUN_ARTEFACTS`); a directory
-    holding anything else is refused either way, so ``overwrite=true`` never deletes unrelated files.
-    """
+    """Refuse a run directory that holds anything but Hydra's files, or clear a previous run's own files
+    (:data:`RUN_ARTEFACTS`) from it."""
     problem = fresh_problem(run_dir, overwrite)
     if problem:
         raise RunDirError(problem)
@@ -340,16 +307,14 @@ def csv_log_files(run_dir: Path) -> list[Path]:
 
 
 def csv_log_name(run_dir: Path, path: Path) -> str:
-    """``train/episodes`` for ``<run>/logs/scalars/train/episodes.csv`` (the name it was logged under)."""
+    """``train/episodes`` for ``<run>/logs/scalars/train/episodes.csv``."""
     return path.relative_to(run_dir / "logs" / "scalars").with_suffix("").as_posix()
 
 
 def truncate_csv_logs(run_dir: Path, rows: Mapping[str, int] | None, env_steps: int) -> dict[str, int]:
-    """Keep the rows each CSV log had when the checkpoint was written; drop those written after it.
-
-    ``rows`` (name -> row count) comes from the checkpoint; a checkpoint without it (older runs) keeps the
-    rows logged at or before its ``env_steps``. Each file is rewritten atomically. Returns the rows kept.
-    """
+    """Keep the rows each CSV log had when the checkpoint was written (``rows``, name -> count), rewriting
+    each file atomically. Without ``rows`` the rows up to ``env_steps`` stay (history.OLD_FORMS["no
+    logs.rows"])."""
     kept: dict[str, int] = dict(rows or {})
     for path in csv_log_files(run_dir):
         with open(path, newline="") as f:
@@ -381,12 +346,8 @@ FINGERPRINT_ORDER = ("algo", "env", "model", "seed", "train", "device", "preset"
 def fingerprint(
     config: Mapping[str, Any], networks: Mapping[str, Any], version: int, mutable: Iterable[str]
 ) -> dict[str, Any]:
-    """What a checkpoint must share with the run that resumes from it, flat and ordered.
-
-    ``format.version``, then every config field a resume may not change (algo, env shape and dynamics,
-    model, seed, the training settings; not the ``mutable`` ones), then ``networks.<module>.<tensor>``:
-    the shape of every learned tensor. Plain strings, numbers and lists: it is stored in the checkpoint.
-    """
+    """What a checkpoint must share with the run that resumes it: ``format.version``, the config fields that
+    are not ``mutable``, then each learned tensor's shape. Plain values, flat and ordered."""
     mutable = tuple(mutable)
 
     def is_mutable(name: str) -> bool:
@@ -421,12 +382,8 @@ def _flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def first_difference(saved: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
-    """``"algo.name: 'cnn_semu' in the checkpoint, 'qmix' in this run"`` for the first field that
-    differs (in ``current``'s order, then fields only the checkpoint has), or None when they match.
-
-    A config field on one side only is a field added to (or dropped from) the schema since the checkpoint
-    was written, not another run: it is skipped. A network tensor on one side only is a difference.
-    """
+    """``"algo.name: 'cnn_semu' in the checkpoint, 'qmix' in this run"`` for the first field that differs, or
+    None. A config field on one side only is skipped (history.OLD_FORMS["config field on one side only"])."""
     for key in [*current, *(k for k in saved if k not in current)]:
         if (key not in saved or key not in current) and not key.startswith("networks."):
             continue
@@ -438,16 +395,15 @@ def first_difference(saved: Mapping[str, Any], current: Mapping[str, Any]) -> st
 
 # ---------------------------------------------------------------------------------------- I/O errors
 def describe_os_error(error: OSError) -> str:
-    """``"No space left on device (writing /run/checkpoints/x.pt)"``: the reason and the file, one line."""
+    """``"No space left on device (/run/checkpoints/x.pt)"``: the reason and the file."""
     reason = error.strerror or str(error) or type(error).__name__
     return f"{reason} ({error.filename})" if error.filename else reason
 
 
 @contextlib.contextmanager
 def io_errors(action: str, after: str | Callable[[], str] = ""):
-    """Turn an ``OSError`` inside the block into a one-line :class:`RunDirError` (``action``: what was
-    being done, ``after``: what is still intact, or a function that says it once the error happened: a
-    save may have written ``last.pt`` before failing on the next file)."""
+    """Turn an ``OSError`` in the block into a one-line :class:`RunDirError`. ``after`` says what is still
+    intact, or is a function that says it after the error."""
     try:
         yield
     except OSError as error:

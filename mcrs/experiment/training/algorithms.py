@@ -1,33 +1,12 @@
-"""Algorithms: what each value-factorisation algorithm brings to the one loop, chosen once from ``config.algo``.
+"""Algorithms: what each value-factorisation algorithm brings to the one training loop, chosen from
+``config.algo``.
 
-An :class:`Algorithm` holds the parts of a run that differ between algorithms::
-
-    mixer(task)                the mixing network (algo.mixer: QMIX, VDN, QPLEX)
-    incentive                  EMU's incentive strategy (algo.incentive, mcrs.objectives.incentive), one
-                               object for the loss and the episodic memory
-    loss(agent, mixer)         the TD loss (a ValueFactorisationLoss, or a subclass: another target, another
-                               TD error), with that incentive
-    learner(...)               the Learner with that mixer and loss; the loss's keys follow from them
-                               and algo.memory_weight (ValueFactorisationLoss.in_keys)
-    callbacks(...)             what it adds to the loop: EMC's curiosity (algo.curiosity_scale > 0), then the
-                               episodic memory (algo.memory.enabled); both write the keys the loss reads
-                               into the sampled batch in on_train_batch
-
-The built-in algorithms (``conf/algo/*.yaml``: qmix, vdn, qplex, semu, cnn_semu, emc, emu, emu_370,
-emu_change) are this one class: they differ in their config nodes only, and a knob set on the command line
-(``algo=qmix algo.memory.enabled=true``) changes the parts the same way. An algorithm of one's own
-subclasses :class:`Algorithm`, overrides the parts it changes and is registered under an ``algo.name``::
-
-    @register_algorithm("my_algo")
-    class MyAlgorithm(Algorithm):
-        def callbacks(self, config, env_config, learner, device):
-            return [*super().callbacks(config, env_config, learner, device), MyCallback()]
-
-    Experiment(compose("algo=qmix", "algo.name=my_algo"), "outputs/run").run()
-
-An algorithm's own settings are a dataclass, its :attr:`Algorithm.Options`, set from the config's
-``algo.options`` node (``+algo.options.clip=5`` on the command line, or ``options:`` in a preset), so they
-are checked, written to the run's ``config.yaml``, fingerprinted for resumes and swept like any knob::
+An :class:`Algorithm` builds the parts that differ: the mixer, EMU's incentive, the TD loss, the
+:class:`Learner` around them, and the callbacks (EMC's curiosity, the episodic memory) that write the keys the
+loss reads. The built-in algorithms (``conf/algo/*.yaml``) differ only in their config nodes. An algorithm of
+one's own subclasses it, overrides the parts it changes, declares its settings as an :attr:`Algorithm.Options`
+dataclass (set through ``algo.options``, so they are checked, saved and fingerprinted) and is registered under
+an ``algo.name``, or installed in the entry-point group ``mcrs.algorithms``::
 
     @register_algorithm("clipped_qmix")
     class ClippedQMIX(Algorithm):
@@ -38,18 +17,14 @@ are checked, written to the run's ``config.yaml``, fingerprinted for resumes and
         def loss(self, agent, mixer):
             return ClippedLoss(..., clip=self.options.clip)
 
-An installed package can name its algorithms in the entry-point group ``mcrs.algorithms`` (its
-``pyproject.toml``: ``[project.entry-points."mcrs.algorithms"]`` ``my_algo = "my_pkg.algos:MyAlgorithm"``):
-``algo.name=my_algo`` then finds it from ``mcrs-train``, a sweep's launcher or a resume, without an import.
-
-:func:`algorithm_class` is the one place that reads ``algo.name`` (an :class:`~mcrs.experiment.training.trainer.Experiment`
-calls it once); a name nobody registered or installed (a label of one's own) gets the built-in :class:`Algorithm`.
+    Experiment(compose("algo=qmix", "algo.name=clipped_qmix", "+algo.options.clip=5"), "outputs/run").run()
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import fields, is_dataclass, replace
+from importlib.metadata import entry_points
 from typing import Any, ClassVar
 
 import torch
@@ -89,12 +64,8 @@ __all__ = [
 
 
 class Algorithm:
-    """The parts of a value-factorisation algorithm, read from its ``algo`` config node.
-
-    Override a method to change a part; the experiment calls :meth:`learner` first (the networks draw
-    their initial weights from torch's generator: agent, mixer, then the callbacks' networks), then
-    :meth:`callbacks`.
-    """
+    """The parts of a value-factorisation algorithm, read from its ``algo`` config node. The experiment calls
+    :meth:`learner` before :meth:`callbacks`, so the networks draw their initial weights in that order."""
 
     #: The algorithm's own settings: a dataclass whose fields ``algo.options`` sets, read into
     #: :attr:`options` (None: the algorithm takes none, and ``algo.options`` must be empty).
@@ -107,9 +78,8 @@ class Algorithm:
 
     @classmethod
     def read_options(cls, algo: AlgoConfig) -> Any:
-        """``algo.options`` as an :attr:`Options` instance, its defaults where a field is not given (None
-        without :attr:`Options`). A key that is not a field, a value of the wrong type, or a setting given
-        to an algorithm that takes none is a :class:`ConfigError` naming ``algo.options.<key>``."""
+        """``algo.options`` as an :attr:`Options` instance with defaults filled in (None without
+        :attr:`Options`); a bad key or value is a :class:`ConfigError` naming it."""
         given = dict(algo.options or {})
         if cls.Options is None:
             if given:
@@ -136,8 +106,8 @@ class Algorithm:
 
     @classmethod
     def with_options(cls, algo: AlgoConfig) -> AlgoConfig:
-        """``algo`` with every setting of this algorithm in ``algo.options`` (defaults filled in, checked by
-        :meth:`read_options`): what a run's ``config.yaml``, loggers and fingerprint hold."""
+        """``algo`` with every setting of this algorithm in ``algo.options``, as ``config.yaml`` and the
+        fingerprint hold it."""
         options = cls.read_options(algo)
         values = (
             {} if options is None else OmegaConf.to_container(OmegaConf.structured(options), enum_to_str=True)
@@ -153,8 +123,8 @@ class Algorithm:
         return build_mixer(self.algo, task)
 
     def loss(self, agent: nn.Module, mixer: nn.Module) -> ValueFactorisationLoss:
-        """The TD loss over the agent and this mixer (``algo``'s target, memory term and this incentive);
-        return a subclass of :class:`ValueFactorisationLoss` to change the target or the TD error."""
+        """The TD loss over the agent and this mixer; return a subclass of :class:`ValueFactorisationLoss` to
+        change the target or the TD error."""
         return build_loss(self.algo, agent, mixer, self.incentive)
 
     def learner(
@@ -175,7 +145,7 @@ class Algorithm:
     def callbacks(
         self, config: Config, env_config: EnvConfig, learner: Learner, device: torch.device
     ) -> list[Callback]:
-        """EMC's curiosity (``algo.curiosity_scale > 0``), the episodic memory (``algo.memory.enabled``)."""
+        """EMC's curiosity (``algo.curiosity_scale > 0``) and the episodic memory (``algo.memory.enabled``)."""
         callbacks: list[Callback] = []
         if self.algo.curiosity_scale > 0:
             callbacks.append(CuriosityCallback(config, learner.agent))
@@ -197,10 +167,9 @@ ALGORITHMS: dict[str, type[Algorithm]] = dict.fromkeys(BUILT_IN, Algorithm)
 def register_algorithm(
     name: str, algorithm: type[Algorithm] | None = None, *, replace: bool = False
 ) -> Callable[[type[Algorithm]], type[Algorithm]] | type[Algorithm]:
-    """Register ``algorithm`` (an :class:`Algorithm` subclass) under ``algo.name`` ``name``; without
-    ``algorithm``, a class decorator (``@register_algorithm("my_algo")``). A name taken by another class is
-    refused unless ``replace=True``; the same class again (a module imported by its entry point after its
-    decorator ran) or its new definition (a notebook cell run again: same module and name) replaces it."""
+    """Register an :class:`Algorithm` subclass under ``algo.name`` ``name``; without ``algorithm``, a class
+    decorator. A name taken by another class needs ``replace=True``; the same class, or its redefinition in a
+    notebook, replaces it."""
     if not isinstance(name, str):  # @register_algorithm without its name
         raise TypeError(
             f"register_algorithm: the first argument is the algo.name (a str), got {name!r}: write "
@@ -233,9 +202,8 @@ PLAIN = (str, int, float, bool, type(None), list, dict)
 
 
 def check_options_class(name: str, cls: type[Algorithm]) -> None:
-    """``cls.Options`` is a dataclass whose fields OmegaConf can check and whose values are plain (or
-    enums, written as their names): anything else (``Literal``, ``Path``, ``bytes``) is a TypeError naming
-    the class, where each run would otherwise fail on it, or write a ``config.yaml`` no resume reads."""
+    """Raise a TypeError unless ``cls.Options`` is a dataclass OmegaConf can check with plain values (or
+    enums), which a run's ``config.yaml`` can hold."""
     where = f"register_algorithm({name!r}): {cls.__name__}.Options"
     if not (isinstance(cls.Options, type) and is_dataclass(cls.Options)):
         raise TypeError(f"{where} must be a dataclass class")
@@ -261,8 +229,8 @@ def _leaves(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:
 
 
 def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
-    """The class registered under ``algo.name`` (or installed under it, :data:`ENTRY_POINT_GROUP`), else
-    the built-in :class:`Algorithm` (its parts follow the node's knobs)."""
+    """The class registered or installed under ``algo.name``, else the built-in :class:`Algorithm`; the one
+    place that reads ``algo.name``."""
     name = str(algo.name)
     if name not in ALGORITHMS:
         register_installed(name)
@@ -270,26 +238,22 @@ def algorithm_class(algo: AlgoConfig) -> type[Algorithm]:
 
 
 def algorithm_for(algo: AlgoConfig) -> Algorithm:
-    """The algorithm of an ``algo`` config node (:func:`algorithm_class`), built from it."""
+    """The algorithm of an ``algo`` config node, built from it."""
     return algorithm_class(algo)(algo)
 
 
 class UnregisteredAlgorithm(UserWarning):
-    """``algo.name`` names no registered algorithm: the run trains the built-in one its knobs describe
-    (a label of one's own, or a misspelt name). ``mcrs-train`` says it as a ``note:`` line instead."""
+    """``algo.name`` names no registered algorithm, so the run trains the built-in one its knobs describe."""
 
 
 def unregistered(name: str, what: str = "the built-in Algorithm") -> str:
-    """What an ``algo.name`` nobody registered or installed gets, and the names that are registered."""
+    """What an ``algo.name`` nobody registered gets, and the names that are registered."""
     return f"algo.name={name} is not a registered algorithm: {what} (registered: {', '.join(ALGORITHMS)})"
 
 
 def register_installed(name: str) -> bool:
     """Register the algorithm an installed package names ``name`` in :data:`ENTRY_POINT_GROUP`; False when
-    none does. One that cannot be loaded, or is not an :class:`Algorithm`, is a :class:`ConfigError`
-    naming ``algo.name`` and the entry point."""
-    from importlib.metadata import entry_points
-
+    none does. A broken entry point is a :class:`ConfigError`."""
     for entry in entry_points(group=ENTRY_POINT_GROUP, name=name):
         where = f"algo.name={name}: the entry point {entry.value!r} of {getattr(entry.dist, 'name', '?')}"
         try:

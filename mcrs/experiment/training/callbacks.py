@@ -1,21 +1,16 @@
-"""Callbacks: how an algorithm adds to the training loop without branching it (BenchMARL's shape).
+"""Callbacks: how an algorithm adds to the training loop without branching it, as in BenchMARL.
 
-The :class:`~mcrs.experiment.training.trainer.Experiment` calls every callback's hooks in order:
+The :class:`~mcrs.experiment.training.trainer.Experiment` calls every callback's hooks in order::
 
-    on_setup(experiment)                 once, after everything is built (before a checkpoint is loaded)
-    on_batch_collected(batch, ids)       after each collection: the episodes ``[E, T]`` and their ids ``[E]``
-    on_train_batch(batch, env_steps)     before each learner update: may add keys the loss reads (the one
-                                         way an algorithm adds to the batch: the memory's memory_return,
-                                         memory_hit, memory_ratio; the curiosity's intrinsic_reward)
+    on_setup(experiment)                 once, after everything is built, before a checkpoint is loaded
+    on_batch_collected(batch, ids)       after each collection: the episodes [E, T] and their ids [E]
+    on_train_batch(batch, env_steps)     before each learner update; may add keys the loss reads
     on_evaluation_end(metrics)           after each greedy evaluation
-    statistics()                         at each log row: scalars to log (``memory/...``)
-    state_dict() / load_state_dict()     in every checkpoint, under ``callbacks/<name>``
+    statistics()                         at each log row: scalars to log (memory/...)
+    state_dict() / load_state_dict()     in every checkpoint, under callbacks/<name>
 
-Hooks return scalars to log (averaged over the log interval), or nothing; ``name`` keys the checkpoint state and the
-``time/<name>_s`` timer. The episodic memory (SEMU, CNN-SEMU, EMU, EMC's buffer) is
-:class:`~mcrs.experiment.training.episodic.EpisodicMemoryCallback`; EMC's curiosity is :class:`CuriosityCallback`;
-the run's :class:`~mcrs.experiment.training.algorithms.Algorithm` builds the ones its ``algo`` config asks for. A
-user's own callback (a scheduler, an extra logger) is passed as ``Experiment(..., callbacks=[...])``.
+Hooks return scalars to log, averaged over the log interval, or nothing. ``name`` keys the checkpoint state
+and the ``time/<name>_s`` timer. A user's own callback is passed as ``Experiment(..., callbacks=[...])``.
 """
 
 from __future__ import annotations
@@ -31,6 +26,7 @@ from tensordict import TensorDictBase
 from mcrs.experiment.schema import Config
 from mcrs.experiment.training.learner import make_optimizer
 from mcrs.experiment.util.messages import ranked
+from mcrs.objectives import ValueFactorisationLoss
 from mcrs.objectives.curiosity import EMCCuriosity
 
 if TYPE_CHECKING:
@@ -44,10 +40,7 @@ Scalars = dict[str, float | torch.Tensor]
 
 
 class ExperimentView(Protocol):
-    """What a callback sees of the :class:`~mcrs.experiment.training.trainer.Experiment` that runs it.
-
-    A Protocol, so that callbacks depend on the experiment's interface and not on the trainer module, which
-    imports the callbacks (tests/test_layering.py refuses import cycles between modules)."""
+    """What a callback sees of the experiment that runs it; a Protocol, since the trainer imports this module."""
 
     config: Config
     env_config: EnvConfig
@@ -61,13 +54,13 @@ class ExperimentView(Protocol):
     def evaluate(self) -> dict[str, float]: ...
 
 
-#: The hooks the experiment calls (module docstring); a subclass's other ``on_*`` method is refused.
+#: The hooks the experiment calls; a subclass's other ``on_*`` method is refused.
 HOOKS = ("on_setup", "on_batch_collected", "on_train_batch", "on_evaluation_end")
 
 
 def hook_scalars(callback: Callback, hook: str, returned: Any) -> Scalars:
-    """What a hook returned, as scalars to log: nothing (None) is none; anything but a mapping of names to
-    numbers or one-element tensors is a TypeError naming the callback, the hook and the key."""
+    """What a hook returned, as scalars to log; anything but names mapped to numbers or one-element tensors is
+    a TypeError."""
     if returned is None:
         return {}
     where = f"callback {callback.name!r} ({type(callback).__name__}.{hook})"
@@ -87,11 +80,8 @@ def hook_scalars(callback: Callback, hook: str, returned: Any) -> Scalars:
 
 
 class Callback:
-    """A no-op callback; subclasses override the hooks they need.
-
-    ``name`` keys the callback's checkpoint state and timer. A subclass that sets none is named after its
-    class (one of a named callback keeps that name: it stands in for it), so two callbacks of one's own
-    never share (or take over) each other's saved state."""
+    """A no-op callback; subclasses override the hooks they need. A subclass without its own ``name`` is named
+    after its class, so that two callbacks never share saved state."""
 
     name: str = "callback"
     _named_after_class = False  # the name was given by __init_subclass__, not by the class
@@ -110,11 +100,11 @@ class Callback:
             cls.name, cls._named_after_class = cls.__name__, True
 
     def on_setup(self, experiment: ExperimentView) -> None:
-        """Called once the experiment is built; keep a reference if a hook needs it."""
+        """Called once the experiment is built; keeps a reference to it."""
         self.experiment = experiment
 
     def on_batch_collected(self, batch: TensorDictBase, episode_ids: torch.Tensor) -> Scalars:
-        """New whole episodes ``[E, T]`` (the collector's layout) with their ids ``[E]``."""
+        """New whole episodes ``[E, T]`` with their ids ``[E]``."""
         return {}
 
     def on_train_batch(self, batch: TensorDictBase, env_steps: int) -> Scalars:
@@ -122,10 +112,10 @@ class Callback:
         return {}
 
     def on_evaluation_end(self, metrics: dict[str, float]) -> None:
-        """The greedy evaluation's mean metrics (``episode_reward``, ...)."""
+        """The greedy evaluation's mean metrics."""
 
     def statistics(self) -> Scalars:
-        """Scalars to log with each train row (state of the callback, not averaged)."""
+        """Scalars to log with each train row, not averaged."""
         return {}
 
     def state_dict(self) -> dict[str, Any]:
@@ -136,8 +126,8 @@ class Callback:
 
 
 class CuriosityCallback(Callback):
-    """EMC's curiosity: before each update, trains its VDN learner and predictor on the sampled batch and
-    sets ``intrinsic_reward`` on it, which the TD loss adds to its target (its documented key)."""
+    """EMC's curiosity: before each update it trains its VDN learner and predictor on the batch and sets
+    ``intrinsic_reward``, which the TD loss adds to its target."""
 
     name = "curiosity"
 
@@ -168,16 +158,13 @@ class CuriosityCallback(Callback):
 
 
 class UnreadBatchKey(UserWarning):
-    """A callback set a key on the training batch that the built-in loss does not read (a misspelt
-    ``intrinsic_rewards``): the run goes on, as if the callback had set nothing."""
+    """A callback set a key on the training batch that the built-in loss does not read, such as a misspelt
+    ``intrinsic_rewards``."""
 
 
 def unread_batch_keys(callback: Callback, added: set, loss: Any) -> str | None:
-    """What to say when ``callback``'s ``on_train_batch`` added ``added`` (nested keys) to the batch and the
-    loss, the built-in :class:`~mcrs.objectives.ValueFactorisationLoss`, reads none of some of them; None
-    otherwise (a loss of one's own may read any key: nothing is said)."""
-    from mcrs.objectives import ValueFactorisationLoss
-
+    """The warning when ``callback`` added batch keys (``added``) that the built-in loss does not read, else
+    None; a loss of one's own may read any key."""
     if type(loss) is not ValueFactorisationLoss:
         return None
     read = {key if isinstance(key, str) else tuple(key) for key in vars(loss.tensor_keys).values()}
@@ -193,13 +180,13 @@ def unread_batch_keys(callback: Callback, added: set, loss: Any) -> str | None:
 
 
 def append_scalar(stats: dict[str, list[torch.Tensor]], key: str, value: float | torch.Tensor) -> None:
-    """Collect a hook's scalar for the next log row (where it is averaged)."""
+    """Collect a hook's scalar for the next log row, where it is averaged."""
     stats.setdefault(key, []).append(value if isinstance(value, torch.Tensor) else torch.tensor(value))
 
 
 def check_names(callbacks: list[Callback]) -> None:
-    """Every callback is a :class:`Callback` instance, and callbacks key their checkpoint state and timers
-    by name: two with one name would collide."""
+    """Check that every callback is a :class:`Callback` instance and that their names, which key checkpoints
+    and timers, are distinct."""
     for k, callback in enumerate(callbacks):
         if isinstance(callback, type) and issubclass(callback, Callback):
             raise TypeError(

@@ -1,24 +1,14 @@
 """The trainer's collector: one process (``train.collector=single``) or several (``multiprocess``).
 
-``multiprocess`` runs TorchRL's :class:`~torchrl.collectors.MultiSyncCollector` over
-``train.collector_workers`` spawned processes, each with its own ``num_envs / workers`` environments and a
-copy of the exploring policy. Each worker collects ``num_envs / workers`` whole episodes per batch and the
-batches are concatenated along the environment dimension, so the trainer still receives ``[num_envs, T]``
-whole episodes in the same layout as with one process.
+``multiprocess`` runs TorchRL's ``MultiSyncCollector`` over ``train.collector_workers`` spawned processes,
+each with ``num_envs / workers`` environments, and concatenates their batches so the trainer still receives
+``[num_envs, T]`` whole episodes. Batch ``k`` seeds worker 0 with ``batch_seed(seed, k)`` and the others with
+the seeds TorchRL chains from it, so a multiprocess run is reproducible and resumes exactly, though its
+episodes differ from a single-process run's.
 
-Seeding: collector batch ``k`` seeds worker 0 with ``batch_seed(seed, k)`` and each next worker with the
-seed TorchRL chains from it; a worker seeds both its environments and its torch generator (exploration)
-from that seed, so a multiprocess run is reproducible and resumes exactly, though it draws different
-episodes than the single-process run with the same seed.
-
-A worker that raises dies; TorchRL then only reports its exit code. Each worker therefore writes the
-traceback of an exception in its environment to a per-run temporary folder before dying, and
-:func:`next_batch` raises :class:`CollectorWorkerFailed` carrying that cause.
-
-A worker killed from outside (SIGKILL, the OOM killer) leaves no traceback, and TorchRL waits for some of
-its replies (the acknowledgement of a weight update) without a timeout: while the trainer waits on the
-workers, a watch thread checks every half second that they live and, when one has died, wakes the main
-thread (SIGUSR1), which raises :class:`CollectorWorkerFailed` naming the worker's pid and signal.
+TorchRL reports only a failed worker's exit code, so each worker writes its traceback to a temporary folder
+for :class:`CollectorWorkerFailed`. A worker killed from outside leaves none, and TorchRL waits for some
+replies without a timeout, so :class:`WorkerWatch` wakes the main thread when a worker has died.
 """
 
 from __future__ import annotations
@@ -44,9 +34,8 @@ from mcrs.experiment.training.task import Task, as_task, with_agent_state
 
 @contextlib.contextmanager
 def _workers_ignore_sigint() -> Iterator[None]:
-    """Start worker processes with SIGINT ignored (they inherit it): Ctrl-C in a terminal reaches the whole
-    process group, and the trainer, not its workers, decides how to stop (mcrs.experiment.run.interrupt: the
-    batch in progress ends, then a checkpoint). Outside the main thread nothing changes."""
+    """Start worker processes with SIGINT ignored, since Ctrl-C reaches the whole process group and the
+    trainer decides how to stop."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -58,17 +47,16 @@ def _workers_ignore_sigint() -> Iterator[None]:
 
 
 class CollectorWorkerFailed(RuntimeError):
-    """A collector worker process raised or died; the message carries the worker's exception, or its pid
-    and how it ended."""
+    """A collector worker raised or died; the message carries its exception, or its pid and how it ended."""
 
 
 class _WorkerDied(BaseException):
-    """Raised in the main thread by the watch's wake-up signal. Not an ``Exception``: TorchRL's wait for a
-    weight-update acknowledgement catches ``Exception`` (and would only log it)."""
+    """Raised in the main thread by the watch's wake-up signal; not an ``Exception``, which TorchRL's wait
+    would catch and only log."""
 
 
 def describe_exit(pid: int, exitcode: int) -> str:
-    """``a collector worker (pid 7438) died (signal 9, SIGKILL)`` / ``... exited with status 1``."""
+    """``a collector worker (pid 7438) died (signal 9, SIGKILL)`` or ``... exited with status 1``."""
     if exitcode < 0:
         try:
             name = f", {signal.Signals(-exitcode).name}"
@@ -79,14 +67,9 @@ def describe_exit(pid: int, exitcode: int) -> str:
 
 
 class WorkerWatch:
-    """Tells when a worker process has ended, and ends a wait on the workers (:meth:`waiting`) then.
-
-    TorchRL waits for a weight update's acknowledgement without a timeout (a dead worker never sends it):
-    during :meth:`waiting` a daemon thread polls the workers' exit codes every ``interval`` seconds and,
-    when one has ended, sends SIGUSR1 to the main thread, whose handler raises there; the wait ends with
-    :class:`CollectorWorkerFailed`. The handler is installed from construction to :meth:`close` and does
-    nothing outside a wait. Outside the main thread there is no wake-up: only the checks before and after.
-    """
+    """Tells when a worker process has ended, and then ends a wait on the workers (:meth:`waiting`). A daemon
+    thread polls the workers' exit codes during a wait and sends SIGUSR1 to the main thread, whose handler
+    raises there; outside the main thread only the checks before and after a wait remain."""
 
     WAKE = signal.SIGUSR1
 
@@ -106,8 +89,8 @@ class WorkerWatch:
             self._thread.start()
 
     def check(self) -> tuple[int, int] | None:
-        """``(pid, exit code)`` of a worker that has ended, or None. TorchRL terminates (SIGTERM) the other
-        workers once it sees one die: a worker that ended otherwise is the one named."""
+        """``(pid, exit code)`` of a worker that has ended, or None; TorchRL terminates the others once one
+        dies, so one that ended otherwise is named."""
         if self.dead is not None:
             return self.dead
         ended = []
@@ -129,8 +112,8 @@ class WorkerWatch:
 
     @contextlib.contextmanager
     def waiting(self) -> Iterator[None]:
-        """Wait on the workers: a worker that has ended (before or during the wait) ends it with
-        :class:`CollectorWorkerFailed`; any other error that comes with a dead worker becomes one too."""
+        """Wait on the workers; a worker that has ended, or an error that comes with a dead worker, raises
+        :class:`CollectorWorkerFailed`."""
         if self.check() is not None:
             raise self.failure()
         self._waiting.set()
@@ -163,7 +146,7 @@ class WorkerWatch:
                 return  # once: the wait ends, and every later one fails at its first check
 
     def close(self) -> None:
-        """Stop the thread and put the previous SIGUSR1 handler back (from the main thread)."""
+        """Stop the thread and put the previous SIGUSR1 handler back."""
         self._closed.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
@@ -173,8 +156,8 @@ class WorkerWatch:
 
 
 class _WorkerEnv:
-    """Mixed into the task's env inside a collector worker (:func:`_in_worker`): records the traceback of a
-    failure where the trainer finds it, and seeds the worker's exploration with the env."""
+    """Mixed into the task's env in a collector worker: records a failure's traceback and seeds the worker's
+    exploration with the env."""
 
     _error_dir: str
 
@@ -202,7 +185,7 @@ class _WorkerEnv:
 
 
 def _in_worker(env: EnvBase, error_dir: str) -> EnvBase:
-    """``env`` (its base env, under any transforms) with :class:`_WorkerEnv`'s hooks mixed in."""
+    """``env`` with :class:`_WorkerEnv` mixed into its base env."""
     base = env.base_env if isinstance(env, TransformedEnv) else env
     base.__class__ = type(f"_Worker{type(base).__name__}", (_WorkerEnv, type(base)), {})
     base._error_dir = error_dir
@@ -210,8 +193,7 @@ def _in_worker(env: EnvBase, error_dir: str) -> EnvBase:
 
 
 class WorkerEnvFactory:
-    """Builds one worker's environments in the worker process (picklable, as the task must be: sent to
-    spawned processes)."""
+    """Builds one worker's environments in the worker process; picklable, like the task."""
 
     def __init__(
         self, task: Task | EnvConfig, num_envs: int, hidden_dim: int, error_dir: str, device: torch.device
@@ -225,7 +207,7 @@ class WorkerEnvFactory:
 
 
 class TrainingCollector:
-    """The collector of a run, with the few calls the trainer makes, whichever kind it is."""
+    """The collector of a run, with the calls the trainer makes, whichever kind it is."""
 
     def __init__(
         self,
@@ -283,7 +265,7 @@ class TrainingCollector:
         return iter(self.collector)
 
     def start_batch(self, seed: int) -> None:
-        """Seed and reset the environments: the next batch starts fresh episodes from ``seed``."""
+        """Seed and reset the environments, so the next batch starts fresh episodes from ``seed``."""
         if self.kind == "single":
             self.env.set_seed(seed)
             self.collector.reset()
@@ -293,7 +275,7 @@ class TrainingCollector:
             self.collector.reset()
 
     def sync_weights(self) -> None:
-        """Send the learner's weights and epsilon to the workers (one process: they are the same objects)."""
+        """Send the learner's weights and epsilon to the workers; one process shares the objects."""
         if self.kind != "single":
             with self._waiting():
                 self.collector.update_policy_weights_()
@@ -309,7 +291,7 @@ class TrainingCollector:
             raise CollectorWorkerFailed(f"a collector worker failed: {cause}") from error
 
     def worker_error(self) -> str | None:
-        """The last line (exception and message) of a worker's recorded traceback, if one failed."""
+        """The last line of a failed worker's recorded traceback, if any."""
         if self.error_dir is None:
             return None
         for path in sorted(Path(self.error_dir).glob("worker_*.txt")):
@@ -319,7 +301,7 @@ class TrainingCollector:
         return None
 
     def shutdown(self) -> None:
-        """Stop the workers; never masks the exception that stopped the run."""
+        """Stop the workers without masking the exception that stopped the run."""
         try:
             if self.watch is not None:
                 self.watch.close()

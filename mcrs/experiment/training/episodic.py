@@ -1,14 +1,13 @@
-"""The episodic memory of a run as a callback (paper Algorithm 2, lines 4-11): D_E, the embedding phi and
-its training.
+"""The episodic memory of a run as a callback: D_E, the embedding phi and its training (paper Algorithm 2,
+lines 4-11)::
 
     after each collection:        insert the new episodes, s_0 .. s_T, into D_E (Algorithm 1)
     every t_emb env steps:        train phi on a sample of D_E (eq. 31), then re-embed every stored state
-    before every learner update:  on_train_batch writes H(phi(s_{t+1})) into the sampled batch
-                                  (EpisodicLookup: memory_return, memory_hit, memory_ratio)
+    before every learner update:  write H(phi(s_{t+1})) into the sampled batch (memory_return, memory_hit,
+                                  memory_ratio)
 
-Built from the ``algo.memory`` config and the algorithm's incentive strategy (which episodes are desirable,
-whether the look-ups carry N_xi / N_call: :mod:`mcrs.objectives.incentive`); everything here is in every
-checkpoint, so a resumed run continues with the same memory.
+It is built from ``algo.memory`` and the algorithm's incentive strategy (:mod:`mcrs.objectives.incentive`).
+All of it is in every checkpoint, so a resumed run continues with the same memory.
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ from mcrs.objectives.incentive import Incentive, make_incentive
 
 
 def build_embedding(cfg: Config, env_config: EnvConfig):
-    """phi for this config and map (raises ValueError when it does not fit the map)."""
+    """phi for this config and map; raises ValueError when it does not fit the map."""
     mem = cfg.algo.memory
     return make_embedding(
         str(mem.embedding),
@@ -45,12 +44,8 @@ def build_embedding(cfg: Config, env_config: EnvConfig):
 
 
 class EpisodicMemoryCallback(Callback):
-    """D_E with its embedding and the embedding's trainer, for one run.
-
-    Args:
-        cfg, env_config, device: the run's config, map and device.
-        incentive: the algorithm's incentive strategy (the one its loss uses); default: ``algo.incentive``'s.
-    """
+    """D_E with its embedding and the embedding's trainer, for one run; ``incentive`` defaults to
+    ``algo.incentive``'s."""
 
     name = "memory"
 
@@ -96,8 +91,8 @@ class EpisodicMemoryCallback(Callback):
 
     # ------------------------------------------------------------------ hooks
     def on_train_batch(self, batch: TensorDictBase, env_steps: int) -> Scalars:
-        """The memory's answers for the sampled batch: ``memory_return``, ``memory_hit`` (and
-        ``memory_ratio`` when the incentive reads it), looked up with the current embedding and keys."""
+        """Write the memory's answers for the sampled batch: ``memory_return``, ``memory_hit`` and, when the
+        incentive reads it, ``memory_ratio``."""
         self.lookup(batch)
         return {}
 
@@ -117,9 +112,9 @@ class EpisodicMemoryCallback(Callback):
     def insert(
         self, batch: TensorDictBase, episode: torch.Tensor, last_eval_reward: float | None
     ) -> dict[str, float]:
-        """Algorithm 1 on a collector batch ``[E, T]`` of whole episodes (ids ``episode [E]``); returns
-        diagnostics. The terminal states s_T go in too, with H = 0 (as EMC stores them), so the last
-        transition of every episode has a memory to look up."""
+        """Algorithm 1 on a collector batch ``[E, T]`` of whole episodes; returns diagnostics. The terminal
+        states s_T go in too, with H = 0 as EMC stores them, so every episode's last transition has a memory
+        to look up."""
         reward = batch.get(("next", "reward"))[..., 0]
         # EMU: desirable episodes reach the incentive's return threshold (None: no incentive, none marked).
         desirable = self.incentive.desirable(reward.sum(-1), last_eval_reward)
@@ -144,7 +139,7 @@ class EpisodicMemoryCallback(Callback):
         return {f"memory/embedding_{k}": float(v) for k, v in stats.items()}
 
     def statistics(self) -> dict[str, float]:
-        """The buffer's scalars, the tolerance in use, and the replay look-ups' hit rates since the last call."""
+        """The buffer's scalars, the tolerance and the look-ups' hit rates since the last call."""
         stats = {**self.memory.statistics(), "tolerance": self.tolerance, **self.lookup.pop_statistics()}
         return {f"memory/{k}": float(v) for k, v in stats.items()}
 

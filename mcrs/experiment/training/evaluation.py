@@ -1,13 +1,10 @@
 """Evaluation: episodes of a policy on separate, fixed-seed environments, and their metrics.
 
-:func:`summarize` gives mean and std over episodes for every evaluation; the episodes come from one of two
-runs: :func:`evaluate` (the trainer's greedy agent on any :class:`~mcrs.experiment.training.task.Task`) keeps the
-whole rollout, because a task's metrics may need every step (the default sums the rewards);
-:func:`final_metrics` (``mcrs-eval``'s heuristics and checkpoints on MCRS-LCR, whose metrics are running
-totals) keeps only the last step, so nothing is stacked. The std convention is an explicit argument,
-because both are in committed records: ``mcrs-eval`` (its tables, ``metrics.csv`` and the evaluation
-records) takes the sample std (:data:`SAMPLE_STD`), the trainer's ``eval/episode_reward_std`` (the
-training records' scalars) the population std (:data:`POPULATION_STD`)."""
+:func:`evaluate` keeps the trainer's whole greedy rollout, since a task's metrics may need every step;
+:func:`final_metrics` keeps only the last step of MCRS-LCR's running totals, for ``mcrs-eval``. Records hold
+both std conventions: ``mcrs-eval`` the sample std (:data:`SAMPLE_STD`), the trainer's
+``eval/episode_reward_std`` the population std (:data:`POPULATION_STD`).
+"""
 
 from __future__ import annotations
 
@@ -35,8 +32,8 @@ def make_eval_env(
     device: str | torch.device,
     expose_beliefs: bool = False,
 ) -> TransformedEnv:
-    """``episodes`` environments of the task run as one batch, carrying the agents' recurrent state (with
-    ``expose_beliefs``, MCRS only, also what an episode's pictures are drawn from)."""
+    """``episodes`` environments of the task as one batch, carrying the agents' recurrent state;
+    ``expose_beliefs`` (MCRS only) also writes what pictures are drawn from."""
     task = as_task(env_config)
     if isinstance(task, MCRSTask):
         env = task.make_env(episodes, torch.device(device), expose_beliefs=expose_beliefs)
@@ -49,8 +46,8 @@ def make_eval_env(
 def rollout_greedy(
     env: TransformedEnv, policy: TensorDictModuleBase, seed: int, max_steps: int | None = None
 ) -> TensorDictBase:
-    """One episode (``max_steps``; default: the MCRS env's) in every environment of ``env`` from seed
-    ``seed``, greedy actions: ``[E, T]``."""
+    """One greedy episode ``[E, T]`` in every environment of ``env`` from ``seed``; ``max_steps`` defaults to
+    the MCRS env's."""
     env.set_seed(seed)
     steps = env.base_env.config.max_steps if max_steps is None else max_steps
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -68,10 +65,9 @@ def final_metrics(
     seed: int | None,
     on_step: Callable[[], object] | None = None,
 ) -> dict[str, torch.Tensor]:
-    """One episode in every environment of an MCRS ``env`` (seeded with ``seed`` first; None: the
-    environments go on from where their generator stands), greedy actions; the final value of every
-    metric per episode, ``{name: [E]}`` in float64 on the CPU whatever the env's device. ``on_step`` is
-    called after every step (a progress bar's ``update``)."""
+    """The final value of every metric after one greedy episode in every environment of an MCRS ``env``,
+    ``{name: [E]}`` in float64 on the CPU. ``seed`` None lets the environments go on from where their
+    generator stands; ``on_step`` is called after every step."""
     if seed is not None:
         env.set_seed(seed)
     steps = getattr(env, "base_env", env).config.max_steps
@@ -88,8 +84,8 @@ def final_metrics(
 def summarize(
     values: dict[str, torch.Tensor], correction: int, dtype: torch.dtype = torch.float64
 ) -> dict[str, tuple[float, float]]:
-    """Mean and standard deviation over episodes in ``dtype``, the std with ``correction``
-    (:data:`SAMPLE_STD` or :data:`POPULATION_STD`); 0 when there are no more episodes than the correction."""
+    """Mean and standard deviation over episodes in ``dtype``, the std with ``correction`` and 0 when there
+    are no more episodes than the correction."""
     out = {}
     for name, v in values.items():
         v = v.to(dtype)
@@ -99,8 +95,8 @@ def summarize(
 
 
 def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task: Task) -> dict[str, float]:
-    """Mean (and population std of the episode reward) of every metric of ``task`` over the batch of
-    episodes, in float32 as the training records have always held them."""
+    """Mean of every metric of ``task`` over the batch of episodes, and the episode reward's population std,
+    in float32 as the training records hold them."""
     metrics = task.episode_metrics(rollout_greedy(env, policy, seed, task.max_steps))
     stats = summarize(metrics, correction=POPULATION_STD, dtype=torch.float32)
     out = {name: mean for name, (mean, _) in stats.items()}
@@ -110,14 +106,14 @@ def evaluate(env: TransformedEnv, policy: TensorDictModuleBase, seed: int, task:
 
 class EvaluationVideo:
     """``logger.video``: one greedy episode (the first evaluation seed, one environment with its beliefs
-    exposed) drawn frame by frame as the episode GIF is, and logged as ``eval/video``."""
+    exposed) drawn as the episode GIF is and logged as ``eval/video``."""
 
     def __init__(self, env_config: EnvConfig, hidden_dim: int, device: torch.device, seed: int) -> None:
         self.env_config, self.hidden_dim, self.device, self.seed = env_config, hidden_dim, device, seed
         self.env: TransformedEnv | None = None  # built on the first video
 
     def frames(self, policy: TensorDictModuleBase) -> list[np.ndarray]:
-        """``[H, W, 3]`` uint8 frames, reset to the time limit."""
+        """``[H, W, 3]`` uint8 frames of an episode run to the time limit."""
         from mcrs.env.render import episode_frames, episode_rgb_frames  # matplotlib: only for videos
 
         if self.env is None:

@@ -1,10 +1,9 @@
 """The learner: the agent and mixer networks, their TD loss, optimiser and target networks.
 
-One :meth:`Learner.update` per sampled batch of episodes. Everything an algorithm adds on top (the episodic
-memory's look-ups, EMC's intrinsic reward) arrives as keys of the batch, written before the update by the
-experiment's callbacks (:mod:`mcrs.experiment.training.callbacks`), so the learner is the same for every algorithm;
-what differs (the mixer, EMU's incentive) is handed to it by the algorithm
-(:mod:`mcrs.experiment.training.algorithms`).
+One :meth:`Learner.update` per sampled batch of episodes. What an algorithm adds (the memory's look-ups, EMC's
+intrinsic reward) arrives as batch keys written by the callbacks, so the learner is the same for every
+algorithm; the mixer, the loss and EMU's incentive are handed to it by the
+:mod:`~mcrs.experiment.training.algorithms`.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from mcrs.objectives.incentive import Incentive, make_incentive
 
 
 def build_agent(model: ModelConfig, env_config: EnvConfig | Task) -> RecurrentAgent:
-    """The agent network shared by all UAVs (all agents of the task)."""
+    """The agent network shared by all agents of the task."""
     task = as_task(env_config)
     return RecurrentAgent(
         task.obs_dim,
@@ -41,7 +40,7 @@ def build_agent(model: ModelConfig, env_config: EnvConfig | Task) -> RecurrentAg
 
 
 def build_mixer(algo: AlgoConfig, env_config: EnvConfig | Task) -> nn.Module:
-    """The algorithm's mixer (QMIX, VDN or QPLEX) over the map's (the task's) global state."""
+    """The algorithm's mixer (QMIX, VDN or QPLEX) over the task's global state."""
     task = as_task(env_config)
     return make_mixer(
         str(algo.mixer),
@@ -59,8 +58,8 @@ def build_mixer(algo: AlgoConfig, env_config: EnvConfig | Task) -> nn.Module:
 def build_loss(
     algo: AlgoConfig, agent: nn.Module, mixer: nn.Module, incentive: Incentive | None = None
 ) -> ValueFactorisationLoss:
-    """The TD loss of ``algo`` (its target: gamma, TD(lambda), double Q; the memory term; EMU's
-    incentive, ``algo.incentive``'s when none is given) over the agent and the mixer."""
+    """The TD loss of ``algo`` over the agent and the mixer, with ``algo.incentive``'s incentive when none is
+    given."""
     if incentive is None:
         incentive = make_incentive(str(algo.incentive), algo.incentive_threshold)
     return ValueFactorisationLoss(
@@ -76,7 +75,7 @@ def build_loss(
 
 
 def make_optimizer(params: list[nn.Parameter], train: TrainConfig) -> torch.optim.Optimizer:
-    """``train.optimizer`` over ``params`` (the learner's, and EMC's curiosity networks')."""
+    """``train.optimizer`` over ``params``."""
     if str(train.optimizer) == "adam":
         return torch.optim.Adam(params, lr=train.lr, eps=train.optim_eps)
     return torch.optim.RMSprop(params, lr=train.lr, alpha=train.rmsprop_alpha, eps=train.optim_eps)
@@ -85,21 +84,10 @@ def make_optimizer(params: list[nn.Parameter], train: TrainConfig) -> torch.opti
 class Learner:
     """Networks, loss, optimiser and target updates; its state is the loss module's plus the optimiser's.
 
-    Args:
-        algo, model, train: the config nodes it reads (the mixer and TD target; the agent; the optimiser).
-        env_config: the map, which fixes the observation, state and team sizes (or a
-            :class:`~mcrs.experiment.training.task.Task`, which also fixes the keys the loss reads).
-        device: where the networks live.
-        mixer: builds the mixer from the task, right after the agent (so the networks draw their
-            initial weights in that order); default :func:`build_mixer` of ``algo``.
-        incentive: EMU's incentive strategy (:mod:`mcrs.objectives.incentive`); default ``algo.incentive``'s.
-        loss: builds the TD loss from the agent and the mixer, a
-            :class:`~mcrs.objectives.ValueFactorisationLoss` (or a subclass: its keys are set from the
-            task, and the optimiser and the target updates are built around it); default
-            :func:`build_loss` of ``algo`` with ``incentive``.
-            The :class:`~mcrs.experiment.training.algorithms.Algorithm` of a run passes all three
-            (:meth:`~mcrs.experiment.training.algorithms.Algorithm.learner`).
-    """
+    ``mixer`` builds the mixer from the task right after the agent, so the networks draw their initial weights
+    in that order. ``loss`` builds a :class:`~mcrs.objectives.ValueFactorisationLoss` (or a subclass) from the
+    agent and the mixer. Both default to ``algo``'s, and the run's
+    :class:`~mcrs.experiment.training.algorithms.Algorithm` passes them."""
 
     def __init__(
         self,
@@ -130,7 +118,7 @@ class Learner:
         self.grad_clip = train.grad_clip
 
     def update(self, batch, step: int) -> dict[str, torch.Tensor]:
-        """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN/inf."""
+        """One gradient step; raises :class:`TrainingDiverged` before touching the weights on NaN or inf."""
         out = self.loss(batch)
         term = "loss"
         if not torch.isfinite(out["loss"]):  # name the term that broke (the memory term is weighted inside)
@@ -140,18 +128,18 @@ class Learner:
         return {**stats, "grad_norm": grad_norm.detach()}
 
     def weights(self) -> dict[str, Any]:
-        """The online agent and mixer: what a policy needs (``model_<steps>.pt``, fingerprints)."""
+        """The online agent and mixer: what a policy needs."""
         return {"agent": self.agent.state_dict(), "mixer": self.mixer.state_dict()}
 
     def state_dict(self) -> dict[str, Any]:
-        """The loss module's state (online and target parameters of both networks) and the optimiser's;
-        ``agent`` and ``mixer`` as well, for readers that only want the policy."""
+        """The loss module's state (online and target networks) and the optimiser's, with ``agent`` and
+        ``mixer`` for readers that want only the policy."""
         return {**self.weights(), "loss": self.loss.state_dict(), "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "loss" in state:
             self.loss.load_state_dict(state["loss"])
-        else:  # checkpoints written before the loss module's state was saved whole
+        else:  # history.OLD_FORMS["learner without 'loss'"]
             self.agent.load_state_dict(state["agent"])
             self.mixer.load_state_dict(state["mixer"])
             self.loss.target_agent_network_params.load_state_dict(state["target_agent"])

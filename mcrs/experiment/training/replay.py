@@ -1,14 +1,9 @@
 """Whole episodes in a TorchRL replay buffer.
 
-A collector batch ``[E, T]`` (TorchRL layout: ``("next", key)`` holds step t+1) becomes one item of the
-*episode layout* ``[T + 1]`` per episode, read by :class:`~mcrs.objectives.ValueFactorisationLoss`:
-observations, masks and states for steps ``0..L`` (each stored once, not twice as root and ``"next"``),
-actions, rewards and done flags for transitions ``0..L-1``, padded to ``T + 1`` rows. pymarl stores
-episodes the same way. Episodes that end early (terminated or truncated at any step; the collector resets
-the env and the row goes on with the next episode) become items of their own, padded and masked
-(``filled``), so every transition of the batch is kept; or, with ``first_episode_only`` (the trainer's
-choice), each row gives its first episode, padded, and what the env ran after it is dropped, as pymarl's
-runners do: one item per row.
+A collector batch ``[E, T]``, where ``("next", key)`` holds step t+1, becomes one item of the *episode layout*
+``[T + 1]`` per episode, as pymarl stores them and :class:`~mcrs.objectives.ValueFactorisationLoss` reads
+them: observations, masks and states for steps ``0..L`` (each stored once), actions, rewards and done flags
+for transitions ``0..L-1``, padded to ``T + 1`` rows and masked by ``filled``.
 """
 
 from __future__ import annotations
@@ -36,8 +31,8 @@ def _require(batch: TensorDictBase, key: NestedKey, origin: str) -> torch.Tensor
 def _episode_ends(
     batch: TensorDictBase, done: torch.Tensor, whole_episodes: bool, first_episode_only: bool
 ) -> torch.Tensor:
-    """``[E, T]``: whether each transition ends an episode piece, after checking that the rows are what
-    ``whole_episodes`` and ``first_episode_only`` promise (see :func:`episodes_from_rollout`)."""
+    """``[E, T]``: whether each transition ends an episode piece, after checking the rows against
+    ``whole_episodes`` and ``first_episode_only``."""
     E, T = batch.batch_size
     ends = done.reshape(E, T, -1).any(-1)  # the transition ends an episode
     if first_episode_only:
@@ -84,25 +79,18 @@ def episodes_from_rollout(
 ) -> TensorDict:
     """Convert a collector batch ``[E, T]`` into the episode layout ``[M, T + 1]``, one item per episode.
 
-    A row may hold several episodes: each one that ends early (``("next", "done")``, terminated or
-    truncated) and the one after it become separate items, padded to ``T + 1`` rows: ``filled`` is False,
-    ``done`` True, actions and rewards 0, and the step keys repeat the episode's final next step.
-    Per-agent rewards (``reward_key=("agents", "reward")``, ``[E, T, N, 1]``) are kept per agent.
+    A row may hold several episodes; each becomes its own item, padded with ``filled`` False, ``done`` True,
+    actions and rewards 0, and the step keys repeating its final next step. Per-agent rewards
+    (``reward_key=("agents", "reward")``) stay per agent.
 
-    ``whole_episodes=True`` (a recurrent agent, unrolled from a reset): every row starts at a reset
-    (checked when the batch has ``step_count``) and ends with a done step; our environment guarantees
-    both when ``frames_per_batch = num_envs * max_steps``. ``whole_episodes=False`` (a feed-forward agent):
-    rows may start and end mid-episode, as a collector cuts them; the cut transition gets ``done`` but not
-    ``terminated``, so its target bootstraps from the stored next step and nothing is thrown away.
+    ``whole_episodes=True`` (a recurrent agent) requires every row to start at a reset and end with a done
+    step, which the env guarantees when ``frames_per_batch = num_envs * max_steps``. With ``False`` (a
+    feed-forward agent) rows may be cut mid-episode; the cut transition is ``done`` but not ``terminated``, so
+    its target bootstraps.
 
-    ``time_limit`` (:data:`TIME_LIMITS`): ``"terminal"`` also marks ``terminated`` the transitions the env
-    flags ``("next", "truncated")`` (the horizon T), so their targets do not bootstrap; ``"bootstrap"``
-    keeps them as the env says (truncated, not terminated).
-
-    ``first_episode_only`` (with ``whole_episodes``): one item per row, the row's first episode (each row
-    starts at a reset and must hold a done step); the steps after it (the env's next episode, cut by the
-    batch) are dropped. A row of exactly one episode gives the same item either way.
-    """
+    ``time_limit="terminal"`` also marks the truncated transitions ``terminated``, so their targets do not
+    bootstrap; ``"bootstrap"`` keeps the env's flags. ``first_episode_only`` keeps each row's first episode
+    and drops the steps after it, as pymarl's runners do."""
     if time_limit not in TIME_LIMITS:
         raise ValueError(f"time_limit={time_limit!r}: must be one of {list(TIME_LIMITS)}")
     if batch.batch_dims != 2:
@@ -156,7 +144,7 @@ def episodes_from_rollout(
 
 
 def make_episode_buffer(capacity: int, batch_size: int, device: str | torch.device = "cpu") -> ReplayBuffer:
-    """A replay buffer of whole episodes: uniform sampling, the oldest episode is overwritten when full."""
+    """A replay buffer of whole episodes with uniform sampling; the oldest episode is overwritten when full."""
     if capacity < 1:
         raise ValueError(f"replay capacity must be >= 1 episode, got {capacity}")
     return ReplayBuffer(

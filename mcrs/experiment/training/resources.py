@@ -1,13 +1,10 @@
 """What a training run will hold in memory, estimated from the config before anything is allocated.
 
-A value that passes the per-field rules can still be more than the machine can hold (``train.num_envs``
-of ten million, ``env.max_steps`` of a billion): :func:`resource_errors` adds up the big stores (replay,
-collector batch, evaluation batch, episodic memory, networks with their targets and optimiser state, one
-learner batch) and refuses a config whose estimate exceeds the memory of the device it runs on, naming
-the fields of the largest store. :func:`check_buildable` adds the embedding: one that does not fit the
-map is refused before any compute. Both build parts on the ``meta`` device or at a small size, so they
-live beside the builders and not in the config's checks (:mod:`mcrs.experiment.config`), which import
-nothing of the training loop.
+A config that passes the per-field rules can still need more memory than the machine has (``train.num_envs``
+of ten million). :func:`resource_errors` adds up the big stores and refuses a config whose estimate exceeds
+the device's memory, naming the fields of the largest store; :func:`check_buildable` also refuses an embedding
+that does not fit the map. Both build parts on the ``meta`` device or at a small size, so they live beside the
+builders rather than in the config's checks, which import nothing of the training loop.
 """
 
 from __future__ import annotations
@@ -21,7 +18,11 @@ import torch
 from tensordict.utils import NestedKey
 
 from mcrs.env.config import EnvConfig
+from mcrs.env.torchrl_env import spec_leaves
 from mcrs.experiment.schema import ConfigError
+from mcrs.experiment.training.episodic import build_embedding
+from mcrs.experiment.training.learner import build_agent, build_mixer
+from mcrs.experiment.training.replay import STEP_KEYS
 
 if TYPE_CHECKING:
     from mcrs.experiment.schema import Config
@@ -36,7 +37,7 @@ EPISODE_ID_BYTES = 8  # the episode's id per step (int64)
 
 @dataclass
 class Store:
-    """One store of the estimate: its size and the fields (with their values) that set it."""
+    """One store of the estimate: its size and the fields, with their values, that set it."""
 
     name: str
     nbytes: int
@@ -44,16 +45,14 @@ class Store:
 
 
 def _nbytes(specs: Any) -> int:
-    """Bytes of one sample of ``specs`` (a leaf spec or nested dicts of them, as ``spec_leaves`` gives)."""
+    """Bytes of one sample of ``specs``, a leaf spec or nested dicts of them."""
     if isinstance(specs, dict):
         return sum(_nbytes(v) for v in specs.values())
     return specs.shape.numel() * specs.dtype.itemsize
 
 
 def _step_specs(env: EnvConfig) -> dict[str, Any]:
-    """The env's specs for one environment, on the ``meta`` device: sizes, nothing allocated."""
-    from mcrs.env.torchrl_env import spec_leaves
-
+    """The env's specs for one environment on the ``meta`` device, with nothing allocated."""
     return spec_leaves(env, 1, "meta")
 
 
@@ -64,12 +63,8 @@ def _leaf(specs: dict[str, Any], key: NestedKey) -> Any:
 
 
 def replay_step_bytes(env: EnvConfig) -> int:
-    """Bytes of one step of a stored episode (``mcrs.experiment.training.replay`` layout), from the env's specs:
-    the step keys (observations, action masks, the state), the action, reward, done and terminated, plus
-    the ``filled`` flag and the episode's id (int64, which the trainer adds for the episodic memory's
-    foreign-hit rate)."""
-    from mcrs.experiment.training.replay import STEP_KEYS
-
+    """Bytes of one step of a stored episode: the step keys, action, reward, done and terminated, the
+    ``filled`` flag and the episode's id (int64, added for the memory's foreign-hit rate)."""
     specs = _step_specs(env)
     kept = [_leaf(specs["observation"], key) for key in STEP_KEYS]
     kept += [specs["action"], specs["reward"], specs["done"]["done"], specs["done"]["terminated"]]
@@ -77,27 +72,23 @@ def replay_step_bytes(env: EnvConfig) -> int:
 
 
 def rollout_step_bytes(env: EnvConfig, hidden_dim: int) -> int:
-    """Bytes of one step of a collector or evaluation rollout, from the env's specs: TorchRL keeps a root
-    and a ``next`` copy of everything the env writes (observations, state, map, counts, reward, done
-    flags), one action, and the recurrent state (float32, ``[N, hidden_dim]``) in both copies."""
+    """Bytes of one step of a rollout: TorchRL keeps a root and a ``next`` copy of everything the env writes,
+    one action, and the recurrent state (float32, ``[N, hidden_dim]``) in both copies."""
     specs = _step_specs(env)
     written = _nbytes(specs["observation"]) + _nbytes(specs["reward"]) + _nbytes(specs["done"])
     return 2 * written + _nbytes(specs["action"]) + 2 * env.n_uavs * 4 * hidden_dim
 
 
 def memory_entry_bytes(env: EnvConfig, key_dim: int) -> int:
-    """Bytes of one entry of the episodic memory D_E (mcrs.memory.episodic): compact counts (2 bytes a
-    cell), positions, the key, the return, the step, flags, the writing episode, EMU's counters and the
-    index records."""
+    """Bytes of one entry of the episodic memory D_E: counts (2 bytes a cell), positions, the key, return,
+    step, flags, writing episode, EMU's counters and the index records."""
     positions = env.n_uavs + env.n_no_fly + env.n_targets
     return 2 * env.n_cells + 4 * positions + 4 * key_dim + 4 + 2 + 1 + 8 + 9 + 24
 
 
 def network_bytes(cfg: Config, env: EnvConfig) -> tuple[int, str]:
-    """Parameters (built on the ``meta`` device: nothing is allocated) times five: the weights, the target
-    copy, the gradient and two optimiser moments. Returns the bytes and a problem, if they cannot be built."""
-    from mcrs.experiment.training.learner import build_agent, build_mixer
-
+    """Parameter bytes times five (weights, target, gradient, two optimiser moments), counted on the ``meta``
+    device, and a problem if they cannot be built."""
     try:
         with torch.device("meta"):
             params = sum(p.numel() for p in build_agent(cfg.model, env).parameters())
@@ -108,7 +99,7 @@ def network_bytes(cfg: Config, env: EnvConfig) -> tuple[int, str]:
 
 
 def estimate(cfg: Config, env: EnvConfig) -> list[Store]:
-    """The stores of a run of ``cfg`` on ``env`` (``env`` already validated), largest first."""
+    """The stores of a run of ``cfg`` on a validated ``env``, largest first."""
     t, m, mem = cfg.train, cfg.model, cfg.algo.memory
     T = env.max_steps
     step, rollout = replay_step_bytes(env), rollout_step_bytes(env, m.hidden_dim)
@@ -137,8 +128,8 @@ def estimate(cfg: Config, env: EnvConfig) -> list[Store]:
 
 
 def machine_memory(device: str) -> tuple[int, str]:
-    """Bytes the run may use on ``device`` and what they are: the GPU's memory, or the host's physical
-    memory (lowered by a cgroup limit, as in a container or a Slurm job)."""
+    """Bytes the run may use on ``device`` and what they are: the GPU's memory, or the host's, lowered by a
+    cgroup limit."""
     parsed = torch.device(device)
     if parsed.type == "cuda" and torch.cuda.is_available():
         index = parsed.index if parsed.index is not None else torch.cuda.current_device()
@@ -155,7 +146,7 @@ def machine_memory(device: str) -> tuple[int, str]:
 
 
 def resource_errors(cfg: Config, env: EnvConfig) -> list[str]:
-    """Problems of ``cfg`` against this machine: a memory estimate above what it has."""
+    """A memory estimate above what this machine has, as a problem line."""
     errors: list[str] = []
     _, problem = network_bytes(cfg, env)
     if problem:
@@ -178,9 +169,7 @@ def resource_errors(cfg: Config, env: EnvConfig) -> list[str]:
 
 
 def embedding_fit_errors(cfg: Config, env: EnvConfig) -> list[str]:
-    """Build the embedding once (cheap): one that does not fit the map is refused before any compute."""
-    from mcrs.experiment.training.episodic import build_embedding
-
+    """Build the embedding once, so one that does not fit the map is refused before any compute."""
     try:
         build_embedding(cfg, env)
     except ValueError as error:
@@ -189,15 +178,15 @@ def embedding_fit_errors(cfg: Config, env: EnvConfig) -> list[str]:
 
 
 def buildable_errors(cfg: Config, env: EnvConfig) -> list[str]:
-    """Problems of a config with right values (:func:`mcrs.experiment.config.validate`) that only building
-    its parts shows: the embedding against the map, then the memory the run needs against the machine."""
+    """Problems of a valid config that only building its parts shows: the embedding against the map, then the
+    memory against the machine."""
     errors = embedding_fit_errors(cfg, env) if cfg.algo.memory.enabled else []
     return errors or resource_errors(cfg, env)
 
 
 def check_buildable(cfg: Config, env: EnvConfig) -> None:
-    """Raise :class:`ConfigError` (the form :func:`~mcrs.experiment.config.validate` raises) when the
-    run's parts do not fit the map or the machine."""
+    """Raise :class:`ConfigError`, as :func:`~mcrs.experiment.config.validate` does, when the run's parts do
+    not fit the map or the machine."""
     errors = buildable_errors(cfg, env)
     if errors:
         raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))

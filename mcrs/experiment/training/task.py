@@ -1,18 +1,15 @@
-"""A task: what an :class:`~mcrs.experiment.training.trainer.Experiment` needs from an environment (BenchMARL's
-``Task`` is the model).
+"""A task: what an :class:`~mcrs.experiment.training.trainer.Experiment` needs from an environment, modelled
+on BenchMARL's ``Task``.
 
-The experiment builds every environment it uses (training, the collector's workers, evaluation) from the
-task, reads the agents' and the mixer's sizes from it, points the loss and the acting policy at its keys and
-logs the metrics it reports. :class:`MCRSTask` (the default, built from ``config.env``) is MCRS-LCR;
-:class:`mcrs.tasks.matrix_game.MatrixGameTask` is a task we did not write. Bring your own by subclassing
+The experiment builds its environments from the task, sizes the networks from it and reads its keys and
+metrics. :class:`MCRSTask`, built from ``config.env``, is the default; bring your own by subclassing
 :class:`Task` (docs/API.md, "Bring your own task")::
 
     Experiment(config, run_dir, task=MyTask()).run()
 
-What a task's environment must be: a batched TorchRL ``EnvBase`` (``batch_size = [num_envs]``) with one
-agent group. These are every key the experiment reads (``E`` envs, ``N`` agents, ``A`` actions), all checked
-against the env's specs when the experiment builds the task (:func:`check_env`), before anything runs or is
-written::
+A task's environment is a batched TorchRL ``EnvBase`` (``batch_size = [num_envs]``) with one agent group.
+These are the keys the experiment reads (``E`` envs, ``N`` agents, ``A`` actions); :func:`check_env` checks
+them against the env's specs before anything runs::
 
     (group, "observation")   [E, N, obs_dim]     float, at reset and every step
     (group, "action_mask")   [E, N, A]           bool, at reset and every step (all True: every action allowed)
@@ -23,25 +20,16 @@ written::
     "terminated"             [E, 1]              bool: it ended by the task (a goal, a failure): no bootstrap
     "truncated"              [E, 1]              bool: it ended by the time limit (the step ``max_steps``)
 
-At the time limit an episode is ``done`` and ``truncated``; ``terminated`` is the task's own ending only
-(an episode that reaches its goal on the last step is both). ``algo.time_limit`` says how a truncated step
-enters the TD target: ``terminal`` (the default) treats it as terminal, ``bootstrap`` bootstraps from it.
-
-Every episode ends by step ``max_steps``: the collector gathers ``[num_envs, max_steps]`` steps per batch,
-each row from a reset, and each row's first episode is what the experiment keeps (an episode that ends
-earlier is padded to ``max_steps`` and masked in the replay and the loss, as pymarl does; the steps the env
-runs after it, its next episode, are dropped). ``step_count`` is added with TorchRL's ``StepCounter`` when
-the env has none; the agents' recurrent state is added by the experiment.
-
-A run records how to rebuild its task (:meth:`Task.spec`: an importable class and its settings, the
-config's ``task`` node), so ``mcrs-eval policy=<run>``, ``mcrs-export`` and a resume rebuild it in any
-process.
+Every episode ends by step ``max_steps``; ``algo.time_limit`` says whether a truncated step is terminal (the
+default) or bootstraps. The collector gathers ``[num_envs, max_steps]`` steps per batch, each row from a
+reset, and keeps each row's first episode, padded and masked as pymarl does.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import pickle
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from typing import Any
@@ -60,14 +48,9 @@ from mcrs.models.acting import recurrent_primer
 
 
 class Task(ABC):
-    """An environment the experiment can train and evaluate on.
-
-    Subclasses set ``name`` and the sizes, and implement :meth:`make_env`; the keys default to the
-    group ``"agents"`` and the state ``"state"``; :meth:`episode_metrics` defaults to the episode reward.
-    A task whose constructor takes arguments returns them from :meth:`settings`, so that its runs can be
-    rebuilt (evaluated, exported, resumed) by the command-line tools. A task must be picklable for
-    ``train.collector=multiprocess`` (its workers build their environments from it).
-    """
+    """An environment the experiment can train and evaluate on. Subclasses set ``name`` and the sizes and
+    implement :meth:`make_env`; one whose constructor takes arguments returns them from :meth:`settings`, so
+    its runs can be rebuilt. It must be picklable for ``train.collector=multiprocess``."""
 
     name: str = "task"
     group: str = "agents"  #: the agent group: keys (group, "observation"), (group, "action_mask"), ...
@@ -85,25 +68,23 @@ class Task(ABC):
         """``num_envs`` environments batched into one ``EnvBase`` on ``device``, seeded by ``set_seed``."""
 
     def episode_metrics(self, rollout: TensorDictBase) -> dict[str, torch.Tensor]:
-        """Per-episode metrics ``{name: [E]}`` of the rows ``[E, max_steps]`` of a rollout, each from a
-        reset; the experiment logs their means (``train/<name>``, ``eval/<name>``). Must hold
-        ``episode_reward``. Default: the reward summed over each row's first episode (to its first done)."""
+        """Per-episode metrics ``{name: [E]}`` of a rollout's rows ``[E, max_steps]``, which must include
+        ``episode_reward``; the experiment logs their means. Default: the reward summed over each row's first
+        episode."""
         return {"episode_reward": first_episode_sum(rollout, ("next", "reward"))}
 
     def settings(self) -> dict[str, Any]:
-        """The keyword arguments that rebuild this task (``type(self)(**settings)``), as plain values (str,
-        numbers, bools, lists and dicts of them): the run's ``config.yaml`` keeps them. Default: none."""
+        """The keyword arguments that rebuild this task, as plain values that ``config.yaml`` can keep."""
         return {}
 
     def spec(self) -> dict[str, Any]:
-        """How to rebuild the task: ``{"_target_": "<module>.<class>", **settings()}``, the config's
-        ``task`` node (:func:`make_task` reads it)."""
+        """How to rebuild the task, ``{"_target_": "<module>.<class>", **settings()}``: the config's ``task``
+        node."""
         return {TARGET: f"{type(self).__module__}.{type(self).__qualname__}", **self.settings()}
 
     def fingerprint(self) -> dict[str, Any]:
-        """What identifies the task in a checkpoint (a resume on another task is refused): plain values.
-        A checkpoint written before tasks has none of these fields and resumes as MCRS. (The settings are
-        in the fingerprint too, as the config's ``task`` node.)"""
+        """What identifies the task in a checkpoint, so that a resume on another task is refused; the settings
+        are in the config's ``task`` node."""
         return {"task.name": self.name, "task.class": class_path(type(self))}
 
     # ------------------------------------------------------------------ derived: keys
@@ -121,7 +102,7 @@ class Task(ABC):
 
     @property
     def step_keys(self) -> tuple[NestedKey, ...]:
-        """What the replay keeps at every step (:func:`~mcrs.experiment.training.replay.episodes_from_rollout`)."""
+        """What the replay keeps at every step."""
         return (self.observation_key, self.action_mask_key, self.state_key)
 
     def loss_keys(self) -> dict[str, NestedKey]:
@@ -135,8 +116,7 @@ class Task(ABC):
 
 
 class MCRSTask(Task):
-    """MCRS-LCR on one map: the experiment's default task, built from ``config.env`` (the env section of the
-    config is in every checkpoint's fingerprint; the task adds its name and class)."""
+    """MCRS-LCR on one map, built from ``config.env``: the experiment's default task."""
 
     has_maps = True
 
@@ -147,7 +127,7 @@ class MCRSTask(Task):
         self.state_shape, self.max_steps = (env_config.state_dim,), env_config.max_steps
 
     def make_env(self, num_envs: int, device: torch.device, expose_beliefs: bool | None = None) -> MCRSEnv:
-        """``expose_beliefs``: also write what an episode's pictures are drawn from (None: as configured)."""
+        """``expose_beliefs`` also writes what an episode's pictures are drawn from (None: as configured)."""
         overrides: dict[str, Any] = {"num_envs": num_envs}
         if expose_beliefs is not None:
             overrides["expose_beliefs"] = expose_beliefs
@@ -163,8 +143,8 @@ TARGET = "_target_"
 
 
 def first_episode_sum(rollout: TensorDictBase, key: NestedKey) -> torch.Tensor:
-    """``key`` (a reward, ``[E, T, ...]``) summed over each row's first episode: the steps up to and
-    including the row's first ``("next", "done")``; ``[E]`` float32. A row of one episode: its whole sum."""
+    """``key`` (``[E, T, ...]``) summed over each row's first episode, up to and including its first done;
+    ``[E]`` float32."""
     E, T = rollout.batch_size
     value = rollout.get(key).float().reshape(E, T, -1).sum(-1)
     done = rollout.get(("next", "done")).reshape(E, T, -1).any(-1).long()
@@ -172,12 +152,9 @@ def first_episode_sum(rollout: TensorDictBase, key: NestedKey) -> torch.Tensor:
 
 
 def make_task(node: Mapping[str, Any] | Task) -> Task:
-    """The task a ``task`` node describes (``{"_target_": "pkg.module.Class", **settings}``, what
-    :meth:`Task.spec` returns and a run's ``config.yaml`` keeps); a :class:`Task` is returned as it is.
-
-    The target must be a :class:`Task` subclass importable in this process; its settings are the
-    constructor's keyword arguments. Anything else is one :class:`ConfigError` line naming ``task.<key>``.
-    """
+    """The task a ``task`` node (``{"_target_": "pkg.module.Class", **settings}``) describes; a :class:`Task`
+    is returned as it is. Anything but an importable :class:`Task` subclass and its constructor's arguments is
+    a :class:`ConfigError` naming ``task.<key>``."""
     if isinstance(node, Task):
         return node
     if not isinstance(node, Mapping) or not isinstance(node.get(TARGET), str):
@@ -211,13 +188,13 @@ def make_task(node: Mapping[str, Any] | Task) -> Task:
 
 
 def as_task(task: Task | EnvConfig) -> Task:
-    """A task; an :class:`EnvConfig` (what the builders took before tasks) is its :class:`MCRSTask`."""
+    """A task; an :class:`EnvConfig` stands for its :class:`MCRSTask`."""
     return MCRSTask(task) if isinstance(task, EnvConfig) else task
 
 
 def with_agent_state(env: EnvBase, task: Task, num_envs: int, hidden_dim: int, device) -> TransformedEnv:
-    """``env`` with what the recurrent acting policy reads: ``step_count`` (TorchRL's ``StepCounter``, when
-    the env writes none) and the agents' carried state (:func:`~mcrs.models.acting.recurrent_primer`)."""
+    """``env`` with what the recurrent acting policy reads: ``step_count`` when the env writes none, and the
+    agents' carried state."""
     primer = recurrent_primer(num_envs, task.n_agents, hidden_dim, group=task.group, device=device)
     # a task's own TransformedEnv (StepCounter(max_steps)) is unwrapped: one chain of transforms
     if "step_count" in env.observation_spec:
@@ -230,12 +207,8 @@ def _floating(dtype: torch.dtype) -> bool:
 
 
 def check_env(task: Task, env: EnvBase) -> None:
-    """Raise :class:`ConfigError` where ``env``'s specs disagree with the task contract (this module's
-    docstring): a key the experiment reads that the env lacks, or a shape, dtype or size that differs from
-    what ``task`` declares (``obs_dim``, ``n_agents``, ``n_actions``, ``state_shape``), naming the key, the
-    attribute and the env's value. The networks are built from the declared sizes and the loop reads every
-    key, so a mismatch would otherwise surface as a shape error deep in torch or a ``KeyError`` after the
-    first evaluation."""
+    """Raise :class:`ConfigError` where ``env``'s specs disagree with the task contract (the module
+    docstring), naming the key and the value, instead of a shape error deep in torch later."""
     problems = []
     batch = tuple(env.batch_size)
     if len(batch) != 1:
@@ -290,7 +263,7 @@ def check_supported(config: Config, task: Task) -> None:
 
 
 def unsupported(config: Config, task: Task) -> list[str]:
-    """The settings of ``config`` that ``task`` cannot run, one line each (none: it can)."""
+    """The settings of ``config`` that ``task`` cannot run, one line each."""
     problems = []
     if not task.has_maps:
         if config.algo.memory.enabled:
@@ -306,8 +279,6 @@ def unsupported(config: Config, task: Task) -> list[str]:
             f"{task.name!r} has group {task.group!r} and state {task.state_key!r}"
         )
     if str(config.train.collector) == "multiprocess":
-        import pickle
-
         try:
             pickle.dumps(task)
         except Exception as error:  # what pickle raises depends on the object

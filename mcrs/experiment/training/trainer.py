@@ -1,22 +1,17 @@
-"""An experiment: a value-factorisation learner trained on MCRS-LCR, top to bottom.
+"""An experiment: a value-factorisation learner trained on a task, MCRS-LCR by default, top to bottom::
 
-    collector (TorchRL, masked epsilon-greedy)  ->  whole episodes  ->  replay buffer (TorchRL)
-        ->  ValueFactorisationLoss (TorchRL LossModule, TorchRL mixers)  ->  optimiser, HardUpdate
-    what an algorithm adds comes in through callbacks (training.callbacks): the episodic memory
-        (Algorithm 1 on every collected batch, phi every t_emb env steps, H(phi(s')) on every sampled
-        batch) and EMC's curiosity (an intrinsic reward on every sampled batch)
+    collector (masked epsilon-greedy) -> whole episodes -> replay buffer -> ValueFactorisationLoss -> optimiser
+    callbacks add what an algorithm needs: the episodic memory, EMC's curiosity
     every eval_interval env steps: greedy evaluation on fixed-seed environments
-    on Ctrl-C or SIGTERM: the batch in progress ends, a checkpoint, RunInterrupted (run.interrupt)
-    every checkpoint_interval env steps, every checkpoint_minutes of wall clock and at the end: an atomic
-        checkpoint of everything, the replay in block files beside it (run.replay_store), the newest
-        keep_checkpoints weight files model_<steps>.pt kept; the run's state (run.run_state) writes it
+    every checkpoint_interval env steps, every checkpoint_minutes and at the end: an atomic checkpoint
+    on Ctrl-C or SIGTERM: the batch in progress ends, a checkpoint, RunInterrupted
 
     Experiment(compose("algo=qmix", "env=map20"), "outputs/my_run").run()
-    Experiment(compose("algo=qplex"), "outputs/game", task=MatrixGameTask()).run()   # any Task
+    Experiment(compose("algo=qplex"), "outputs/game", task=MatrixGameTask()).run()
 
-Determinism: the networks are initialised from ``seed``; collector batch ``k`` resets its environments from
-``seed`` and ``k``; exploration and replay sampling draw from torch's generator, whose state is in every
-checkpoint. So a run resumed from a checkpoint repeats the straight run exactly on the CPU.
+The networks are initialised from ``seed``, collector batch ``k`` resets its environments from ``seed`` and
+``k``, and exploration and replay sampling draw from torch's generator, whose state is in every checkpoint. A
+resumed run thus repeats the straight run exactly on the CPU.
 """
 
 from __future__ import annotations
@@ -82,20 +77,10 @@ __all__ = ["Counters", "Experiment", "TrainingDiverged", "batch_seed"]
 
 
 class Experiment:
-    """A training run built from a config; :meth:`run` trains it, :meth:`evaluate` evaluates the greedy
-    policy, :meth:`state_dict` is everything a checkpoint holds. The run's bookkeeping and checkpoints are
-    its :attr:`state` (:class:`~mcrs.experiment.run.run_state.RunState`), which reads the parts built here.
-
-    Args:
-        config: the typed :class:`~mcrs.experiment.config.Config` (or the Hydra ``DictConfig`` it is
-            composed into; :func:`mcrs.experiment.config.compose` builds one from overrides).
-        run_dir: where logs and checkpoints go (a fresh run) or come from (``resume=True``).
-        resume: continue from ``run_dir/checkpoints/last.pt``.
-        callbacks: more callbacks, run after the algorithm's own (:mod:`mcrs.experiment.training.callbacks`).
-        task: the environment (:class:`~mcrs.experiment.training.task.Task`); default: the one ``config.task``
-            describes (``task=...`` on the command line), else MCRS on ``config.env``. The run's
-            ``config.yaml`` keeps how to rebuild it (``task``: :meth:`~mcrs.experiment.training.task.Task.spec`).
-    """
+    """A training run built from a config (or the Hydra ``DictConfig`` it is composed into): :meth:`run`
+    trains it, :meth:`evaluate` evaluates the greedy policy, and :attr:`state` keeps the bookkeeping and
+    checkpoints. ``callbacks`` run after the algorithm's own; ``task`` defaults to ``config.task``'s, else
+    MCRS on ``config.env``."""
 
     def __init__(
         self,
@@ -121,9 +106,7 @@ class Experiment:
             )
             check_env(self.task, self._raw_env)
         check_supported(self.config, self.task)  # ConfigError: what the task cannot run (logger.video, ...)
-        # the one reading of algo.name (its class is built in _build, after torch's seed); its own
-        # settings, checked and completed with their defaults (the caller's config is not changed):
-        # config.yaml, the loggers and the fingerprint hold every one
+        # the algorithm's class now, its instance in _build after torch's seed; its options get their defaults
         self.algorithm_class: type[Algorithm] = algorithm_class(self.config.algo)
         self.config = replace(self.config, algo=self.algorithm_class.with_options(self.config.algo))
         self.run_dir = Path(run_dir)
@@ -143,7 +126,7 @@ class Experiment:
     # ------------------------------------------------------------------ the run's state (RunState)
     @property
     def counters(self) -> Counters:
-        """The run's progress: env steps, episodes, updates, when the next evaluation is due, ..."""
+        """The run's progress: env steps, episodes, updates and when the next events are due."""
         return self.state.counters
 
     @property
@@ -157,17 +140,17 @@ class Experiment:
         return self.state.replay_store
 
     def state_dict(self, replay_inline: bool = True) -> dict[str, Any]:
-        """Everything a checkpoint holds (:meth:`RunState.state_dict`)."""
+        """Everything a checkpoint holds."""
         return self.state.state_dict(replay_inline)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a checkpoint's state (:meth:`RunState.load_state_dict`)."""
+        """Restore a checkpoint's state."""
         self.state.load_state_dict(state)
 
     def fingerprint(
         self, config: dict[str, Any] | None = None, learner: dict[str, Any] | None = None
     ) -> dict:
-        """What a checkpoint must share with this run (:meth:`RunState.fingerprint`)."""
+        """What a checkpoint must share with this run."""
         return self.state.fingerprint(config, learner)
 
     def save(self, name: str = ckpt.LAST) -> Path:
@@ -175,8 +158,7 @@ class Experiment:
         return self.state.save(name)
 
     def close(self) -> None:
-        """Close the log files and release the run directory (done by :meth:`run`; the process's exit
-        does it too)."""
+        """Close the log files and release the run directory; :meth:`run` and the process's exit do it too."""
         if getattr(self, "logger", None) is not None:
             close_log_files(self.logger)
         if self._lock is not None:
@@ -253,15 +235,15 @@ class Experiment:
 
     @property
     def algorithm_note(self) -> str | None:
-        """What an unregistered ``algo.name`` (a label of one's own, or a misspelt name) trains, said in the
-        log and by ``mcrs-train``; None for a registered one."""
+        """What an unregistered ``algo.name`` trains, said in the log and by ``mcrs-train``; None for a
+        registered one."""
         name = str(self.config.algo.name)
         if name in ALGORITHMS:
             return None
         return unregistered(name, f"trained as the built-in {self.algorithm!r}")
 
     def callback(self, name: str) -> Callback:
-        """The callback called ``name`` (``memory``, ``curiosity``, or one of the caller's)."""
+        """The callback called ``name``."""
         for callback in self.callbacks:
             if callback.name == name:
                 return callback
@@ -270,8 +252,7 @@ class Experiment:
     # ------------------------------------------------------------------ the loop
     @property
     def finished(self) -> bool:
-        """Whether the run is complete: at ``train.total_env_steps`` with its final evaluation written (a
-        run killed between its last checkpoint and its final evaluation is not)."""
+        """Whether the run is at ``train.total_env_steps`` with its final evaluation written."""
         return (
             self.counters.env_steps >= self.config.train.total_env_steps
             and self.state.final_evaluation_written()
@@ -339,7 +320,7 @@ class Experiment:
         return dict(self.last_eval)
 
     def _collect(self, collector_iter, stats: dict[str, list[torch.Tensor]]):
-        """Collect num_envs whole episodes with the exploring policy; they go into the replay, then to the
+        """Collect num_envs whole episodes with the exploring policy into the replay, then hand them to the
         callbacks."""
         t, counts = self.config.train, self.counters
         start = time.perf_counter()
@@ -432,7 +413,7 @@ class Experiment:
         return self.save() if due_by_steps or due_by_time else None
 
     def _check_finite(self, batch) -> None:
-        """Stop before a NaN or inf from the env (a belief, a reward) reaches the replay or the memory."""
+        """Stop before a NaN or inf from the env reaches the replay or the memory."""
         finite_keys = ((self.task.state_key, "belief maps / state"), (("next", "reward"), "reward"),
                        (self.task.observation_key, "observation"))  # fmt: skip
         for key, term in finite_keys:
@@ -445,12 +426,9 @@ class Experiment:
 
     # ------------------------------------------------------------------ evaluation and logging
     def evaluate(self) -> dict[str, float]:
-        """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes; logged at the current step.
-
-        Logged, and told to the callbacks, once per env step: called again at a step already logged (right
-        after :meth:`run`, which ends with an evaluation, or on a finished run resumed), it evaluates and
-        returns the metrics without a second row at that step or a second ``on_evaluation_end`` (EMU-change
-        would move its threshold twice)."""
+        """Greedy evaluation on ``train.eval_episodes`` fixed-seed episodes, logged at the current step. At a
+        step already logged it logs nothing and skips ``on_evaluation_end``, which would move EMU-change's
+        threshold twice."""
         start = time.perf_counter()
         self.state.last_eval = evaluate(
             self.eval_env, self.greedy, int(self.config.train.eval_seed), self.task

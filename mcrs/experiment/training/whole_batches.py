@@ -1,9 +1,8 @@
 """Whole collector batches: the run's length and its evaluation interval, as the command line sets them.
 
-A run collects ``train.num_envs`` whole episodes of ``env.max_steps`` steps at a time; the trainer checks
-its schedule between batches. A length or interval that is not a whole number of batches would be rounded
-up silently (``train.total_env_steps=4000`` with batches of 1600 trains 4800 steps); a command line that
-sets one is refused instead, naming the nearest values that are exact (``mcrs.train.early_errors``).
+A run collects ``train.num_envs`` whole episodes at a time, so a length or interval that is not a whole number
+of batches would be rounded up silently (``train.total_env_steps=4000`` with batches of 1600 trains 4800
+steps). A command line that sets one is refused, naming the nearest exact values.
 """
 
 from __future__ import annotations
@@ -13,14 +12,13 @@ from typing import Any
 
 
 def collector_batch(cfg: Any) -> int:
-    """Env steps per collector batch: ``train.num_envs`` whole episodes of ``env.max_steps`` steps (a
-    task's ``task.max_steps``; 0, not checked, for a task whose node does not say). The run's length and its
-    evaluations fall on multiples of it."""
+    """Env steps per collector batch: ``train.num_envs`` episodes of ``env.max_steps`` (or ``task.max_steps``;
+    0 when a task node does not say)."""
     return int(cfg.train.num_envs) * _max_steps(cfg)[1]
 
 
 def _max_steps(cfg: Any) -> tuple[str, int]:
-    """Where the episode length comes from, and its value (0: a task node that does not say)."""
+    """Where the episode length comes from, and its value (0 when a task node does not say)."""
     task = getattr(cfg, "task", None)
     if task is None:
         return "env.max_steps", int(cfg.env.max_steps)
@@ -33,13 +31,9 @@ BATCHED_FIELDS = ("train.total_env_steps", "train.eval_interval")
 
 
 def whole_batch_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
-    """A length or evaluation interval set on the command line (``explicit``: the dotted keys it sets)
-    that is not a whole number of collector batches, naming the nearest values that are.
-
-    A run collects ``num_envs`` whole episodes at a time, so ``train.total_env_steps=4000`` with batches of
-    1600 would train 4800 steps and ``train.eval_interval=800`` evaluate every 1600: refused instead of
-    rounded silently. A preset's values (``budget=``) are not checked: the runs already recorded with them
-    must stay comparable with new ones; :func:`rounding_notes` says what such a run trains instead."""
+    """The length or evaluation interval set on the command line (``explicit`` dotted keys) that is not a
+    whole number of collector batches, naming the nearest values that are. A preset's values are not checked,
+    so that runs recorded with them stay comparable; :func:`rounding_notes` says what they train."""
     batch, explicit = collector_batch(cfg), set(explicit)
     t = cfg.train
     errors = []
@@ -57,9 +51,8 @@ def whole_batch_errors(cfg: Any, explicit: Iterable[str]) -> list[str]:
 
 
 def rounding_notes(batch: int, total_env_steps: int, eval_interval: int) -> list[str]:
-    """What a run trains when a preset or a Python-built config sets a length or interval that is not a
-    whole number of collector batches of ``batch`` env steps (the command line refuses those): one line
-    each, for the run's log, so that the rounding is never silent."""
+    """One line each for the run's log on a length or interval that is not a whole number of batches of
+    ``batch`` env steps, so the rounding is never silent."""
     notes = []
     for name, value in (("train.total_env_steps", total_env_steps), ("train.eval_interval", eval_interval)):
         if value > 0 and batch > 0 and value % batch:

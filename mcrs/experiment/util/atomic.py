@@ -1,5 +1,5 @@
-"""A file written whole or not at all: a reader (a parallel job, a resumed campaign, ``git add``) sees the
-old file or the new one, never half of one, and a failed write leaves no temporary behind."""
+"""A file written whole or not at all: a reader sees the old file or the new one, and a failed write leaves no
+temporary behind."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ __all__ = ["ChangedSinceRead", "write_bytes_atomic", "write_if_unchanged", "writ
 
 
 class ChangedSinceRead(Exception):
-    """A file a tool read, worked on and meant to rewrite was changed meanwhile: nothing is written."""
+    """A file a tool meant to rewrite was changed since it read it, so nothing is written."""
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
@@ -23,8 +23,7 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
 
 
 def _temporary(path: Path, data: bytes) -> str:
-    """``data`` in a new temporary file of its own beside ``path`` (mkstemp: two writers never share one),
-    synced and 0644; its name."""
+    """Write ``data`` to a new synced 0644 temporary file of its own beside ``path`` and return its name."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -40,9 +39,8 @@ def _temporary(path: Path, data: bytes) -> str:
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, synced, then renamed over
-    ``path`` (the folder is made if missing). The file is 0644, not ``mkstemp``'s 0600: a committed or
-    shared file stays readable by the machine's other users."""
+    """Write ``data`` to ``path`` through a synced temporary file renamed over it. The file is 0644, not
+    ``mkstemp``'s 0600, so a shared file stays readable."""
     path = Path(path)
     tmp = _temporary(path, data)
     try:
@@ -55,8 +53,8 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
 
 @contextlib.contextmanager
 def _folder_lock(folder: Path) -> Iterator[None]:
-    """An exclusive ``flock`` on the folder itself (no lock file is left in it): two tools that check and
-    replace a file there do it one after the other."""
+    """An exclusive ``flock`` on the folder itself, leaving no lock file, so that tools replacing a file there
+    take turns."""
     fd = os.open(folder, os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
@@ -66,10 +64,8 @@ def _folder_lock(folder: Path) -> Iterator[None]:
 
 
 def write_if_unchanged(path: str | Path, data: bytes, read: bytes | None) -> Path:
-    """Replace ``path`` with ``data`` only if it still holds ``read`` (what the tool read before its work;
-    None: it did not exist), through a temporary file of its own; otherwise :class:`ChangedSinceRead` and
-    ``path`` is left as it is, so that an edit made meanwhile (a line added while a tool generated for a
-    minute) is never written over."""
+    """Replace ``path`` with ``data`` only if it still holds ``read`` (None: it did not exist), else raise
+    :class:`ChangedSinceRead`, so an edit made meanwhile is never written over."""
     path = Path(path)
     tmp = _temporary(path, data)
     try:

@@ -1,10 +1,10 @@
-"""One-line messages: the allowed names closest to a wrong one first, and Hydra's composing errors as one
-line that names the key, group or override and lists what is allowed::
+"""One-line messages: Hydra's composing errors as one line naming the key, group or override and what is
+allowed, the closest names first::
 
     env.comm_rage: unknown key; the keys of env (closest first): comm_range, comm_budget, comm_delay, ...
     algo=qmx: no such option of algo; allowed (closest first): qmix, cnn_semu, emc, ...
 
-Used by the config, the training loop and the command lines alike, so it imports none of them.
+Used by the config, the training loop and the command lines, so it imports none of them.
 """
 
 from __future__ import annotations
@@ -29,8 +29,7 @@ GRAMMAR = "https://hydra.cc/docs/advanced/override_grammar/basic/"
 
 
 def ranked(name: str, allowed: Sequence[str]) -> list[str]:
-    """``allowed`` with the close matches of ``name`` first (best first), the rest in their order; case
-    does not count (``QMIX`` is closest to ``qmix``)."""
+    """``allowed`` with the close matches of ``name`` first, best first, ignoring case."""
     score = {a: _similarity(name, a) for a in allowed}
     close = sorted(
         (a for a in allowed if score[a] >= CLOSE), key=lambda a: -score[a]
@@ -43,7 +42,7 @@ def _similarity(name: str, other: str) -> float:
 
 
 def listing(name: str, allowed: Sequence[str]) -> str:
-    """``" (closest first): comm_range, comm_budget, ..."`` (every allowed name), or ``": a, b"`` when none is close."""
+    """``" (closest first): comm_range, comm_budget, ..."``, or ``": a, b"`` when no name is close."""
     order = ranked(name, allowed)
     close = _similarity(name, order[0]) >= CLOSE if order else False
     return f"{' (closest first)' if close else ''}: {', '.join(order)}"
@@ -97,7 +96,7 @@ def _unknown_key(full_key: str, error: OmegaConfBaseException) -> str:
 
 
 def _bad_value(message: str, cause: ValidationError) -> str:
-    """``algo.mixer=qtran: allowed values are qmix, vdn, qplex`` / ``train.lr=abc: not a float``."""
+    """``algo.mixer=qtran: allowed values are qmix, vdn, qplex`` or ``train.lr=abc: must be a number``."""
     prefix = "Error merging override "
     override = message.split("\n")[0][len(prefix) :] if message.startswith(prefix) else str(cause.full_key)
     reason = _lines(str(cause))[0]
@@ -112,7 +111,7 @@ def _bad_value(message: str, cause: ValidationError) -> str:
 
 
 def _lines(text: str) -> list[str]:
-    """The lines of Hydra's report that say what is wrong (not its hints, search path or internals)."""
+    """The lines of Hydra's report that say what is wrong, without its hints, search path or internals."""
     noise = ("Set the environment variable", "Config search path", "provider=", "See https://",
              "To append to your config", "full_key:", "reference_type=", "object_type=")  # fmt: skip
     out = []

@@ -8,8 +8,7 @@ from pathlib import Path
 
 
 def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None) -> str:
-    """``mean ± std``; the mean alone when ``n`` (the samples behind it) is 1: one seed has no spread, and
-    ``± 0.00`` would claim one."""
+    """``mean ± std``, or the mean alone when ``n`` is 1, since one sample has no spread."""
     if math.isnan(mean):
         return "n/a"
     if n is not None and n < 2:
@@ -18,8 +17,7 @@ def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None) -> 
 
 
 def markdown(header: list[str], rows: list[list[str]], left: int = 1) -> str:
-    """A markdown table aligned as text: the first ``left`` columns (text) left, the others (numbers)
-    right."""
+    """A markdown table aligned as text: the first ``left`` columns left, the others right."""
     widths = [max(len(str(row[k])) for row in [header, *rows]) for k in range(len(header))]
 
     def line(cells: list[str]) -> str:
@@ -34,7 +32,7 @@ def markdown(header: list[str], rows: list[list[str]], left: int = 1) -> str:
 
 
 def write_csv(path: Path, rows: list[dict[str, object]]) -> Path:
-    """One row per dict; the columns are the union of the keys, in first-seen order."""
+    """One row per dict; the columns are the keys in first-seen order."""
     columns: list[str] = []
     for row in rows:
         columns += [k for k in row if k not in columns]

@@ -1,13 +1,10 @@
-"""How many torch threads a run uses, and whether the machine actually gives it the CPU time they need.
+"""How many torch threads a run uses, and whether the machine gives them the CPU time they need.
 
-torch's default is one thread per core. On a machine other jobs keep busy that oversubscribes the cores:
-the threads of one parallel operation wait for each other while the scheduler runs someone else, and a
-learner update gets many times slower (measured in docs/TRAINING.md, "Threads"). ``threads=auto`` (the default) takes the cores the load average leaves free,
-at least one; an integer fixes the count, ``0`` keeps torch's default.
-
-After the first :data:`WINDOW_S` seconds of training, :class:`SpeedCheck` looks once at how long the
-process's threads waited for a CPU (Linux's per-thread scheduler statistics; elsewhere, CPU time against
-wall time) and warns, once, when the machine is oversubscribed, with the load and the ``threads=`` advice.
+torch's default is one thread per core. On a machine other jobs keep busy that oversubscribes the cores, and a
+learner update gets many times slower (docs/TRAINING.md, "Threads"). ``threads=auto``, the default, takes the
+cores the load average leaves free; an integer fixes the count and ``0`` keeps torch's default.
+:class:`SpeedCheck` measures once, after :data:`WINDOW_S` seconds of training, how long the threads waited for
+a CPU, and warns when the machine is oversubscribed.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 def threads_problem(value: object, cores: int) -> str | None:
-    """Why ``threads=value`` cannot be used (None when it can): ``auto`` or an integer 0..cores."""
+    """Why ``threads=value`` cannot be used, or None: it must be ``auto`` or an integer 0..cores."""
     text = str(value).strip()
     if text == AUTO:
         return None
@@ -43,8 +40,7 @@ def threads_problem(value: object, cores: int) -> str | None:
 
 
 def auto_threads(cores: int, load: float) -> int:
-    """The cores the other work (the 1-minute load average) leaves free, rounded, at least 1, at most
-    ``cores``."""
+    """The cores the 1-minute load average leaves free, rounded, between 1 and ``cores``."""
     return max(1, min(cores, int(cores - load + 0.5)))
 
 
@@ -64,7 +60,7 @@ def resolve_threads(value: object, cores: int, load: float) -> int:
 
 def apply_threads(value: object) -> int:
     """Set torch's thread count for ``threads=value`` (0 leaves torch's default); returns the count used."""
-    import torch
+    import torch  # here: the config's checks of threads= must not load torch
 
     threads = resolve_threads(value, cpu_count(), load_average())
     if threads:
@@ -87,8 +83,8 @@ def scheduler_times() -> tuple[float, float] | None:
 def oversubscription(
     wall_s: float, cpu_s: float, wait_s: float | None, threads: int, load: float, cores: int
 ) -> str | None:
-    """The warning for a measurement window (None when the run got its CPU time): ``wait_s`` is what
-    the threads waited for a core (None: unknown, then the CPU share decides)."""
+    """The warning for a measurement window, or None when the run got its CPU time; ``wait_s`` None means
+    unknown, and then the CPU share decides."""
     if wall_s <= 0:
         return None
     if wait_s is not None:
@@ -110,7 +106,7 @@ def oversubscription(
 
 class SpeedCheck:
     """Measures the first :data:`WINDOW_S` seconds of training once and logs :func:`oversubscription`'s
-    warning if there is one. Off for a multiprocess collector (its workers' time is not this process's)."""
+    warning. Off for a multiprocess collector, whose workers' time is not this process's."""
 
     def __init__(self, threads: int, enabled: bool = True, window_s: float = WINDOW_S, decide=None) -> None:
         self.threads, self.window_s = threads, window_s
@@ -139,7 +135,7 @@ class SpeedCheck:
 
 
 def cpu_count() -> int:
-    """CPU cores this process may run on (its affinity, e.g. under Slurm or taskset)."""
+    """CPU cores this process may run on, from its affinity (Slurm, taskset)."""
     try:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):

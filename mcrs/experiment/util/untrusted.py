@@ -1,19 +1,15 @@
 """Names, paths and files that come from outside the program, checked before anything is read or written.
 
-A campaign file, a record, a run's ``config.yaml``, a document's generated blocks and the command line are
-all written by someone else. Three kinds of check live here so that every tool uses the same ones:
+Campaign files, records, a run's ``config.yaml`` and the command line are written by someone else, so every
+tool uses the same checks:
 
-- :func:`plain_name`: a value that becomes one path component (an evaluation, a variant, a map, a
-  study) is a plain name: letters, digits and ``_ . + = -``, not starting with a dot, so ``..``, ``a/b``
-  and ``.hidden`` never become a directory;
-- :func:`confined`: a path built from such values, or read from a file, resolved and required to lie
-  under its root before it is written or removed;
-- :func:`read_yaml` and :func:`check_archive`: bounds checked *before* parsing. YAML anchors and aliases
-  (the "billion laughs" bomb: a few hundred bytes that expand to gigabytes), more than
-  :data:`MAX_YAML_BYTES` or a nesting deeper than :data:`MAX_DEPTH` are refused while scanning the
-  events, which costs time and memory in proportion to the file; a checkpoint must be a torch zip
-  archive whose members are stored uncompressed, one folder, no more than :data:`MAX_MEMBERS` of them,
-  so a zip bomb (a compressed member that inflates to gigabytes) is refused from its directory alone.
+- :func:`plain_name`: a value that becomes one path component is letters, digits and ``_ . + = -``, not
+  starting with a dot, so ``..``, ``a/b`` and ``.hidden`` never become a directory.
+- :func:`confined`: a path built from such values, or read from a file, must resolve under its root.
+- :func:`read_yaml` refuses anchors and aliases (the "billion laughs" bomb), files over :data:`MAX_YAML_BYTES`
+  and nesting over :data:`MAX_DEPTH` while scanning the events, at a cost in proportion to the file.
+- :func:`check_archive` refuses a checkpoint unless it is a torch zip archive of at most :data:`MAX_MEMBERS`
+  stored members in one folder, so a zip bomb is refused from its directory alone.
 """
 
 from __future__ import annotations
@@ -53,7 +49,7 @@ def plain_name(value: Any, what: str) -> str:
 
 
 def confined(path: str | Path, root: str | Path, what: str) -> Path:
-    """``path`` resolved (symbolic links followed), refused unless it lies under ``root`` (resolved)."""
+    """``path`` resolved, symbolic links followed, and refused unless it lies under ``root``."""
     root = Path(os.path.abspath(root)).resolve()
     resolved = Path(os.path.abspath(path)).resolve()
     if resolved != root and not resolved.is_relative_to(root):
@@ -63,7 +59,7 @@ def confined(path: str | Path, root: str | Path, what: str) -> Path:
 
 # -------------------------------------------------------------------------------------------- YAML
 def check_yaml_text(text: str, where: str, max_depth: int = MAX_DEPTH) -> None:
-    """Scan ``text``'s YAML events (no object is built): refuse anchors, aliases and deep nesting."""
+    """Scan ``text``'s YAML events without building objects; refuse anchors, aliases and deep nesting."""
     depth = 0
     try:
         for event in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
@@ -101,11 +97,10 @@ def read_yaml_text(path: str | Path, max_bytes: int = MAX_YAML_BYTES) -> str:
 def read_yaml(
     path: str | Path, max_bytes: int = MAX_YAML_BYTES, interpolations: bool = True, resolve: bool = False
 ) -> Any:
-    """Plain data from the YAML file ``path`` through OmegaConf (its safe loader: a ``!!python`` tag is
-    refused), after the bounds of :func:`check_yaml_text`. ``interpolations=False`` refuses ``${...}``:
-    a file written resolved (a run's config.yaml) has none, and resolving them can multiply a file's
-    size as aliases do."""
-    from omegaconf import OmegaConf
+    """Plain data from the YAML file ``path`` through OmegaConf's safe loader, after :func:`check_yaml_text`'s
+    bounds. ``interpolations=False`` refuses ``${...}``, which a resolved file such as a run's ``config.yaml``
+    never holds and which can multiply a file's size as aliases do."""
+    from omegaconf import OmegaConf  # here: the other checks need only PyYAML
     from omegaconf.errors import OmegaConfBaseException
 
     text = read_yaml_text(path, max_bytes)
@@ -127,7 +122,7 @@ def read_yaml(
 
 # ----------------------------------------------------------------------------------------- numbers
 def depth_of(value: Any, limit: int = MAX_DEPTH) -> int:
-    """Nesting depth of plain data, counted iteratively (a deep file cannot exhaust the stack)."""
+    """Nesting depth of plain data, counted without recursion so a deep file cannot exhaust the stack."""
     deepest, stack = 0, [(value, 1)]
     while stack:
         node, level = stack.pop()
@@ -140,15 +135,15 @@ def depth_of(value: Any, limit: int = MAX_DEPTH) -> int:
 
 
 def finite_number(value: Any) -> bool:
-    """A JSON/YAML number that is finite (not a bool, NaN or inf)."""
+    """Whether ``value`` is a finite JSON or YAML number, not a bool, NaN or inf."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 # ------------------------------------------------------------------------------------- checkpoints
 def check_archive(path: str | Path) -> str | None:
-    """Why the torch file ``path`` must not reach ``torch.load``, or None when its zip directory is sane:
-    one top folder, every member stored (torch never compresses; a compressed member is a zip bomb),
-    declared sizes within the file, at most :data:`MAX_MEMBERS` members, no absolute or ``..`` names."""
+    """Why the torch file ``path`` must not reach ``torch.load``, or None: it needs one top folder, stored
+    members only (torch never compresses), sizes within the file, at most :data:`MAX_MEMBERS` members and no
+    absolute or ``..`` names."""
     path = Path(path)
     size = path.stat().st_size
     with open(path, "rb") as f:
