@@ -9,6 +9,7 @@ The names here load lazily, so ``import mcrs.env`` stays free of the training st
 
 from __future__ import annotations
 
+from importlib import import_module
 from typing import Any
 
 _LAZY = {
@@ -25,6 +26,4 @@ __all__ = sorted(_LAZY)
 def __getattr__(name: str) -> Any:
     if name not in _LAZY:
         raise AttributeError(f"module 'mcrs' has no attribute {name!r}")
-    from importlib import import_module
-
     return getattr(import_module(_LAZY[name]), name)

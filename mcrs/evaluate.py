@@ -1,9 +1,8 @@
-"""``mcrs-eval``: evaluate the heuristic policies on a map and report every episode metric.
+"""``mcrs-eval``: evaluate policies on a map and report every episode metric.
 
-The K episodes run as one batch of K environments (in chunks of at most ``MAX_BATCH``), so an
-evaluation costs about as much as T batched steps. Results go to the Hydra run directory:
-``metrics.csv`` (mean and std per policy), ``episodes.csv`` (every episode), ``summary.md`` (the table)
-and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``episode.gif``.
+The K episodes run as one batch of K environments, in chunks of at most ``MAX_BATCH``. Results go to the
+Hydra run directory: ``metrics.csv`` (mean and std per policy), ``episodes.csv``, ``summary.md`` and, with
+``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``episode.gif``.
 
     mcrs-eval policy=all episodes=32
     mcrs-eval env=map20 env.comm_range=0 policy=lawnmower episodes=8
@@ -11,8 +10,7 @@ and, with ``figures=true``, ``scene.png``, ``uncertainty_contours.png`` and ``ep
     mcrs-eval policy=outputs/map10/qmix/<run> heuristics=true    (it and every heuristic, same episodes)
 
 A trained policy plays its training's evaluation episodes unless ``seed=`` or ``episodes=`` says otherwise,
-and tables name it by its run name (:mod:`mcrs.policies.identity`).
-"""
+and tables name it by its run (:mod:`mcrs.policies.identity`)."""
 
 from __future__ import annotations
 
@@ -24,22 +22,29 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import numpy as np
 import torch
 from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from mcrs.env.config import EnvConfig, ScenarioConfig, device_problem
 from mcrs.env.metrics import METRIC_LABELS, METRICS
 from mcrs.env.torchrl_env import MCRSEnv
 from mcrs.experiment.commands.cli import one_line_errors, remove_refused_dirs
+from mcrs.experiment.run.checkpoint import CheckpointError
+from mcrs.experiment.run.logging import progress_bar, read_scalar_rows, scalar_file, sorted_points
 from mcrs.experiment.run.rundir import describe_os_error, register_resolvers
 from mcrs.experiment.schema import CONFIG_DIR, MAX_EVAL_EPISODES, MAX_SEED
 from mcrs.experiment.training import evaluation
 from mcrs.experiment.util.messages import ranked
+from mcrs.experiment.util.tables import markdown, mean_std
 from mcrs.experiment.util.threads import apply_threads, cpu_count, threads_problem
 from mcrs.policies import POLICIES, check_policy, make_policy, policy_env
+from mcrs.policies.export import read_description
 from mcrs.policies.identity import default_episodes_seed, policy_label, run_task_name
-from mcrs.policies.task_runs import task_node
+from mcrs.policies.task_runs import evaluate_task_run, load_task_run, task_node
+from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
 
 ALL = "all"
 log = logging.getLogger(__name__)
@@ -55,7 +60,7 @@ TASK_LEGEND = "Each cell: mean ± standard deviation over the episodes. Higher e
 
 @dataclass
 class EvalConfig:
-    """The ``mcrs-eval`` config (``conf/eval.yaml``): Hydra refuses unknown keys and wrong types with it."""
+    """The ``mcrs-eval`` config (``conf/eval.yaml``), with which Hydra refuses unknown keys and wrong types."""
 
     env: ScenarioConfig = field(default_factory=ScenarioConfig)  # the scenario (conf/env/ presets)
     policy: str = "greedy"  # random | lawnmower | greedy | coverage | all | a checkpoint or run directory
@@ -72,7 +77,7 @@ register_resolvers()  # ${mcrs.num:...} in the sweep directory names (conf/study
 
 
 def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
-    """Problems of an evaluation config, each naming the field and what is allowed."""
+    """Return the problems of an evaluation config, each naming the field and what is allowed."""
     errors = []
     if cfg.episodes is not None and cfg.episodes < 1:
         errors.append(f"episodes={cfg.episodes}: must be >= 1")
@@ -93,9 +98,9 @@ def eval_errors(cfg: EvalConfig | DictConfig) -> list[str]:
 
 
 def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
-    """What an evaluation will be refused for, told before it runs: its values, its scenario and its
-    policy. ``conf/eval.yaml`` names it as :class:`~mcrs.experiment.commands.cli.RunDirCheck`'s ``validate``, so a
-    sweep (``-m``) checks every job before the first one starts (``overrides``: the job's, unused)."""
+    """Return what an evaluation would be refused for: its values, its scenario and its policy.
+    ``conf/eval.yaml`` names it as the ``validate`` of :class:`~mcrs.experiment.commands.cli.RunDirCheck`,
+    so a sweep checks every job before the first starts."""
     errors = eval_errors(cfg)
     try:
         env_config = EnvConfig.from_scenario(cfg.env, num_envs=1, device="cpu")
@@ -112,8 +117,7 @@ def job_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
 
 
 def policy_names(policy: str, heuristics: bool = False) -> list[str]:
-    """The policies a ``policy=`` value stands for, then every heuristic when ``heuristics``; an unknown
-    name fails listing the allowed ones."""
+    """Return the policies a ``policy=`` value stands for, then every heuristic with ``heuristics``."""
     names = _policy_names(policy)
     return [*names, *(p for p in POLICIES if p not in names)] if heuristics else names
 
@@ -121,8 +125,6 @@ def policy_names(policy: str, heuristics: bool = False) -> list[str]:
 def _policy_names(policy: str) -> list[str]:
     if policy == ALL:
         return list(POLICIES)
-    from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
-
     if policy not in POLICIES and looks_like_checkpoint(policy):
         if not resolve_checkpoint(policy).is_file():  # before any episode runs or progress is shown
             raise ValueError(
@@ -131,8 +133,6 @@ def _policy_names(policy: str) -> list[str]:
                 f"or one of {[*sorted(POLICIES), ALL]}"
             )
         if is_exported(policy):  # not an exported agent: refused here too, before any progress is shown
-            from mcrs.policies.export import read_description
-
             read_description(policy)
         return [policy]
     if policy not in POLICIES:
@@ -152,9 +152,8 @@ def episode_metrics(
     max_batch: int = MAX_BATCH,
     progress: Any = None,
 ) -> dict[str, torch.Tensor]:
-    """Final value of every metric in ``METRICS`` for each of ``episodes`` episodes: ``{name: [K]}``, on the
-    CPU whatever the env's device (callers turn them into numpy arrays, CSV rows and figures).
-    ``progress`` (a bar: :func:`mcrs.experiment.run.logging.progress_bar`) advances by one per step of the batched environments."""
+    """Return the final value of every metric for each of ``episodes`` episodes as ``{name: [K]}`` on CPU.
+    ``progress`` advances by one per step of the batched environments."""
     if episodes < 1:
         raise ValueError(f"episodes={episodes}: must be >= 1")
     batch = min(episodes, max_batch)
@@ -173,10 +172,7 @@ def episode_metrics(
 def evaluate_episodes(
     env_config: EnvConfig, names: list[str], episodes: int, seed: int, description: str, enabled: bool = True
 ) -> dict[str, dict[str, torch.Tensor]]:
-    """:func:`episode_metrics` of each policy in ``names``, with one progress bar over all their steps
-    (ETA included; plain lines when the console is no terminal), named after the policy it is running."""
-    from mcrs.experiment.run.logging import progress_bar
-
+    """Run :func:`episode_metrics` for each policy in ``names`` under one progress bar."""
     for name in names:  # a checkpoint of another map or team: refused before the bar's first line
         check_policy(name, env_config)
     chunks = math.ceil(episodes / min(episodes, MAX_BATCH))
@@ -190,15 +186,15 @@ def evaluate_episodes(
 
 
 def summarize(values: dict[str, torch.Tensor]) -> dict[str, tuple[float, float]]:
-    """Mean and standard deviation over episodes (sample std; 0 for a single episode)."""
+    """Return the mean and sample standard deviation over episodes; the std of one episode is 0."""
     return evaluation.summarize(values, correction=evaluation.SAMPLE_STD)
 
 
 def evaluate_policy(
     env_config: EnvConfig | ScenarioConfig, policy_name: str, episodes: int, seed: int
 ) -> dict[str, tuple[float, float]]:
-    """``{metric: (mean, std)}`` over ``episodes`` episodes of ``policy_name`` on ``env_config``: an
-    :class:`EnvConfig` (``experiment.env_config``) or a scenario (``config.env``, played on the CPU)."""
+    """Return ``{metric: (mean, std)}`` of ``policy_name`` on an :class:`EnvConfig` or a scenario, played on
+    CPU."""
     if isinstance(env_config, ScenarioConfig):
         env_config = EnvConfig.from_scenario(env_config)
     elif not isinstance(env_config, EnvConfig):
@@ -210,9 +206,7 @@ def evaluate_policy(
 
 
 def format_table(results: dict[str, dict[str, tuple[float, float]]]) -> str:
-    """A markdown table, one row per policy and a ``mean ± std`` column per metric, aligned as text."""
-    from mcrs.experiment.util.tables import markdown, mean_std
-
+    """Return a markdown table with one row per policy and a ``mean ± std`` column per metric."""
     header = ["policy", *(METRIC_LABELS[m] for m in METRICS)]
     return markdown(header, [[name] + [mean_std(*r[m]) for m in METRICS] for name, r in results.items()])
 
@@ -235,8 +229,8 @@ def write_results(
     title: str,
     table: str,
 ) -> None:
-    """``metrics.csv`` (one row per policy, with the map, R_c and seed that ``mcrs-report`` groups by),
-    ``episodes.csv`` (one row per episode) and ``summary.md``."""
+    """Write ``metrics.csv`` (with the map, R_c and seed that ``mcrs-report`` groups by), ``episodes.csv`` and
+    ``summary.md``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with open(out_dir / "metrics.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -273,14 +267,14 @@ def write_results(
 
 
 def write_figures(out_dir: Path, env_config: EnvConfig, policy_name: str, seed: int) -> list[Path]:
-    """The three pictures of one episode (seed ``seed``) of ``policy_name`` (:mod:`mcrs.viz`)."""
-    from mcrs.viz import write_episode_pictures
+    """Draw the three pictures of one episode of ``policy_name`` (:mod:`mcrs.viz`)."""
+    from mcrs.viz import write_episode_pictures  # deferred: matplotlib, only when drawing
 
     return write_episode_pictures(out_dir, env_config, policy_name, seed)
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, dict[str, tuple[float, float]]]:
-    """Evaluate as configured, print the table and write the results (and figures) into ``out_dir``."""
+    """Evaluate as configured, print the table and write the results and figures into ``out_dir``."""
     errors = eval_errors(cfg)
     if errors:
         raise ValueError("invalid config: " + "; ".join(errors))
@@ -317,13 +311,9 @@ def run_task(
     label: str | None = None,
     shown: str | None = None,
 ) -> dict[str, dict[str, tuple[float, float]]]:
-    """``mcrs-eval policy=<run>`` for a run of another task than MCRS: its task rebuilt from the run, the
-    trained agent and the random baseline on the same episodes, the table printed and written
-    (``metrics.csv``, ``episodes.csv``, ``summary.md``). ``label`` names the trained agent in the files
-    (its path when None), ``shown`` in the table only."""
-    from mcrs.experiment.run.checkpoint import CheckpointError
-    from mcrs.policies.task_runs import evaluate_task_run, load_task_run
-
+    """Evaluate a run of another task than MCRS: the trained agent and the random baseline on the same
+    episodes. The table is printed and written like ``mcrs-eval``'s. ``label`` names the trained agent in
+    the files (its path when None), ``shown`` in the printed table."""
     try:
         run = load_task_run(policy)
     except CheckpointError as error:
@@ -336,8 +326,6 @@ def run_task(
     per_episode = evaluate_task_run(run, min(episodes, MAX_EVAL_EPISODES), seed, device, name)
     results = {policy_name: summarize(values) for policy_name, values in per_episode.items()}
     metrics = list(next(iter(per_episode.values())))
-    from mcrs.experiment.util.tables import markdown, mean_std
-
     names = {name: shown} if shown else {}
     table = markdown(
         ["policy", *metrics],
@@ -370,7 +358,7 @@ REPORT_DIR = "report"  # a training run's report (evaluate_run), inside its run 
 
 @dataclass(frozen=True)
 class RunReport:
-    """What :func:`evaluate_run` wrote, and the episode rewards it measured (``{label: (mean, std)}``)."""
+    """What :func:`evaluate_run` wrote, and the episode rewards it measured as ``{label: (mean, std)}``."""
 
     table: Path
     curve: Path
@@ -381,15 +369,11 @@ class RunReport:
 def evaluate_run(
     run_dir: Path, env_config: EnvConfig, label: str, episodes: int, seed: int, progress: bool = True
 ) -> RunReport:
-    """A finished training run against the heuristics, into ``run_dir/report/``: the greedy trained policy
-    and every heuristic on the same ``episodes`` fixed-seed episodes (``summary.md``, ``metrics.csv``,
-    ``episodes.csv``, as ``mcrs-eval`` writes them), the run's learning curves with the heuristics as
-    horizontal lines (``learning_curves.png``) and one episode of the trained policy (``episode.gif``,
-    ``scene.png``, ``uncertainty_contours.png``). ``label`` names the trained policy in the table;
-    ``progress``: a progress bar while the episodes run."""
-    import numpy as np
+    """Compare a finished training run with the heuristics in ``run_dir/report/``.
 
-    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file, sorted_points
+    It writes the tables of ``mcrs-eval`` for the greedy trained policy and every heuristic on the same
+    episodes, the learning curves with the heuristics as lines and one episode's pictures. ``label`` names
+    the trained policy; ``progress`` is shown while the episodes run."""
     from mcrs.viz.learning_curves import (
         CURVE_METRICS,
         Reference,
@@ -435,13 +419,10 @@ def evaluate_run(
 def evaluate_task_report(
     run_dir: Path, label: str, episodes: int, seed: int, device: str = "cpu"
 ) -> tuple[Path, Path, dict[str, tuple[float, float]]]:
-    """``report=true`` for a run of another task than MCRS: the trained agent and the random baseline on the
-    same episodes (:func:`run_task`, into ``run_dir/report/``) and the learning curve of every metric the
-    run logged, with the random baseline as a horizontal line (``learning_curves.png``). Returns the table,
-    the curve and the episode rewards ``{label: (mean, std)}``."""
-    import numpy as np
+    """Write the ``report=true`` report of a run of another task than MCRS into ``run_dir/report/``.
 
-    from mcrs.experiment.run.logging import read_scalar_rows, scalar_file, sorted_points
+    It evaluates as :func:`run_task` and draws every logged metric with the random baseline as a line.
+    Returns the table, the curve and the episode rewards ``{label: (mean, std)}``."""
     from mcrs.viz.learning_curves import Reference, confidence_half_width, curve_of, plot_curves
 
     out = run_dir / REPORT_DIR
@@ -475,7 +456,7 @@ def evaluate_task_report(
 
 
 def _say(message: str) -> None:
-    """Print a result, and keep it in the run's log (``evaluate.log`` under ``mcrs-eval``)."""
+    """Print a result and keep it in the run's log."""
     print(message, flush=True)
     log.info("%s", message, extra={"console": False})
 
@@ -483,9 +464,7 @@ def _say(message: str) -> None:
 @one_line_errors("mcrs-eval")
 @hydra.main(config_path=CONFIG_DIR, config_name="eval", version_base=None)
 def main(cfg: DictConfig) -> None:
-    """Console entry point ``mcrs-eval`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
-    from hydra.core.hydra_config import HydraConfig
-
+    """Console entry point ``mcrs-eval`` (Hydra ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         run(cfg, out_dir)

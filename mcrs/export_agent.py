@@ -3,11 +3,9 @@
     mcrs-export outputs/map10/qmix/<run> agent.pt2         the run's latest weights
     mcrs-export <run>/checkpoints/model_000500000.pt agent.pt2 --force
 
-The file takes the team's observations, action masks, previous actions and hidden states and returns the
-greedy actions and the next hidden states (its ``extra/mcrs.json`` says which is which); it is loaded back
-and checked against the checkpoint before it replaces ``out``. ``mcrs-eval policy=agent.pt2`` scores its
-weights. See docs/TRAINING.md, "Deploying a trained agent".
-"""
+The program maps the team's observations, action masks, previous actions and hidden states to greedy
+actions and next hidden states, as its ``extra/mcrs.json`` describes. It is checked against the checkpoint
+before it replaces ``out``. See docs/TRAINING.md, "Deploying a trained agent"."""
 
 from __future__ import annotations
 

@@ -1,12 +1,13 @@
-"""``mcrs-render``: draw one episode of a policy: scene, figure-4 contours, animation (a Hydra command).
+"""``mcrs-render``: draw one episode of a policy as a scene, the figure-4 contours and an animation.
 
-The same ``key=value`` overrides as ``mcrs-train`` and ``mcrs-eval`` (``conf/render.yaml``); the pictures
-go into ``out`` (one numbered folder per run of a ``-m`` sweep)::
+It takes the same ``key=value`` overrides as ``mcrs-train`` and ``mcrs-eval`` (``conf/render.yaml``); the
+pictures go into ``out``, one numbered folder per job of a ``-m`` sweep::
 
     mcrs-render env=map20 policy=lawnmower seed=3 out=outputs/render gif=false
     mcrs-render env.comm_range=3 uav=2
     mcrs-render policy=outputs/map10/qmix/<run>        (a trained agent's episode)
-"""
+
+Torch and matplotlib are imported inside functions, so a bad config is refused at once."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Any
 
 import hydra
 from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import MISSING, DictConfig
 
 from mcrs.env.config import EnvConfig, from_mapping
@@ -28,7 +30,7 @@ SCHEMA_NAME = "mcrs_render"
 
 @dataclass
 class RenderConfig:
-    """``conf/render.yaml``'s fields, typed: Hydra refuses ``seed=abc`` or ``gif=maybe`` itself."""
+    """The typed fields of ``conf/render.yaml``, so Hydra refuses ``seed=abc`` or ``gif=maybe`` itself."""
 
     env: Any = MISSING  # the env group (conf/env/), validated by mcrs.env.config.from_mapping
     policy: str = "greedy"  # random | lawnmower | greedy | coverage | a checkpoint (.pt, run dir) or .pt2
@@ -44,7 +46,7 @@ def register_configs() -> None:
 
 
 def checked(cfg: DictConfig) -> tuple[EnvConfig, str]:
-    """The env config and the policy of ``cfg``, every value checked before any drawing starts."""
+    """Return the env config and the policy of ``cfg``, every value checked before drawing starts."""
     from mcrs.policies import POLICIES, make_policy, policy_env
 
     try:
@@ -83,9 +85,7 @@ register_resolvers()  # ${mcrs.pid:} and ${mcrs.beside_run:...} in conf/render.y
 @one_line_errors("mcrs-render")
 @hydra.main(config_path=CONFIG_DIR, config_name="render", version_base=None)
 def main(cfg: DictConfig) -> None:
-    """Console entry point ``mcrs-render`` (Hydra: ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
-    from hydra.core.hydra_config import HydraConfig
-
+    """Console entry point ``mcrs-render`` (Hydra ``key=value`` overrides, ``--help``, ``-m`` sweeps)."""
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         run(cfg, out_dir)

@@ -1,14 +1,15 @@
-"""``mcrs-train`` (also ``python -m mcrs.train``): train a learner (QMIX, VDN, QPLEX, EMC, EMU, SEMU, CNN-SEMU).
+"""``mcrs-train`` (also ``python -m mcrs.train``): train a learner (QMIX, VDN, QPLEX, EMC, EMU, SEMU,
+CNN-SEMU).
 
     mcrs-train algo=qmix env=map20 seed=3
     mcrs-train -m algo=qmix,vdn,qplex seed=0,1,2
     mcrs-train resume=outputs/map10/qmix/<run>
 
-Each run writes under ``outputs/`` (``hydra.run.dir``): ``config.yaml`` (the resolved config),
-``train.log``, ``logs/`` (metrics), ``checkpoints/last.pt`` (everything needed to resume) and
-``model_<steps>.pt`` (weights, for ``mcrs-eval policy=...``). A resumed session works in the run's own
-directory: it appends to ``train.log`` and makes no new directory. See docs/TRAINING.md.
-"""
+A run directory under ``outputs/`` holds ``config.yaml``, ``train.log``, ``logs/`` (metrics),
+``checkpoints/last.pt`` (everything needed to resume) and ``model_<steps>.pt`` (weights for ``mcrs-eval``).
+A resumed session appends to the run's own directory. See docs/TRAINING.md.
+
+The command checks its config before it loads torch, so the training stack is imported inside functions."""
 
 from __future__ import annotations
 
@@ -19,16 +20,14 @@ import threading
 
 
 def _interrupted_while_loading(signum: int, frame: object) -> None:
-    """Ctrl-C while the command's modules load (Hydra, OmegaConf: seconds on a busy machine): one line and
-    the shell's status, not the traceback of whatever import it hit. Nothing has been written yet."""
+    """Answer Ctrl-C while the command's modules load with one line instead of an import traceback."""
     print(f"mcrs-train: {signal.Signals(signum).name}: interrupted before training started: nothing to save",
           flush=True)  # fmt: skip
     raise SystemExit(128 + signum)
 
 
-#: Installed only when this module is the command (``python -m mcrs.train``, the ``mcrs-train`` script),
-#: never when a program imports it; from the end of the imports on, Ctrl-C is a KeyboardInterrupt again,
-#: which :func:`main` (and :func:`mcrs.experiment.commands.cli.one_line_errors` before it) turn into the same line.
+#: Installed only when this module runs as the command, never when a program imports it. After the imports
+#: Ctrl-C is a KeyboardInterrupt again, which :func:`main` turns into the same line.
 _LOADING = (
     (__name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") == "mcrs-train")
     and threading.current_thread() is threading.main_thread()
@@ -40,10 +39,12 @@ if _LOADING:
 import logging
 import shutil
 import warnings
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -53,11 +54,14 @@ from mcrs.experiment.config import (
     RESUME_MUTABLE,
     Config,
     ConfigError,
+    as_typed,
     register_configs,
     validation_errors,
 )
 from mcrs.experiment.run.history import current_config, legacy_values
+from mcrs.experiment.run.interrupt import RunInterrupted, TerminateAsInterrupt
 from mcrs.experiment.run.rundir import RunDirError, describe_os_error, register_resolvers, resume_problem
+from mcrs.experiment.schema import ENTRY_POINT_GROUP
 from mcrs.experiment.training.whole_batches import whole_batch_errors
 from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 
@@ -77,10 +81,8 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
 
 
 def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Path]:
-    """The config of the run in ``cfg.resume`` with the mutable fields of this command applied.
-
-    Refuses a directory that is not a run, and a command whose explicit overrides contradict the run.
-    """
+    """Return the config of the run in ``cfg.resume`` with this command's mutable fields applied. It refuses a
+    directory that is not a run, and explicit overrides that contradict the run."""
     run_dir = Path(str(cfg.resume)).expanduser()
     saved_path = run_dir / "config.yaml"
     problem = resume_problem(cfg.resume)
@@ -100,8 +102,8 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> tuple[DictConfig, Pa
     conflicts = []
     for line in _differences(saved, current):
         name = line.split(":", 1)[0]
-        # a key the command sets, inside it (env set, env.width differs) or under it (algo.options.bonus set,
-        # algo.options missing from a run saved before the node existed)
+        # a key the command sets, inside it (env set, env.width differs) or under it (algo.options.bonus
+        # set, algo.options missing from the saved run)
         overridden = any(name == e or name.startswith(e + ".") or e.startswith(name + ".") for e in explicit)
         if overridden and not _is_mutable(name):
             conflicts.append(line)
@@ -127,9 +129,8 @@ def _first_line(error: BaseException) -> str:
 
 
 def _read_run_config(path: Path) -> dict[str, Any]:
-    """A run's ``config.yaml``, bounded before it is parsed (size, depth, no aliases or interpolations:
-    mcrs.experiment.util.untrusted) and through OmegaConf's safe loader (a ``!!python`` tag is refused, never
-    run); anything unreadable is one :class:`ConfigError` line naming the file."""
+    """Read a run's ``config.yaml`` with bounded size and depth and OmegaConf's safe loader. Anything
+    unreadable, a ``!!python`` tag included, becomes one :class:`ConfigError` line naming the file."""
     try:
         saved = read_yaml(path, interpolations=False)
     except UntrustedInput as error:
@@ -186,8 +187,8 @@ def run(cfg: DictConfig, run_dir: Path, overrides: list[str] | None = None) -> d
 
 
 def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
-    """``report=true``: the trained policy and the heuristics on the evaluation episodes, the learning
-    curve and a GIF into ``run_dir/report`` (:func:`mcrs.evaluate.evaluate_run`), and where they are."""
+    """Write the ``report=true`` report into ``run_dir/report`` (:func:`mcrs.evaluate.evaluate_run`) and say
+    where it is."""
     from mcrs.evaluate import evaluate_run
 
     steps = experiment.counters.env_steps
@@ -223,10 +224,11 @@ def write_report(experiment: Any, cfg: DictConfig, run_dir: Path) -> None:
 
 
 def early_errors(cfg: DictConfig, overrides: list[str]) -> list[str]:
-    """What is wrong with a fresh run's config that can be told without torch: the values (:func:`
-    validation_errors` without the device, resource and embedding checks, which :class:`Experiment` makes)
-    and a length or interval the command sets that whole collector batches cannot honour. A resume is
-    judged against its run's own config later (:func:`resume_config`)."""
+    """Return what is wrong with a fresh run's config that can be told without torch.
+
+    These are the values (:func:`validation_errors` without the device, resource and embedding checks that
+    :class:`Experiment` makes) and lengths or intervals that whole collector batches cannot honour. A
+    resume is judged against its run's config later (:func:`resume_config`)."""
     if cfg.resume is not None:
         return []
     try:
@@ -242,9 +244,8 @@ PRESET_FIELDS = ("width", "height", "n_uavs", "n_targets", "n_no_fly")
 
 
 def env_name_errors(cfg: DictConfig) -> list[str]:
-    """``env.name`` names the run's directory and the map its records are filed under: a plain name, not
-    an interpolation (``${now:%H-%M}`` would file a map10 run under another name), and not a preset's name
-    (conf/env/) on a map that is not that preset's."""
+    """Check ``env.name``, which names the run's directory and the map its records are filed under. It must be
+    a plain name, not an interpolation, and not a preset's name (conf/env/) on another map."""
     if OmegaConf.is_interpolation(cfg.env, "name"):
         raw = OmegaConf.to_container(cfg.env, resolve=False)["name"]
         return [f"env.name={raw}: must be a plain name, not an interpolation: it names the run's directory "
@@ -263,17 +264,12 @@ def env_name_errors(cfg: DictConfig) -> list[str]:
 
 
 def option_errors(cfg: DictConfig) -> list[str]:
-    """What the run's algorithm says of ``algo.options`` (its own settings) when any are given or the
-    algorithm is installed (its settings may have no default): a sweep is checked before its first job.
-    Loads the algorithm's module (torch) only then."""
-    from importlib.metadata import entry_points
-
-    from mcrs.experiment.schema import ENTRY_POINT_GROUP
-
+    """Return what the run's algorithm says of ``algo.options`` when any are given or the algorithm is
+    installed. A sweep is thus checked before its first job. Only then is the algorithm's module, and
+    torch, loaded."""
     installed = entry_points(group=ENTRY_POINT_GROUP, name=str(cfg.algo.name))
     if not cfg.algo.get("options") and not installed:
         return []
-    from mcrs.experiment.config import as_typed
     from mcrs.experiment.training.algorithms import algorithm_class
 
     algo = as_typed(cfg).algo
@@ -285,7 +281,7 @@ def option_errors(cfg: DictConfig) -> list[str]:
 
 
 def _remove_session_files(run_dir: Path, output_subdir: str | None) -> None:
-    """A refused resume leaves the run as it was: the session's Hydra files (``.hydra/resumed_*``) go."""
+    """Remove a refused resume's Hydra files (``.hydra/resumed_*``), leaving the run as it was."""
     if output_subdir and Path(output_subdir).name.startswith("resumed_"):
         shutil.rmtree(run_dir / output_subdir, ignore_errors=True)
 
@@ -300,8 +296,6 @@ if _LOADING and signal.getsignal(signal.SIGINT) is _interrupted_while_loading:
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     """Console entry point; returns the final evaluation reward (for Hydra sweepers)."""
-    from hydra.core.hydra_config import HydraConfig
-
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     overrides = list(hydra_cfg.overrides.task)
@@ -313,7 +307,6 @@ def main(cfg: DictConfig) -> float:
         raise SystemExit(f"mcrs-train: error: invalid config: {listed}")
 
     from mcrs.experiment.run import checkpoint as ckpt
-    from mcrs.experiment.run.interrupt import RunInterrupted, TerminateAsInterrupt
     from mcrs.experiment.training.collection import CollectorWorkerFailed
     from mcrs.objectives.gradient import TrainingDiverged
 

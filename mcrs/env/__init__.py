@@ -1,9 +1,7 @@
-"""The MCRS-LCR environment: belief maths, communication and fusion, the batched simulator and adapters.
+"""The MCRS-LCR environment: belief maths, communication and fusion, the batched simulator and its adapters.
 
-The bottom layer of the package: it imports nothing else of ``mcrs``. PettingZoo is optional at import
-time: every name is imported on first use, so ``import mcrs.env`` loads neither PettingZoo nor (until the
-simulator is asked for) torch.
-"""
+It is the bottom layer and imports nothing else of ``mcrs``. Every name is imported on first use, so
+``import mcrs.env`` loads neither PettingZoo nor torch."""
 
 from __future__ import annotations
 
@@ -16,8 +14,8 @@ if TYPE_CHECKING:
     from mcrs.env.pettingzoo_env import MCRSParallelEnv
     from mcrs.env.torchrl_env import MCRSEnv
 
-#: Where each exported name lives, imported on first use: ``mcrs.env.config`` (what a command line
-#: validates) does not load torch, TorchRL or PettingZoo, so a refused command is refused at once.
+#: Where each exported name lives. ``mcrs.env.config`` loads neither torch, TorchRL nor PettingZoo, so a
+#: command line can refuse a config at once.
 _EXPORTS = {
     **dict.fromkeys(("SCENARIOS", "EnvConfig", "scenario"), "mcrs.env.config"),
     **dict.fromkeys(
@@ -43,8 +41,7 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    """``mcrs.env.MCRSEnv`` and the rest: imported when first asked for (``MCRSParallelEnv`` with
-    PettingZoo, ``MCRSEnv`` with TorchRL)."""
+    """Import an exported name on first use, e.g. ``mcrs.env.MCRSEnv`` with TorchRL."""
     if name in _EXPORTS:
         value = getattr(importlib.import_module(_EXPORTS[name]), name)
         globals()[name] = value

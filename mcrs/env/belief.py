@@ -4,10 +4,9 @@ With N+ positive and N- negative readings, f = (1 - m_f)^N+ and e = (1 - m_e)^N-
 
     D = f + e - e f,   m(E) = (f - e f) / D,   m(F) = (e - e f) / D,   m(U) = e f / D.
 
-Evaluated in log space and rescaled by max(f, e), so that it stays finite and sums to 1 even when f and e
-underflow (counts in the thousands): with M = max(log f, log e), f' = f / e^M and e' = e / e^M (one of them
-is 1), every mass shares the denominator f' + e' - f' e' e^M >= 1.
-"""
+It is evaluated in log space and rescaled by max(f, e), so it stays finite and sums to 1 even when f and e
+underflow: with M = max(log f, log e), every mass shares the denominator f' + e' - f' e' e^M >= 1, where f'
+= f / e^M and e' = e / e^M."""
 
 from __future__ import annotations
 

@@ -1,11 +1,9 @@
-"""Shared drawing helpers: an Agg figure (never the global pyplot backend), the grid, colours.
+"""Shared drawing helpers: an Agg figure that never touches the global pyplot backend, the grid and the
+colours.
 
-They sit in the environment layer so that the adapter's ``render()`` (mcrs.env.render) and the pictures
-of mcrs.viz draw with the same code; matplotlib is loaded only by whoever imports this module.
-
-Grid convention: cell (x, y) is drawn at x horizontally and y vertically, y growing upwards, so that
-the action names of the paper (left, up, ...) match the picture.
-"""
+They live in the environment layer so that ``render()`` and the pictures of mcrs.viz draw with the same
+code. Cell (x, y) is drawn at x horizontally and y upwards, so that the paper's action names match the
+picture."""
 
 from __future__ import annotations
 
@@ -46,7 +44,7 @@ def setup_grid(ax: Axes, cfg: EnvConfig, cell_lines: bool = True) -> None:
 
 
 def as_image(values: np.ndarray) -> np.ndarray:
-    """``[W, H]`` map indexed [x, y] -> image rows y, columns x (for ``origin="lower"``)."""
+    """Turn a ``[W, H]`` map indexed [x, y] into image rows y and columns x, for ``origin="lower"``."""
     return values.T
 
 

@@ -10,8 +10,8 @@ from mcrs.env.config import EnvConfig
 def check_action(
     action: torch.Tensor, config: EnvConfig, mask: torch.Tensor, uav_pos: torch.Tensor
 ) -> torch.Tensor:
-    """``action`` as int64 ``[E, N]`` on the mask's device, or an error naming the env, UAV and allowed moves
-    (masked moves too, unless ``invalid_action=clip``). ``mask [E, N, 8]`` is the current action mask."""
+    """Return ``action`` as int64 ``[E, N]`` on the mask's device, or raise an error naming the env, UAV and
+    allowed moves. Masked moves are refused too unless ``invalid_action=clip``."""
     num_envs, n_uavs, n_actions = mask.shape
     if not isinstance(action, torch.Tensor):
         raise TypeError(

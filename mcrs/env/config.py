@@ -1,9 +1,7 @@
 """The scenario configuration: one validated dataclass, loaded from the packaged Hydra presets.
 
-The YAML files under ``conf/env/`` (paper tables 2 and 3) are the single source of the preset values;
-:func:`scenario` reads them so that Python users, tests and benchmarks see exactly what ``mcrs-*``
-commands see.
-"""
+The YAML files under ``conf/env/`` (paper tables 2 and 3) are the only source of the preset values, so
+Python users, tests and benchmarks see what the ``mcrs-*`` commands see."""
 
 from __future__ import annotations
 
@@ -13,43 +11,38 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass, make_dat
 from importlib import resources
 from typing import Any, Optional, get_type_hints
 
+from omegaconf import DictConfig, OmegaConf
+
 SCENARIOS = ("map10", "map15", "map20")
-#: Beyond the paper (its section 7's future work): map20 with a communication delay, with a bandwidth
-#: limit, and with moving targets and forgetting beliefs. ``scenario(name)`` reads them like the maps.
+#: Variants beyond the paper (its section 7's future work): map20 with a communication delay, with a
+#: bandwidth limit, and with moving targets and fading evidence.
 VARIANT_PRESETS = ("map20_delay", "map20_bandwidth", "map20_dynamic")
 PRESETS = SCENARIOS + VARIANT_PRESETS
-#: Fields of how the env runs, not of the scenario: set by the command that runs it (``train.num_envs``,
-#: ``mcrs-eval``'s ``episodes``, ``device``), never by the scenario presets.
+#: Fields of how the env runs, set by the command that runs it and never by the scenario presets.
 RUNTIME_FIELDS = ("num_envs", "device")
 INVALID_ACTION_MODES = ("raise", "clip")
 TARGET_MOTIONS = ("static", "random_walk")
-#: How r3 and r4 read the safe distances d1 and d2 (docs/ENVIRONMENT.md, "Reward"): ``enter`` (the paper's
-#: reward text, section 4.3: a UAV *in* a zone, UAVs *closer than* d) charges distances < d; ``near`` (the
-#: reading of constraints (16)-(17) this project used before the field existed) charges distances <= d,
-#: i.e. a zone's four neighbours and side-by-side UAVs too on the unit grid.
+#: How r3 and r4 read the safe distances d1 and d2 (docs/ENVIRONMENT.md, "Reward"). ``enter``, the
+#: paper's reward text (section 4.3), charges distances < d. ``near``, a reading of constraints (16)-(17),
+#: charges distances <= d, so a zone's four neighbours and side-by-side UAVs too.
 SAFETY_RULES = ("enter", "near")
-#: What a UAV's surround shows in a direction that is not movable (docs/ENVIRONMENT.md, "Observation"):
-#: ``blocked`` (the paper, section 4.2: "If a direction is not movable, the corresponding observation vector
-#: is set to zero") zeroes m(U) and m(F) off the grid and on no-fly cells; ``belief`` zeroes them off the grid
-#: only and shows a no-fly cell's belief.
+#: What a UAV's surround shows in a direction it cannot move to (docs/ENVIRONMENT.md, "Observation").
+#: ``blocked``, the paper (section 4.2), zeroes m(U) and m(F) off the grid and on no-fly cells. ``belief``
+#: zeroes them off the grid only and shows a no-fly cell's belief.
 NO_FLY_VIEWS = ("blocked", "belief")
-#: What every belief map holds for a no-fly cell: ``known`` (the paper, section 3.1: no target is in a
-#: zone; figure 4 shows zones as low uncertainty) holds it as known and empty from reset, m(U) = m(F) = 0;
-#: ``unknown`` starts it at m(U) = 1 like any cell, so that entering it pays r1.
+#: What every belief map holds for a no-fly cell. ``known``, the paper (section 3.1, figure 4), holds it
+#: as known and empty from reset, m(U) = m(F) = 0. ``unknown`` starts it at m(U) = 1 like any cell, so that
+#: entering it pays r1.
 NO_FLY_PRIORS = ("known", "unknown")
-#: Which cells r2 pays (docs/ENVIRONMENT.md, "Discoveries"): ``belief`` (eq. 24) every cell whose global
-#: m(F) reaches tau for the first time, target or not; ``target`` only cells that hold a target.
+#: Which cells r2 pays (docs/ENVIRONMENT.md, "Discoveries"). ``belief`` (eq. 24) pays every cell whose
+#: global m(F) first reaches tau, target or not. ``target`` pays only cells that hold a target.
 DISCOVERY_RULES = ("belief", "target")
-#: The order of the relative-position slots (the paper is silent): ``index`` puts every other UAV in index
-#: order, then every zone in index order; ``nearest`` sorts each group by distance, nearest first, entities
-#: beyond sight last (ties by index), so the first slots are the ones a move is most likely to meet.
+#: The order of the relative-position slots, on which the paper is silent. ``index`` keeps index order.
+#: ``nearest`` sorts the UAVs and the zones each by distance, entities beyond sight last, ties by index.
 RELATIVE_ORDERS = ("index", "nearest")
 #: Values the observation gains with ``far_view`` > 0: one window mean of own m(U) per move.
 N_FAR_VIEW = 8
-#: Fields added to the scenario after records and checkpoints were made, with the value that such a saved
-#: config meant: a config saved before ``safety_rule`` existed was trained and judged under ``near``.
-#: The no-fly and discovery fields came later still: a config saved without them was run with no-fly cells
-#: shown as unread beliefs and r2 paid for real targets only.
+#: The value a saved scenario that predates each field was run with (applied by mcrs/experiment/run/history.py).
 LEGACY_SCENARIO_VALUES = {
     "safety_rule": "near",
     "no_fly_view": "belief",
@@ -61,8 +54,8 @@ MAX_DECAY_EXPONENT = 80.0
 
 
 class FieldsOnly:
-    """A mutable config dataclass that takes no attribute that is not one of its fields: a field misspelt
-    in Python (``config.train.total_env_step = 3200``) is an error naming the closest fields, not a new
+    """A mutable config dataclass that refuses attributes that are not its fields. A misspelt field such as
+    ``config.train.total_env_step = 3200`` raises an error naming the closest fields instead of setting an
     attribute the run never reads."""
 
     __slots__ = ()
@@ -92,7 +85,7 @@ class EnvConfig:
     sight_range: float = 4.0
     no_fly_safety: float = 1.0
     uav_safety: float = 1.0
-    safety_rule: str = "enter"  # enter (< d: the paper's reward text) | near (<= d: the old reading)
+    safety_rule: str = "enter"  # enter (< d, the paper's reward text) | near (<= d)
     no_fly_view: str = "blocked"  # blocked (the paper: zero in no-fly directions) | belief
     no_fly_prior: str = "known"  # known (the paper: zones known empty from reset) | unknown
     discovery_rule: str = "belief"  # belief (eq. 24: any cell reaching tau) | target (real targets only)
@@ -110,10 +103,8 @@ class EnvConfig:
     expose_beliefs: bool = False
     no_fly_shield: bool = False  # mask moves ending within d1 of a no-fly zone (mcrs/env/shield.py)
     uav_shield: bool = False  # mask moves that could meet a lower-indexed UAV in sight within d2 (shield.py)
-    far_view: int = (
-        0  # beyond the paper: k > 0 adds 8 window means of own m(U) to the observation (outputs.py)
-    )
-    # Beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets"); defaults = the paper.
+    far_view: int = 0  # k > 0 adds 8 window means of own m(U) to the observation (outputs.py)
+    # Variants beyond the paper (docs/ENVIRONMENT.md, "Delay, bandwidth and moving targets").
     comm_delay: int = 0  # steps between sending and receiving a message
     comm_budget: Optional[int] = None  # noqa: UP045 (OmegaConf needs Optional) detections per link and step; None: unlimited
     target_motion: str = "static"  # static | random_walk
@@ -142,10 +133,8 @@ class EnvConfig:
         return 2 * self.n_cells + 2 * self.n_uavs + 2 * self.n_no_fly + 2 * self.n_targets
 
     def violates(self, squared: Any, distance: float) -> Any:
-        """Which squared distances (a tensor) break the safe ``distance`` under :attr:`safety_rule`.
-
-        Squared distances of integer cells are exact in float32, so both comparisons are exact.
-        """
+        """Return which squared distances break the safe ``distance`` under :attr:`safety_rule`; exact for
+        integer cells."""
         limit = distance**2
         return squared < limit if self.safety_rule == "enter" else squared <= limit
 
@@ -158,18 +147,18 @@ class EnvConfig:
 
     @property
     def dynamic(self) -> bool:
-        """Targets move or evidence fades: discoveries are then judged at the targets' current cells."""
+        """Whether targets move or evidence fades; discoveries are then judged at the targets' current cells."""
         return self.target_motion != "static" or self.evidence_decay > 0
 
     @classmethod
     def from_scenario(cls, scenario: Any, *, num_envs: int = 1, device: str = "cpu") -> EnvConfig:
-        """The env config of a scenario (:data:`ScenarioConfig`, a mapping or an OmegaConf node) run as
-        ``num_envs`` parallel environments on ``device``."""
+        """Return the env config of a scenario (dataclass, mapping or OmegaConf node) run as ``num_envs``
+        environments on ``device``."""
         values = asdict(scenario) if is_dataclass(scenario) else _plain(scenario)
         return from_mapping({**values, "num_envs": num_envs, "device": device})
 
     def scenario(self) -> dict[str, Any]:
-        """The scenario fields (everything but :data:`RUNTIME_FIELDS`)."""
+        """Return the scenario fields, everything but :data:`RUNTIME_FIELDS`."""
         return {k: v for k, v in asdict(self).items() if k not in RUNTIME_FIELDS}
 
     def replace(self, **overrides: Any) -> EnvConfig:
@@ -181,24 +170,23 @@ class EnvConfig:
 
 
 def with_legacy_values(env: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
-    """A saved scenario (``config["env"]`` of a record, checkpoint or run) with the fields it predates set
-    to what it meant (:data:`LEGACY_SCENARIO_VALUES`), and a ``"field=value"`` line for each one set, so
-    that the caller can say so. Nothing already saved is changed."""
+    """Fill the fields a saved scenario predates with what they meant (:data:`LEGACY_SCENARIO_VALUES`).
+
+    Returns the completed scenario and one ``"field=value"`` line per field set, so that the caller can report
+    them. Fields already saved are kept."""
     missing = {k: v for k, v in LEGACY_SCENARIO_VALUES.items() if k not in env}
     return {**env, **missing}, [f"{k}={v}" for k, v in missing.items()]
 
 
 def _plain(values: Any) -> dict[str, Any]:
-    from omegaconf import DictConfig, OmegaConf
-
     if isinstance(values, DictConfig):
         return OmegaConf.to_container(values, resolve=True, enum_to_str=True)
     return dict(values)
 
 
 def _scenario_schema() -> type:
-    """The scenario's fields as a mutable dataclass: the schema of the ``env`` config group (Hydra checks
-    types and unknown keys with it), generated from :class:`EnvConfig` so the fields are written once."""
+    """Return the scenario's fields as a mutable dataclass, the schema Hydra checks the ``env`` node with. It
+    is generated from :class:`EnvConfig` so that the fields are written once."""
     hints = get_type_hints(EnvConfig)
     return make_dataclass(
         "ScenarioConfig",
@@ -243,7 +231,7 @@ MAX_DISTANCE = 1e9
 
 
 def validation_errors(cfg: EnvConfig) -> list[str]:
-    """All problems of a config, one message each naming the field, the value and what is allowed."""
+    """Return every problem of a config, one message each naming the field, the value and what is allowed."""
     errors = _number_errors(cfg) + _choice_errors(cfg)
     errors += _variant_errors(cfg)
     problem = device_problem(cfg.device)
@@ -348,7 +336,7 @@ def _choice_errors(cfg: EnvConfig) -> list[str]:
 
 
 def _layout_errors(cfg: EnvConfig) -> list[str]:
-    """Whether the map's cells hold the UAVs, targets and no-fly zones (the sizes are valid)."""
+    """Return whether the map's cells can hold the UAVs, targets and no-fly zones."""
     errors: list[str] = []
     cells = cfg.width * cfg.height
     if cells < 2:  # every one of the 8 moves leaves the grid: no action is allowed
@@ -369,7 +357,7 @@ def _layout_errors(cfg: EnvConfig) -> list[str]:
 
 
 def _variant_errors(cfg: EnvConfig) -> list[str]:
-    """Problems of the fields beyond the paper (delay, bandwidth, moving targets, evidence decay)."""
+    """Check the fields beyond the paper: delay, bandwidth, moving targets and evidence decay."""
     errors: list[str] = []
     delay = cfg.comm_delay
     if not _is_int(delay) or delay < 0:
@@ -410,7 +398,7 @@ def device_problem(device: Any) -> str | None:
     """Why ``device`` cannot hold the environment here, or None when it can."""
     if device == "cpu":  # always there; a command line checks its config without loading torch
         return None
-    import torch
+    import torch  # deferred: validating a config must not load torch
 
     allowed = "a torch device string such as 'cpu', 'cuda' or 'cuda:0'"
     if not isinstance(device, str):
@@ -432,8 +420,6 @@ def device_problem(device: Any) -> str | None:
 
 
 def _preset_values(name: str) -> dict[str, Any]:
-    from omegaconf import OmegaConf
-
     if name not in PRESETS:
         raise ValueError(f"unknown scenario {name!r}; allowed: {list(PRESETS)}")
     text = resources.files("mcrs").joinpath(f"conf/env/{name}.yaml").read_text()
@@ -441,8 +427,7 @@ def _preset_values(name: str) -> dict[str, Any]:
 
 
 def scenario(name: str = "map10", **overrides: Any) -> EnvConfig:
-    """The validated config of a packaged preset (:data:`PRESETS`: ``map10``, ``map15``, ``map20`` and the
-    variants :data:`VARIANT_PRESETS`) with overrides."""
+    """Return the validated config of a packaged preset (:data:`PRESETS`) with overrides."""
     return from_mapping({**_preset_values(name), **overrides})
 
 

@@ -1,18 +1,15 @@
-"""The batched MCRS-LCR simulator: pure torch, every tensor ``[num_envs, ...]``, no loop over envs or UAVs.
+"""The batched MCRS-LCR simulator in pure torch: every tensor is ``[num_envs, ...]``, with no loop over envs
+or UAVs.
 
-This is the one implementation of the environment's dynamics. :class:`~mcrs.env.torchrl_env.MCRSEnv`
-(TorchRL) and :class:`~mcrs.env.pettingzoo_env.MCRSParallelEnv` (PettingZoo) are thin adapters over it. What a
-reset or step hands out (:class:`StepResult`: observations, state, mask, metrics) is built in
-:mod:`mcrs.env.outputs`.
+This is the only implementation of the dynamics; the TorchRL and PettingZoo environments are adapters over
+it, and :mod:`mcrs.env.outputs` builds what a reset or step returns. Cell ``(x, y)`` has flat index ``x *
+height + y``. Count channel 0 holds positive readings ("F", target), channel 1 negative ones ("E").
 
-Conventions: cell ``(x, y)`` has flat index ``x * height + y`` (x-major, as in the state); count channel 0
-holds positive readings ("F", target), channel 1 negative readings ("E", empty).
-
-Beyond the paper (each off by default, and then the code paths below are the paper's, bit for bit):
+The variants beyond the paper are off by default, and the code then follows the paper exactly:
 ``comm_delay`` and ``comm_budget`` (:mod:`mcrs.env.messages`), ``target_motion=random_walk``
 (:mod:`mcrs.env.targets`), ``evidence_decay`` (:mod:`mcrs.env.evidence`) and ``far_view``
-(:mod:`mcrs.env.far_view`). With moving targets or fading
-evidence ("dynamic"), discoveries are judged at the targets' current cells.
+(:mod:`mcrs.env.far_view`). With moving targets or fading evidence, discoveries are judged at the targets'
+current cells.
 """
 
 from __future__ import annotations
@@ -112,8 +109,7 @@ class MCRSCore(CoreOutputs):
         self.episode_reward = torch.zeros(E, dtype=torch.float32, device=dev)
         self.collisions = torch.zeros(E, dtype=torch.float32, device=dev)
         self.no_fly_violations = torch.zeros(E, dtype=torch.float32, device=dev)
-        # Beyond the paper: objects and state that exist only while their variant is on (the defaults are
-        # the paper: none of them).
+        # The variants beyond the paper exist only while they are on.
         paper_comms = cfg.comm_delay == 0 and cfg.comm_budget is None
         self.channel = None if paper_comms else MessageChannel(cfg, known_dtype, dev)
         self.decay = EvidenceDecay(cfg, dev) if cfg.evidence_decay > 0 else None
@@ -160,11 +156,9 @@ class MCRSCore(CoreOutputs):
     def reset_to(
         self, uav_positions: torch.Tensor, no_fly_positions: torch.Tensor, target_positions: torch.Tensor
     ) -> StepResult:
-        """Start every environment from a given scene (cells ``(x, y)``), e.g. to replay or test one.
-
-        Shapes ``[E, N, 2]``, ``[E, n_no_fly, 2]`` and ``[E, n_targets, 2]`` (a leading E may be omitted).
-        The scene must obey the reset rules: distinct cells, UAVs not on no-fly cells, targets not on them.
-        """
+        """Start every environment from a given scene, e.g. to replay or test one. Cells are ``(x, y)`` with
+        shapes ``[E, N, 2]``, ``[E, n_no_fly, 2]`` and ``[E, n_targets, 2]``; the leading E may be omitted.
+        The scene must obey the reset rules: distinct cells, and no UAV or target on a no-fly cell."""
         E = self.num_envs
         starts, no_fly, targets = scene_cells(
             self.config, E, self.device, uav_positions, no_fly_positions, target_positions
@@ -244,13 +238,13 @@ class MCRSCore(CoreOutputs):
     def _update_global_belief_dynamic(
         self, cell: torch.Tensor, flat: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Moving targets or fading evidence; returns (drop of sum m(U), discoveries r2 pays).
+        """Update the global belief with moving targets or fading evidence; return (drop of sum m(U),
+        discoveries).
 
-        A target is *found* while the global m(F) of its current cell is >= tau. Under ``discovery_rule``
-        ``target`` r2 pays each target once per episode; under ``belief`` it pays each cell the first time
-        its m(F) reaches tau (D_find). Without decay only the sensed cells change (the paper's incremental
-        update); with it every cell fades, so the whole map is recomputed.
-        """
+        A target counts as found while the global m(F) of its current cell is >= tau. With
+        ``discovery_rule`` ``target``, r2 pays each target once per episode; with ``belief`` it pays each
+        cell the first time its m(F) reaches tau. Fading evidence changes every cell, so the whole map is
+        then recomputed."""
         cfg = self.config
         discovered_before = self.discovered.clone()
         if self.decay is None:
@@ -290,8 +284,8 @@ class MCRSCore(CoreOutputs):
 
     def _reset_envs(self, envs: torch.Tensor) -> None:
         cfg, dev, M, N, C = self.config, self.device, envs.numel(), self.n_uavs, self.n_cells
-        # No-fly and target cells: the cells of the largest random keys, a uniform draw without
-        # replacement (topk is a partial sort: cheaper than a full permutation).
+        # No-fly and target cells are those of the largest random keys: a uniform draw without
+        # replacement, cheaper with topk than with a full permutation.
         keys = torch.rand(M, C, generator=self.generator, device=dev)
         chosen = keys.topk(cfg.n_no_fly + cfg.n_targets, dim=1).indices
         no_fly, targets = chosen[:, : cfg.n_no_fly], chosen[:, cfg.n_no_fly :]
@@ -366,12 +360,9 @@ class MCRSCore(CoreOutputs):
     def _update_global_belief(
         self, cell: torch.Tensor, flat: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Add this step's readings to the global map; return (drop of sum m(U), discoveries r2 pays).
-
-        Only the sensed cells change, so the work is O(E N), not O(E L1 L2). When several UAVs share a
-        cell, the first of them (lowest index) stands for the cell, so nothing is counted twice. A known
-        no-fly cell keeps m(U) = m(F) = 0 when entered: no r1, no discovery.
-        """
+        """Add this step's readings to the global map; return (drop of sum m(U), discoveries r2 pays). Only
+        the sensed cells change, so the work is O(E N). When several UAVs share a cell, the lowest index
+        stands for it, so nothing is counted twice. A known no-fly cell keeps m(U) = m(F) = 0."""
         cfg = self.config
         same_cell = cell.unsqueeze(-1) == cell.unsqueeze(-2)  # [E, i, j]
         first = ~(same_cell & self._earlier).any(-1)  # no j < i on the same cell
@@ -406,8 +397,8 @@ class MCRSCore(CoreOutputs):
         return Geometry.of(self.uav_pos, self.no_fly_pos)
 
     def _safety_events(self, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
-        """(UAV, no-fly zone) pairs closer than d1 and UAV pairs i < j closer than d2 (``safety_rule``
-        ``near``: within), per environment."""
+        """Count, per environment, UAV-zone pairs closer than d1 and UAV pairs closer than d2 (within, for
+        ``safety_rule=near``)."""
         cfg = self.config
         no_fly = cfg.violates(geometry.no_fly_squared, cfg.no_fly_safety).sum((-1, -2)).to(torch.float32)
         close = cfg.violates(geometry.uav_squared, cfg.uav_safety) & self._pair_upper
@@ -419,8 +410,7 @@ class MCRSCore(CoreOutputs):
     def _action_mask(
         self, cell: torch.Tensor | None = None, geometry: Geometry | None = None
     ) -> torch.Tensor:
-        """``[E, N, 8]``: on-grid moves, less those that r3 would charge under ``no_fly_shield``, less
-        those that give way to a lower-indexed UAV under ``uav_shield`` (mcrs/env/shield.py)."""
+        """Return the ``[E, N, 8]`` mask: on-grid moves, less those the shields forbid (mcrs/env/shield.py)."""
         cell = self._uav_cells() if cell is None else cell
         on_grid = self._mask_of_cell[cell]
         mask = on_grid if self._safe_moves is None else shielded_mask(self._safe_moves, cell, on_grid)

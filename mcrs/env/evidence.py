@@ -1,14 +1,11 @@
-"""Evidence that fades (``evidence_decay``, beyond the paper): every detection count is multiplied by
-``keep = 1 - evidence_decay`` per step, so a detection made at step s weighs keep^(t - s) at step t.
+"""Evidence that fades (``evidence_decay``, beyond the paper): a detection of step s weighs keep^(t - s) at
+step t.
 
-Ageing every UAV's map in every step would be a pass over N L1 L2 counts per environment. Instead a UAV's
-counts are stored as float64 sums of keep^-s (a detection of step s adds keep^-s,
-:attr:`EvidenceDecay.step_weight`), and a count is read at step t as stored * keep^t (only the 8 cells
-around a UAV are read per step). Max-plus-sum fusion is unchanged: every copy of q's map ages alike, so the
-copy with more of q's detections is still the larger one. The one global map is read whole every step,
-so it is kept as float32 counts and aged in place (``counts *= keep``). Config validation bounds
-``max_steps * -ln(keep)`` by 80, so that keep^-s stays finite and keep^t a normal float32 (> 0).
-"""
+Here ``keep = 1 - evidence_decay``. Ageing every UAV's map each step would cost N L1 L2 per environment, so
+a UAV's counts are stored as float64 sums of keep^-s and read at step t as stored * keep^t. Fusion is
+unchanged, since every copy of q's map ages alike. The global map is read whole every step, so it is kept
+as float32 counts and aged in place. Config validation bounds ``max_steps * -ln(keep)`` by 80, so keep^-s
+stays finite and keep^t a normal float32."""
 
 from __future__ import annotations
 
@@ -33,6 +30,6 @@ class EvidenceDecay:
         return torch.exp(self.log_keep * step.to(torch.float64))
 
     def now(self, stored: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-        """Stored counts ``[E, ...]`` read at each environment's step: float32 counts."""
+        """Read stored counts ``[E, ...]`` at each environment's step, as float32 counts."""
         factor = self.factor(step).view(-1, *([1] * (stored.dim() - 1)))
         return (stored * factor).to(torch.float32)

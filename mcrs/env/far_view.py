@@ -1,15 +1,12 @@
-"""Beyond the paper: a coarse view of the UAV's own fused map past its 8 neighbours (``env.far_view``).
+"""A coarse view of the UAV's own fused map beyond its 8 neighbours (``env.far_view``), a variant beyond the
+paper.
 
-The paper's observation (eqs. 18-21) holds the UAV's fused m(U) only at the 8 cells around it, so late in an
-episode, stranded in read ground, a UAV cannot see where the unread cells are (docs/DIAGNOSTICS.md). With
-``far_view = k > 0`` the observation gains 8 values, one per move in action order (``MOVES``): the mean of the
-UAV's own fused m(U) over the square window of side ``2k + 1`` centred ``k + 1`` cells away in that move's
-direction (cells off the grid count 0, as in the 8-cell block). The windows of neighbouring directions
-overlap; together they cover every cell within ``2k + 1`` steps (Chebyshev) of the UAV.
-
-Batched over environments and UAVs: every UAV's m(U) map (a table lookup of its integer counts), one
-summed-area table per map, and four reads of it per window.
-"""
+The paper's observation holds the fused m(U) only at the 8 cells around the UAV, so a UAV stranded in read
+ground cannot see where the unread cells are (docs/DIAGNOSTICS.md). With ``far_view = k > 0`` the
+observation gains 8 values in action order: the mean of own m(U) over the square window of side ``2k + 1``
+centred ``k + 1`` cells away in that move's direction, counting cells off the grid as 0. Together the
+windows cover every cell within ``2k + 1`` steps (Chebyshev) of the UAV. Each window is four reads of a
+summed-area table."""
 
 from __future__ import annotations
 
@@ -33,11 +30,8 @@ class FarView:
         self.k, self.grid = k, (config.width, config.height)
         self.m_f, self.m_e = config.m_f, config.m_e
         self.centres = moves * (k + 1)  # [8, 2]: each window's centre, less the UAV's cell
-        self.size = torch.tensor(
-            self.grid, dtype=torch.int64, device=moves.device
-        )  # for clamping on the device
-        # m(U) of every (positive, negative) count pair a cell can hold: the same numbers as belief_masses,
-        # read with one gather (exact: the table is belief_masses of those pairs).
+        self.size = torch.tensor(self.grid, dtype=torch.int64, device=moves.device)
+        # m(U) of every (positive, negative) count pair a cell can hold, read with one gather.
         most = config.n_uavs * (config.max_steps + 1) + 1
         self.table: torch.Tensor | None = None
         self.stride = most
@@ -47,8 +41,8 @@ class FarView:
             self.table = unknown.reshape(-1).contiguous()
 
     def unknown_maps(self, counts: torch.Tensor, zones: torch.Tensor | None = None) -> torch.Tensor:
-        """``[E, N, W, H]`` own m(U) from each UAV's fused counts ``[E, N, 2 C]`` (positive, negative per cell);
-        cells where ``zones`` ``[E, C]`` is True (known no-fly cells) hold 0."""
+        """Return own m(U) maps ``[E, N, W, H]`` from each UAV's fused counts ``[E, N, 2 C]``. Cells where
+        ``zones`` ``[E, C]`` is True, the known no-fly cells, hold 0."""
         positive, negative = counts[..., 0::2], counts[..., 1::2]
         if self.table is not None and not counts.is_floating_point():
             index = positive.to(torch.int32) * self.stride + negative  # < 2**22: exact in int32
@@ -63,9 +57,8 @@ class FarView:
     def means(self, unknown: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
         """``[E, N, 8]`` window means, from own m(U) maps ``[E, N, W, H]`` and positions ``[E, N, 2]``."""
         E, N, W, H = unknown.shape
-        # Summed-area table: summed[x, y] = sum over cells [0, x] x [0, y]; the sum over [x0, x1) x [y0, y1)
-        # is four reads of it, a read at x = 0 or y = 0 (an empty strip) counting 0. float32 sums of at most
-        # L1 L2 values in [0, 1]: each mean is within about 1e-6 of the exact one.
+        # Summed-area table: summed[x, y] is the sum over cells [0, x] x [0, y], and a window's sum is four
+        # reads of it. In float32 each mean is within about 1e-6 of the exact one.
         flat = unknown.reshape(E * N, W, H).cumsum(1).cumsum(2).view(E * N, W * H)
         centre = position.unsqueeze(2) + self.centres  # [E, N, 8, 2]
         low = torch.minimum((centre - self.k).clamp(min=0), self.size)  # the window's part on the grid
@@ -82,6 +75,6 @@ class FarView:
     def observe(
         self, counts: torch.Tensor, position: torch.Tensor, zones: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """``[E, N, 8]``: the far view of every UAV, from its fused counts (as read now), its cell and the
-        known no-fly cells ``zones`` ``[E, C]`` (None: zones read as their counts say)."""
+        """Return the far view ``[E, N, 8]`` of every UAV from its fused counts, its cell and the known no-fly
+        cells."""
         return self.means(self.unknown_maps(counts, zones), position)

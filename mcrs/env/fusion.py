@@ -1,18 +1,13 @@
 """Communication and max-plus-sum fusion of detection counts (paper eqs. 10-11).
 
-Two implementations of the same model:
+:class:`DirectFusion` applies the paper's rule literally: every UAV keeps every UAV's count maps N^{i,q},
+takes the max over neighbours and sums over q. It is the test oracle, with memory O(N^2 L1 L2).
 
-* :class:`DirectFusion` keeps every UAV's copy N^{i,q} of every UAV's count maps and applies the paper's
-  rule literally (max over neighbours, then sum over q). It is the test oracle: memory O(N^2 L1 L2).
-* The fast form used by the environment. A UAV's own counts only grow, so N^{i,q} is always q's own map
-  as of some earlier step: it is enough to know *how many* of q's detections UAV i has heard of,
-  ``known[i, q]``. A round is ``known[i, q] <- max_j known[j, q]`` over i and its neighbours, and
-  UAV i's summed count map is updated with exactly the detections it newly learned of
-  (:func:`apply_new_detections`), read from the per-step detection log. Memory O(N L1 L2 + T N).
-
-Beyond the paper, delayed and bandwidth-limited messages (:mod:`mcrs.env.messages`) keep this form exact:
-what UAV i knows of q is always q's first ``known[i, q]`` detections.
-"""
+The environment uses a fast form. A UAV's own counts only grow, so N^{i,q} is always q's map as of an
+earlier step, and it is enough to know how many of q's detections UAV i has heard of, ``known[i, q]``. A
+round is ``known[i, q] <- max_j known[j, q]`` over i and its neighbours, and :func:`apply_new_detections`
+adds the newly learned detections from the per-step log. Memory is O(N L1 L2 + T N). Delayed and
+bandwidth-limited messages (:mod:`mcrs.env.messages`) keep this form exact."""
 
 from __future__ import annotations
 
@@ -20,10 +15,8 @@ import torch
 
 
 def neighbours_within(squared_distance: torch.Tensor, comm_range: float) -> torch.Tensor:
-    """Neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` (strict) and ``j != i``.
-
-    Takes squared distances (exact for integer cells): ``d < R`` is ``d^2 < R^2`` for ``d, R >= 0``.
-    """
+    """Return neighbours ``[..., i, j]``: ``||u_j - u_i|| < comm_range`` and ``j != i``. It compares squared
+    distances, which is exact for integer cells."""
     eye = torch.eye(squared_distance.shape[-1], dtype=torch.bool, device=squared_distance.device)
     return (squared_distance < comm_range**2) & ~eye
 
@@ -35,11 +28,9 @@ def neighbour_graph(positions: torch.Tensor, comm_range: float) -> torch.Tensor:
 
 
 def reachable_within(neighbours: torch.Tensor, rounds: int) -> torch.Tensor:
-    """Who hears whom after ``rounds`` synchronous rounds: walks of length <= rounds, self included.
-
-    ``rounds`` rounds of "max over myself and my neighbours" equal one max over this set, because max
-    is associative. Computed by binary powers of the boolean adjacency (log2(rounds) products).
-    """
+    """Return who hears whom after ``rounds`` synchronous rounds: walks of length <= rounds, self included.
+    Max is associative, so ``rounds`` rounds of "max over myself and my neighbours" equal one max over this
+    set. It takes log2(rounds) boolean matrix products."""
     n = neighbours.shape[-1]
     step = neighbours | torch.eye(n, dtype=torch.bool, device=neighbours.device)
     if rounds == 1:
@@ -73,16 +64,13 @@ def apply_new_detections(
 ) -> None:
     """Add to ``counts`` every detection that UAV i learned of between the two ``known`` tables.
 
-    Args:
-        counts: ``[E, N, 2 * C]`` int, UAV i's summed count maps, indexed ``cell * 2 + channel``
-            (channel 0 = positive "F", 1 = negative "E"); updated in place.
-        known_before, known_after: ``[E, N, N]`` int, detections of q known by i.
-        log_channel_cell: ``[E, T + 1, N]`` the flat ``cell * 2 + channel`` of q's detection at step s.
-        step_weight: ``[T + 1]`` what a detection of step s adds (``evidence_decay``: (1 - decay)^-s);
-            None adds 1.
+    The work is proportional to the number of newly learned detections, never to N^2 L1 L2.
 
-    The work is proportional to the number of newly learned detections (about N^2 per env and step
-    under full connectivity), never to N^2 L1 L2.
+    Args:
+        counts: ``[E, N, 2 * C]``, UAV i's summed count maps indexed ``cell * 2 + channel``; updated in place.
+        known_before, known_after: ``[E, N, N]`` int, how many detections of q UAV i knows.
+        log_channel_cell: ``[E, T + 1, N]``, the flat ``cell * 2 + channel`` of q's detection at step s.
+        step_weight: ``[T + 1]``, what a detection of step s adds under ``evidence_decay``; None adds 1.
     """
     n_uavs = known_before.shape[-1]
     log_steps = log_channel_cell.shape[1]
@@ -113,10 +101,7 @@ def apply_new_detections(
 
 
 class DirectFusion:
-    """The paper's max-plus-sum rule, literally: every UAV keeps every UAV's count maps.
-
-    Test oracle for the fast form. Drive it with the same per-step detections and neighbour graphs.
-    """
+    """The paper's max-plus-sum rule applied literally; the test oracle for the fast form."""
 
     def __init__(self, n_envs: int, n_uavs: int, n_cells: int, device: torch.device | str = "cpu") -> None:
         # maps[e, i, q, cell, channel]: what UAV i knows of q's detection counts.

@@ -1,5 +1,5 @@
-"""Where the UAVs are relative to each other and to the no-fly zones: computed once per step, read by the
-neighbour graph, the penalties (r3, r4) and the observations."""
+"""Offsets and distances between UAVs and to no-fly zones, computed once per step for the links, penalties and
+observations."""
 
 from __future__ import annotations
 
@@ -10,12 +10,9 @@ import torch
 
 @dataclass
 class Geometry:
-    """Offsets and squared distances from each UAV to the others and to the no-fly zones, once per step.
-
-    Kept as separate x and y planes: elementwise ops over a trailing dimension of 2 are several times
-    slower on the CPU. Squared distances of integer cells are exact, so every range test
-    (``< R_c``, ``<= d1``, ...) is made on them.
-    """
+    """Offsets and squared distances from each UAV to the others and to the no-fly zones. The x and y planes
+    are separate because elementwise ops over a trailing dimension of 2 are several times slower on CPU.
+    Squared distances of integer cells are exact, so every range test uses them."""
 
     uav_dx: torch.Tensor  # [E, N, N] float32: x_j - x_i
     uav_dy: torch.Tensor  # [E, N, N]

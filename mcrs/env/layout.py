@@ -1,10 +1,8 @@
 """Named slices of the flat observation and state vectors, so that no consumer hard-codes offsets.
 
-The observation of UAV i (paper eqs. 18-21) and the global state (eq. 22) are flat vectors built by
-:class:`~mcrs.env.core.MCRSCore`. Policies, renderers, the episodic memory's state codec, the embeddings and analysis read parts of them
-through :class:`ObservationLayout`, :class:`StateLayout` and :class:`MapImage`; if the layout ever
-changes, only this module changes.
-"""
+Policies, renderers, the episodic memory's codec, the embeddings and the analysis read the observation
+(paper eqs. 18-21) and the global state (eq. 22) through :class:`ObservationLayout`, :class:`StateLayout`
+and :class:`MapImage`."""
 
 from __future__ import annotations
 
@@ -24,18 +22,16 @@ ACTION_TO_SURROUNDING: tuple[int, ...] = tuple(SURROUNDING.index(move) for move 
 
 @dataclass(frozen=True)
 class ObservationLayout:
-    """Where each feature group of one UAV's observation lies (length ``18 + 3(N-1) + 3 N_Z``, + 8 far view)."""
+    """Where each feature group of one UAV's observation lies (length ``18 + 3(N-1) + 3 N_Z``, plus 8 with the
+    far view)."""
 
     position: slice  # x / (L1 - 1), y / (L2 - 1)
-    unknown_around: (
-        slice  # own fused m(U) at the 8 SURROUNDING cells (0 where not movable: off the grid, no-fly)
-    )
+    # Own fused m(U) at the 8 SURROUNDING cells, 0 where the UAV cannot move (off the grid, no-fly).
+    unknown_around: slice
     full_around: slice  # own fused m(F) at the same cells
     uavs: slice  # (d, dx, dy) / R_sight for every other UAV in index order, zeros beyond sight
     no_fly: slice  # (d, dx, dy) / R_sight for every no-fly zone, zeros beyond sight
-    far_view: (
-        slice  # beyond the paper (env.far_view > 0): 8 window means of own m(U), action order; else empty
-    )
+    far_view: slice  # 8 window means of own m(U) in action order when env.far_view > 0, else empty
     obs_dim: int
     n_others: int  # N - 1
     n_no_fly: int
@@ -95,23 +91,17 @@ class ObservationLayout:
         return obs[..., self.far_view]
 
     def relative_cells(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Integer offsets ``[..., K, 2]`` from ``uav_features``/``no_fly_features``, and visibility ``[..., K]``.
-
-        An entity is visible when its distance is > 0; an entity on the UAV's own cell also reads
-        (0, 0, 0), so it cannot be told apart from an invisible one (a limitation of the paper's layout).
-        """
+        """Return integer offsets ``[..., K, 2]`` from ``uav_features``/``no_fly_features``, and visibility
+        ``[..., K]``. An entity is visible when its distance is > 0. An entity on the UAV's own cell also
+        reads (0, 0, 0), so the paper's layout cannot tell it from an invisible one."""
         offset = (features[..., 1:] * self.sight_range).round().to(torch.int64)
         return offset, features[..., 0] > 0
 
 
 @dataclass(frozen=True)
 class MapImage:
-    """The head of the global state: the maps m(U) then m(F), each x-major (index ``x * L2 + y``).
-
-    Read as an image ``[2, L1, L2]`` (channels m(U), m(F); the env's ``state_map`` key), it is what the
-    CNN embedding convolves; a model that only knows the map's size (not the numbers of UAVs, zones and
-    targets behind it) takes it from here.
-    """
+    """The head of the global state: the maps m(U) then m(F), each x-major (index ``x * L2 + y``). As an image
+    ``[2, L1, L2]`` (the env's ``state_map`` key) it is what the CNN embedding convolves."""
 
     width: int
     height: int
@@ -124,7 +114,7 @@ class MapImage:
 
     @property
     def dim(self) -> int:
-        """How many state values the maps take (``2 L1 L2``); the rest of the state follows them."""
+        """The number of state values the maps take, ``2 L1 L2``."""
         return self.channels * self.width * self.height
 
     def image(self, state: torch.Tensor) -> torch.Tensor:
@@ -132,7 +122,7 @@ class MapImage:
         return state[..., : self.dim].unflatten(-1, self.shape)
 
     def rest(self, state: torch.Tensor) -> torch.Tensor:
-        """``[..., D - 2 L1 L2]``: what follows the maps (the scaled positions)."""
+        """``[..., D - 2 L1 L2]``: the scaled positions after the maps."""
         return state[..., self.dim :]
 
 
@@ -170,7 +160,7 @@ class StateLayout:
 
     @property
     def positions(self) -> slice:
-        """Every position part, (x, y) pairs: UAVs, then no-fly zones, then targets (to the end)."""
+        """Every position part as (x, y) pairs: UAVs, then no-fly zones, then targets."""
         return slice(self.uav_position.start, self.target_position.stop)
 
     @property

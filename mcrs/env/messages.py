@@ -1,11 +1,9 @@
-"""Messages beyond the paper: a communication delay and a per-link bandwidth (``comm_delay``,
-``comm_budget``; both off by default, and then the core uses the paper's instantaneous fusion instead).
+"""Communication delay and per-link bandwidth (``comm_delay``, ``comm_budget``), variants beyond the paper.
 
-A message to UAV i carries, per source UAV q, a *level*: "q's first k detections". Under max-plus-sum
-fusion (eq. 11) that is all a count map N^{j,q} says, since q's own counts only grow: N^{j,q} is q's map
-as of its k-th detection. Merging messages is a max of levels, so a late message never undoes newer
-knowledge, and the fast form of :mod:`mcrs.env.fusion` (levels plus the detection log) stays exact.
-"""
+A message to UAV i carries, per source UAV q, a level: "q's first k detections". Under max-plus-sum fusion
+(eq. 11) that is all a count map N^{j,q} says, since q's own counts only grow. Merging messages is a max of
+levels, so a late message never undoes newer knowledge and the fast form of :mod:`mcrs.env.fusion` stays
+exact."""
 
 from __future__ import annotations
 
@@ -18,22 +16,21 @@ from mcrs.env.fusion import fuse_known, reachable_within
 def budgeted_round(
     known: torch.Tensor, neighbours: torch.Tensor, remaining: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One synchronous round in which link j -> i carries at most ``remaining[e, i, j]`` detections.
+    """Run one synchronous round in which link j -> i carries at most ``remaining[e, i, j]`` detections.
 
-    The rule (docs/ENVIRONMENT.md): UAV i lacks ``backlog[q] = max(known[j, q] - known[i, q], 0)`` of
-    source q's detections that j holds. The link serves the sources with the largest backlog first (ties:
-    lower index first), each source's detections oldest first, until the budget is spent. What i receives
-    from all its neighbours is merged by max (eq. 11), so ``known[i, q]`` stays a count of q's first
-    detections. Only linked pairs are computed (they are few at R_c = 5), and the ranking is a product of
-    comparison masks with the backlogs, not a sort (a sort of 10 values is far slower on the CPU).
+    UAV i lacks ``backlog[q] = max(known[j, q] - known[i, q], 0)`` of source q's detections that j holds.
+    The link serves the sources with the largest backlog first, ties to the lower index, each source oldest
+    first, until the budget is spent (docs/ENVIRONMENT.md). What i receives is merged by max (eq. 11). Only
+    linked pairs are computed, and the ranking uses comparison masks because a sort of 10 values is far
+    slower on CPU.
 
     Args:
-        known: ``[E, N, N]`` levels before the round (``known[e, i, q]``).
+        known: ``[E, N, N]`` levels before the round.
         neighbours: ``[E, N, N]`` bool, ``[e, i, j]``: i hears j this round.
-        remaining: ``[E, N, N]`` float32, ``[e, i, j]``: what link j -> i may still carry this step.
+        remaining: ``[E, N, N]`` float32, what link j -> i may still carry this step; updated in place.
 
     Returns:
-        The levels after the round and the budgets left (``remaining`` is updated in place).
+        The levels after the round and the budgets left.
     """
     n_envs, n_uavs, _ = known.shape
     env, receiver, sender = neighbours.nonzero().unbind(-1)
@@ -56,7 +53,7 @@ def budgeted_round(
 
 
 def _within_budget(backlog: torch.Tensor, budget: torch.Tensor) -> torch.Tensor:
-    """What links whose backlog ``[P, N]`` exceeds ``budget [P]`` send: largest backlog first, ties lower q."""
+    """Return what over-budget links send: the largest backlog first, ties to the lower source."""
     n_uavs = backlog.shape[-1]
     # ahead[p, q]: detections the link sends before source q's = backlog of every source ranked before q.
     other, this = backlog.unsqueeze(-2), backlog.unsqueeze(-1)  # [P, 1, q'], [P, q, 1]
@@ -69,12 +66,9 @@ def _within_budget(backlog: torch.Tensor, budget: torch.Tensor) -> torch.Tensor:
 class MessageChannel:
     """The exchange of one step under ``comm_delay`` and/or ``comm_budget``, batched over environments.
 
-    Order in a step: first the messages sent ``comm_delay`` steps ago are delivered (max into ``known``),
-    then this step's are composed from what every UAV knows now, over this step's neighbour graph (the
-    neighbourhood is decided at send time), with ``comm_rounds`` relay rounds; with no delay they are
-    delivered at once. ``in_flight[e, slot, i, q]`` holds the level of q that i will receive from the
-    message sent at a step s with ``s % comm_delay == slot`` (delivered at s + comm_delay).
-    """
+    A step first delivers the messages sent ``comm_delay`` steps ago, then composes this step's messages
+    over this step's neighbour graph with ``comm_rounds`` relay rounds. ``in_flight[e, slot, i, q]`` holds
+    the level of q that i will receive from the message sent at step s with ``s % comm_delay == slot``."""
 
     def __init__(self, config: EnvConfig, known_dtype: torch.dtype, device: torch.device) -> None:
         E, N = config.num_envs, config.n_uavs
@@ -85,16 +79,16 @@ class MessageChannel:
         self._env_index = torch.arange(E, device=device)
 
     def tensors(self) -> list[torch.Tensor]:
-        """The episode state it holds (the messages in flight)."""
+        """Return the episode state it holds: the messages in flight."""
         return [] if self.in_flight is None else [self.in_flight]
 
     def clear(self, envs: torch.Tensor) -> None:
-        """New episodes in ``envs``: nothing is in flight."""
+        """Drop the messages in flight of the new episodes in ``envs``."""
         if self.in_flight is not None:
             self.in_flight[envs] = 0
 
     def communicate(self, known: torch.Tensor, neighbours: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-        """Deliver, then send; return the levels known after this step (``step [E]``: the step index)."""
+        """Deliver, then send; return the levels known after step ``step`` ``[E]``."""
         if self.in_flight is not None:
             slot = step % self.delay
             known = torch.maximum(known, self.in_flight[self._env_index, slot])
@@ -105,7 +99,7 @@ class MessageChannel:
         return known
 
     def _exchange(self, known: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-        """The levels each UAV holds after this step's rounds, starting from ``known``."""
+        """Return the levels each UAV holds after this step's rounds."""
         if self.budget is None:
             return fuse_known(known, reachable_within(neighbours, self.rounds))
         # The budget is per link direction and per step, shared by the step's rounds.

@@ -1,5 +1,4 @@
-"""The episode metrics every environment reports (``metrics`` in its tensordict), and how tables and figures
-name them: the one label table of ``mcrs-eval``, the learning curves and ``mcrs-report``."""
+"""The episode metrics every environment reports, with the labels tables and figures give them."""
 
 METRICS = (
     "episode_reward",

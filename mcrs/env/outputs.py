@@ -1,11 +1,8 @@
-"""What :class:`~mcrs.env.core.MCRSCore` hands out after a reset or a step: the :class:`StepResult` with each
-UAV's observation, the global state, the action mask, the running metrics and (``expose_beliefs``) the
-belief maps.
+"""What :class:`~mcrs.env.core.MCRSCore` returns after a reset or a step: the :class:`StepResult`.
 
-Apart from the dynamics because it only reads the episode state the core advances: every step builds the
-result from the state, never the other way round. :class:`CoreOutputs` is a base class of ``MCRSCore``
-and reads the attributes ``MCRSCore`` holds (positions, counts, the global belief, the metrics' totals).
-"""
+It holds each UAV's observation, the global state, the action mask, the running metrics and, with
+``expose_beliefs``, the belief maps. :class:`CoreOutputs` is a base class of ``MCRSCore`` that only reads
+the episode state the core advances."""
 
 from __future__ import annotations
 
@@ -28,9 +25,8 @@ class StepResult:
     action_mask: torch.Tensor  # [E, N, 8] bool
     state: torch.Tensor  # [E, state_dim]
     state_map: torch.Tensor  # [E, 2, width, height]: global m(U), m(F) as an image
-    state_counts: (
-        torch.Tensor
-    )  # [E, cells, 2] global (positive, negative) counts per cell: int, float32 if decayed
+    # [E, cells, 2] global (positive, negative) counts per cell: int, or float32 when they decay
+    state_counts: torch.Tensor
     position: torch.Tensor  # [E, N, 2] int64
     reading: torch.Tensor  # [E, N] bool: True when the UAV read "F" this step
     reward: torch.Tensor  # [E] float32 team reward (zero after a reset)
@@ -43,8 +39,9 @@ class StepResult:
 
 
 def nearest_first(relative: torch.Tensor, squared: torch.Tensor, n_others: int) -> torch.Tensor:
-    """``relative`` ``[E, N, K, 3]`` with the other UAVs' slots (the first ``n_others``) and the zones' slots
-    each sorted by ``squared`` distance ``[E, N, K]`` (inf beyond sight), ties in index order."""
+    """Sort the other UAVs' slots (the first ``n_others``) and the zones' slots of ``relative`` ``[E, N, K,
+    3]``. Each group is sorted by ``squared`` distance ``[E, N, K]``, inf beyond sight, ties in index
+    order."""
     order = torch.cat(
         [
             squared[..., :n_others].argsort(dim=-1, stable=True),
@@ -56,7 +53,7 @@ def nearest_first(relative: torch.Tensor, squared: torch.Tensor, n_others: int) 
 
 
 class CoreOutputs:
-    """The output half of :class:`~mcrs.env.core.MCRSCore`: the observation, the result, the belief maps."""
+    """The output half of :class:`~mcrs.env.core.MCRSCore`: the observation, the result and the belief maps."""
 
     def _observation(self, geometry: Geometry, cell: torch.Tensor) -> torch.Tensor:
         c = self.config
@@ -94,7 +91,7 @@ class CoreOutputs:
             full * movable,
             relative.view(E, N, -1),
         ]
-        if self.far_view is not None:  # beyond the paper: 8 window means of own m(U) (mcrs/env/far_view.py)
+        if self.far_view is not None:  # 8 window means of own m(U) (mcrs/env/far_view.py)
             zones = self.is_no_fly if self.known_zones else None
             parts.append(self.far_view.observe(self.counts_now(), self.uav_pos, zones))
         return torch.cat(parts, dim=-1)

@@ -1,28 +1,22 @@
-"""The MCRS-LCR environment as a PettingZoo ``ParallelEnv``: one episode, agents ``uav_0 .. uav_{N-1}``.
+"""The MCRS environment as a PettingZoo ``ParallelEnv``, one episode at a time, agents ``uav_0 .. uav_{N-1}``.
 
-A thin adapter over :class:`~mcrs.env.core.MCRSCore` with ``num_envs=1``, so that PettingZoo users and the
-TorchRL training path run exactly the same dynamics (no second implementation to drift). It exists for
-interoperability and as the "one environment at a time" reference of the throughput benchmark; training
-uses the batched :class:`~mcrs.env.torchrl_env.MCRSEnv`.
+It wraps :class:`~mcrs.env.core.MCRSCore` with ``num_envs=1``, so PettingZoo users and TorchRL training run
+the same dynamics. Training uses the batched :class:`~mcrs.env.torchrl_env.MCRSEnv`; this adapter is for
+interoperability and the one-environment throughput benchmark.
 
 Per agent::
 
     observation   {"observation": float32 [obs_dim] in [-1, 1], "action_mask": int8 [8] (1 = allowed)}
-    action        int in 0..7 (``Discrete(8)``)
-    reward        the team reward r1 + r2 + r3 + r4 (the same for every agent)
-    termination   always False (episodes end by the time limit only)
-    truncation    True for every agent after ``max_steps`` steps; ``agents`` is then emptied
-    info          {"reading": bool (True = "F"), "position": (x, y), and one float per running episode
-                   metric: "episode_reward", "uncertainty", "targets_found", "false_discoveries",
-                   "collisions", "no_fly_violations", "coverage"}; flat, with numbers only, so that
-                   TorchRL's ``PettingZooWrapper`` stacks them into ``(group, "info", name)``
+    action        int in 0..7 (Discrete(8))
+    reward        the team reward r1 + r2 + r3 + r4, the same for every agent
+    termination   always False; episodes end by the time limit only
+    truncation    True for every agent after max_steps steps, and agents is then emptied
+    info          {"reading": bool (True = "F"), "position": (x, y), one float per running episode metric}
 
-``state()`` is the global state (float32 ``[state_dim]``, paper eq. 22).
-
-Rendering (``render_mode``): ``"rgb_array"``: :meth:`render` returns the current state as an
-``[H, W, 3]`` uint8 frame, drawn by :class:`mcrs.env.render.StateDrawing` (the drawing of the episode
-GIF and of the evaluation video); ``"human"``: the same frame in a matplotlib window, updated on every
-reset and step (it needs a display; without one the constructor says so).
+Infos hold numbers only, so that TorchRL's ``PettingZooWrapper`` stacks them into ``(group, "info",
+name)``. ``state()`` is the global state (float32 ``[state_dim]``, paper eq. 22).
+``render_mode="rgb_array"`` returns ``[H, W, 3]`` uint8 frames drawn by
+:class:`mcrs.env.render.StateDrawing`; ``"human"`` shows them in a matplotlib window and needs a display.
 
 TorchRL::
 
@@ -35,6 +29,8 @@ TorchRL::
 
 from __future__ import annotations
 
+import os
+import sys
 from typing import Any, ClassVar
 
 import numpy as np
@@ -54,11 +50,10 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
     """Multi-UAV reconnaissance and search with limited communication range, one episode at a time.
 
     Args:
-        config: a validated :class:`EnvConfig`, or a preset name (``"map10"``, ``"map15"``, ``"map20"``).
-            Its ``num_envs`` is replaced by 1.
-        render_mode: ``None``, ``"rgb_array"`` (:meth:`render` returns an ``[H, W, 3]`` uint8 frame) or
-            ``"human"`` (a matplotlib window; needs a display).
-        **overrides: config fields to change, e.g. ``invalid_action="clip"``, ``comm_range=3.0``.
+        config: an :class:`EnvConfig` or a preset name (``"map10"``, ``"map15"``, ``"map20"``); its
+            ``num_envs`` is replaced by 1.
+        render_mode: ``None``, ``"rgb_array"`` or ``"human"``.
+        **overrides: config fields to change, e.g. ``comm_range=3.0``.
     """
 
     metadata: ClassVar[dict[str, Any]] = {
@@ -116,7 +111,7 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, AgentObs], dict[str, dict[str, Any]]]:
-        """Start a new episode; ``seed`` reseeds the core, so the same seed replays the same episode."""
+        """Start a new episode; the same ``seed`` replays the same episode."""
         if seed is not None:
             self.core.seed(seed)
         self.agents = list(self.possible_agents)
@@ -135,7 +130,7 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
-        """Move every UAV by its action; the episode ends (``agents`` empties) after ``max_steps`` steps."""
+        """Move every UAV by its action; ``agents`` empties after ``max_steps`` steps."""
         if not self.agents:
             raise RuntimeError("the episode is over (or never started): call reset() before step()")
         missing = [agent for agent in self.agents if agent not in actions]
@@ -169,8 +164,8 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         return self._state
 
     def render(self) -> np.ndarray | None:
-        """The current state as an ``[H, W, 3]`` uint8 frame (``rgb_array``), or shown in a window
-        (``human``); None without a ``render_mode``, as PettingZoo asks."""
+        """Return the current frame (``rgb_array``) or show it in a window (``human``); None without a render
+        mode."""
         if self.render_mode is None:
             return None
         if self._last is None:
@@ -191,16 +186,16 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         return None
 
     def close(self) -> None:
-        """Close the human mode's window; the core holds only tensors."""
+        """Close the human mode's window."""
         if self._window is not None:
-            import matplotlib.pyplot as plt
+            import matplotlib.pyplot as plt  # only the human mode opened a window
 
             plt.close(self._window[0])
             self._window = None
 
     # ------------------------------------------------------------------ internals
     def _convert(self, result: StepResult) -> tuple[dict[str, AgentObs], dict[str, dict[str, Any]], float]:
-        """Per-agent dicts from one core result: one ``.numpy()`` per tensor, then views per agent."""
+        """Split one core result into per-agent observations and infos, plus the team reward."""
         observation = result.observation[0].cpu().numpy()
         mask = result.action_mask[0].cpu().numpy().astype(np.int8)
         readings = result.reading[0].tolist()
@@ -222,7 +217,7 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
         return observations, infos, float(result.reward[0])
 
     def _frame(self) -> np.ndarray:
-        """Draw the last result: the global m(U), the paths since the reset, this step's links."""
+        """Draw the last result: the global m(U), the paths since the reset and this step's links."""
         from mcrs.env.render import StateDrawing, frame_title  # matplotlib, only when rendering
 
         result, cfg = self._last, self.config
@@ -242,11 +237,8 @@ class MCRSParallelEnv(ParallelEnv[str, AgentObs, int]):
 
 
 def _check_display() -> None:
-    """``render_mode="human"`` needs a window: an interactive matplotlib backend and (on Linux) a display."""
-    import os
-    import sys
-
-    import matplotlib
+    """Refuse ``render_mode="human"`` without an interactive matplotlib backend or, on Linux, a display."""
+    import matplotlib  # only for the human mode
 
     if sys.platform.startswith("linux") and not (
         os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")

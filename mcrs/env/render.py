@@ -1,12 +1,10 @@
-"""The picture of one state of the map, as an RGB array: an m(U) map behind the UAVs, their trails,
-communication links, no-fly cells and targets (filled once found).
+"""Draw one state of the map as an RGB array: m(U) behind the UAVs, their trails, links, no-fly cells and
+targets.
 
-One drawing routine serves three users, so that they show the same thing: the PettingZoo adapter's
-``render()`` (one state at a time), the episode GIF of ``mcrs-render`` (mcrs.viz.animation) and the
-evaluation video sent to the logger (mcrs.experiment.training.evaluation). The axis decorations (ticks, labels,
-colour bar: most of the drawing time) are drawn once; every frame restores them and redraws only the
-content (blitting), so every frame has the same size, as a video needs.
-"""
+The PettingZoo adapter's ``render()``, the episode GIF of ``mcrs-render`` and the evaluation video all use
+this one routine, so they show the same thing. The axis decorations take most of the drawing time, so they
+are drawn once and each frame redraws only the content (blitting); every frame then has the same size, as a
+video needs."""
 
 from __future__ import annotations
 
@@ -40,7 +38,7 @@ from mcrs.env.layout import StateLayout
 
 @dataclass
 class EpisodeFrames:
-    """The per-step arrays of one episode as numpy, step 0 (after reset) to step T inclusive."""
+    """The per-step arrays of one episode as numpy, from step 0 (after reset) to step T inclusive."""
 
     positions: np.ndarray  # [T+1, N, 2] int
     global_maps: np.ndarray  # [T+1, 2, W, H]: global m(U), m(F)
@@ -56,14 +54,14 @@ class EpisodeFrames:
         return self.positions.shape[0] - 1
 
     def found(self, step: int) -> np.ndarray:
-        """``[W, H]`` bool: cells whose global m(F) has reached tau by ``step`` (found or false)."""
+        """``[W, H]`` bool: cells whose global m(F) has reached tau by ``step``, target or not."""
         full = self.global_maps[: step + 1, 1]
         return (full >= self.config.target_threshold).any(0)
 
 
 def episode_frames(episode: TensorDictBase, env_config: EnvConfig, env: int = 0) -> EpisodeFrames:
-    """Unpack a rollout taken with ``expose_beliefs=True`` (environment ``env`` of its batch) into
-    per-step arrays, reset included."""
+    """Unpack environment ``env`` of a rollout taken with ``expose_beliefs=True`` into per-step arrays, reset
+    included."""
     if ("agents", "belief_map") not in episode.keys(include_nested=True):
         raise ValueError("the episode has no belief maps: roll it out with expose_beliefs=True")
     first, last = episode[env], episode[env]["next"]
@@ -94,11 +92,10 @@ class StateDrawing:
     """A figure of one map, redrawn state by state; :meth:`draw` returns an ``[H, W, 3]`` uint8 frame.
 
     Args:
-        cfg: the map's config.
-        no_fly, targets: ``[Z, 2]`` and ``[K, 2]`` cells (fixed for an episode).
-        label: what the background map is (the colour bar's label).
-        trail: how many past steps of each UAV's path to draw (None: all).
-        dpi: resolution; 80 gives a 512 x 496 frame (the map, its colour bar and a legend of the marks).
+        no_fly, targets: ``[Z, 2]`` and ``[K, 2]`` cells, fixed for an episode.
+        label: the colour bar's label, naming the background map.
+        trail: how many past steps of each UAV's path to draw; None draws all.
+        dpi: resolution; 80 gives a 512 x 496 frame.
     """
 
     def __init__(
@@ -168,9 +165,9 @@ class StateDrawing:
         found: np.ndarray,
         title: str,
     ) -> np.ndarray:
-        """One frame: ``background`` ``[W, H]`` in [0, 1], ``positions`` ``[t+1, N, 2]`` (the path so far,
-        the last row now), ``neighbours`` ``[N, N]`` bool, ``found`` ``[W, H]`` bool (cells whose m(F)
-        reached tau). Returns ``[H, W, 3]`` uint8."""
+        """Draw one frame and return it as ``[H, W, 3]`` uint8. ``background`` is ``[W, H]`` in [0, 1],
+        ``positions`` ``[t+1, N, 2]`` the path so far with the current row last, ``neighbours`` ``[N, N]``
+        bool and ``found`` ``[W, H]`` the cells whose m(F) reached tau."""
         self.image.set_data(as_image(background))
         now = positions[-1]
         recent = positions if self.trail is None else positions[-(self.trail + 1) :]
@@ -192,7 +189,7 @@ class StateDrawing:
 
 
 def legend(cfg: EnvConfig, colors: list) -> list:
-    """What each mark of a frame is: UAVs and trails, targets (not yet found, found), no-fly zones, links."""
+    """Return the legend entries of a frame: UAVs and trails, targets, no-fly zones and links."""
     return [
         Line2D([], [], marker="o", ls="-", c=colors[0], mec="k", ms=8, label=f"UAV and its trail ({cfg.n_uavs}, one colour each)"),
         Line2D([], [], marker="*", ls="", mfc="none", mec="k", ms=13, label="target, not yet found"),
@@ -205,11 +202,8 @@ def legend(cfg: EnvConfig, colors: list) -> list:
 def episode_rgb_frames(
     fr: EpisodeFrames, background: str | int = "global", trail: int | None = 12, dpi: int = 80
 ) -> list[np.ndarray]:
-    """Every step of an episode as ``[H, W, 3]`` uint8 frames, step 0 to T.
-
-    ``background`` is ``"global"`` (the global map of all detections) or a UAV index (that UAV's own
-    fused map, i.e. what it knows).
-    """
+    """Return every step of an episode as ``[H, W, 3]`` uint8 frames, step 0 to T. ``background`` is
+    ``"global"`` for the global map, or a UAV index for that UAV's own fused map."""
     cfg = fr.config
     if background == "global":
         maps, label = fr.global_maps[:, 0], "global m(U)"
@@ -234,7 +228,7 @@ def episode_rgb_frames(
 
 
 def encode_gif(frames: list[np.ndarray], fps: int = 5) -> bytes:
-    """An animated GIF (looping) of ``[H, W, 3]`` uint8 frames: the episode GIF's and the video's format."""
+    """Encode ``[H, W, 3]`` uint8 frames as a looping GIF, the format of the episode GIF and the video."""
     if not frames:
         raise ValueError("encode_gif needs at least one frame")
     images = [Image.fromarray(frame) for frame in frames]

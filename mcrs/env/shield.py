@@ -1,23 +1,17 @@
-"""The safety shields (scenario options, off by default, not in the paper): masks of the moves that a
-penalty would charge, as a safety layer under a deployed policy would apply them.
+"""The safety shields: masks of the moves a penalty would charge, as a safety layer under a deployed policy.
 
-``no_fly_shield`` (r3). Reward term r3 charges ``w_no_fly`` for every (UAV, zone) pair closer than
-``no_fly_safety`` (d1) after a move (``safety_rule``: ``enter``, the default, charges distances < d1, i.e.
-the zone's own cell at d1 = 1; ``near`` charges distances <= d1). The shield masks exactly the moves that
-r3 would charge, so that every policy that respects the mask (learners, their exploration, the
-heuristics) cannot take them. Zones are static within an episode, so the table of safe moves is built once
-per environment when its episode starts; each step is then one gather.
+Both shields are scenario options beyond the paper, off by default. A UAV whose every move a shield would
+mask keeps the mask it had before that shield, so the mask never empties.
 
-``uav_shield`` (r4), the right of way. UAVs move at once, and every action is a move, so two UAVs collide
-only by moving into the same place together: no mask on what a UAV sees now can forbid that alone. Each
-UAV gives way to the lower-indexed UAVs in its sight (``sight_range``, as its observation shows them): a
-move is masked if it could end where r4 charges with any on-grid move of such a UAV. UAV 0 never gives
-way, and two UAVs in sight of each other cannot collide, since the higher-indexed one avoids every cell the
-other might reach. This is the coverage heuristic's rule (mcrs/policies/coverage.py) made hard; each
-UAV needs only its own observation and the fixed order of the indices.
+``no_fly_shield`` masks exactly the moves that r3 would charge: a (UAV, zone) pair closer than d1
+(``no_fly_safety``) after the move, compared as ``safety_rule`` says. Zones are static within an episode,
+so the table of safe moves is built once per episode and each step is one gather.
 
-A UAV whose every move a shield would mask keeps the mask it had before that shield: the mask never empties.
-"""
+``uav_shield`` is a right of way against r4. UAVs move at once and every action is a move, so two UAVs
+collide only by moving into the same place together. Each UAV gives way to the lower-indexed UAVs in its
+sight: a move is masked if it could end where r4 charges with any on-grid move of such a UAV. UAV 0 never
+gives way, and two UAVs in sight of each other cannot collide. It is the coverage heuristic's rule
+(mcrs/policies/coverage.py) made hard, and each UAV needs only its own observation."""
 
 from __future__ import annotations
 
@@ -31,11 +25,9 @@ from mcrs.env.config import EnvConfig
 def safe_move_table(
     no_fly_pos: torch.Tensor, moves: torch.Tensor, mask_of_cell: torch.Tensor, config: EnvConfig
 ) -> torch.Tensor:
-    """``[M, C, 8]`` bool: move ``a`` from cell ``c`` stays on the grid and ends where r3 charges nothing.
-
-    ``no_fly_pos`` is ``[M, Z, 2]`` (cells ``(x, y)``), ``moves`` ``[8, 2]``, ``mask_of_cell`` ``[C, 8]``
-    (on-grid moves); d1 is ``config.no_fly_safety``, compared by ``config.violates`` as the reward does.
-    """
+    """Return ``[M, C, 8]`` bool: move ``a`` from cell ``c`` stays on the grid and ends where r3 charges
+    nothing. ``no_fly_pos`` is ``[M, Z, 2]``, ``moves`` ``[8, 2]`` and ``mask_of_cell`` ``[C, 8]`` (on-grid
+    moves)."""
     cells, height, d1 = mask_of_cell.shape[0], config.height, config.no_fly_safety
     cell = torch.arange(cells, device=no_fly_pos.device)
     xy = torch.stack([cell // height, cell % height], dim=-1)  # [C, 2]
@@ -47,19 +39,18 @@ def safe_move_table(
 
 
 def shielded_mask(safe_moves: torch.Tensor, cell: torch.Tensor, unshielded: torch.Tensor) -> torch.Tensor:
-    """``[E, N, 8]`` mask of the UAVs on ``cell`` ``[E, N]``: the safe moves, or ``unshielded`` where none is."""
+    """Return the ``[E, N, 8]`` safe moves of the UAVs on ``cell``, or ``unshielded`` where none is safe."""
     safe = safe_moves.gather(1, cell.unsqueeze(-1).expand(-1, -1, safe_moves.shape[-1]))
     return torch.where(safe.any(-1, keepdim=True), safe, unshielded)
 
 
 class RightOfWay:
-    """The ``uav_shield`` mask of a step as lookups in one table built at construction.
+    """The ``uav_shield`` mask of a step, as lookups in one table built at construction.
 
-    Whether UAV i's move a may meet one of UAV j's on-grid moves depends only on the offset
-    ``pos_i - pos_j``, on a, and on the set of j's on-grid moves (8 bits): ``table[offset, a, j's grid
-    mask as a byte]``. Offsets farther apart than two moves plus d2 never meet and share one all-False row, so
-    a step is a gather over the UAV pairs rather than a test of their 8 x 8 moves.
-    """
+    Whether UAV i's move a may meet one of UAV j's on-grid moves depends only on the offset ``pos_i -
+    pos_j``, on a, and on j's grid mask as a byte: ``table[offset, a, byte]``. Offsets too far apart to
+    meet share one all-False row, so a step is a gather over the UAV pairs rather than a test of their 8 x
+    8 moves."""
 
     def __init__(self, moves: torch.Tensor, config: EnvConfig) -> None:
         d2, dev = config.uav_safety, moves.device
@@ -88,13 +79,12 @@ class RightOfWay:
         uav_squared: torch.Tensor,
         earlier: torch.Tensor,
     ) -> torch.Tensor:
-        """``[E, N, 8]``: ``mask`` less the moves of UAV i that could end where r4 charges with an on-grid
-        move of a lower-indexed UAV j in i's sight; a UAV left with no move keeps ``mask``.
+        """Return ``mask`` less the moves of UAV i that could meet an on-grid move of a lower-indexed UAV in
+        its sight.
 
-        ``on_grid`` ``[E, N, 8]`` is each UAV's grid mask: all that i can tell of j's moves from j's
-        position (j's no-fly mask depends on zones i may not see). ``uav_pos`` ``[E, N, 2]``,
-        ``uav_squared`` ``[E, N, N]`` (squared distances now), ``earlier`` ``[N, N]`` (``[i, j]``: j < i).
-        """
+        A UAV left with no move keeps ``mask``. ``on_grid`` ``[E, N, 8]`` is all that i can tell of j's
+        moves, since j's no-fly mask depends on zones i may not see. ``uav_squared`` ``[E, N, N]`` holds
+        squared distances and ``earlier[i, j]`` is j < i."""
         offset = uav_pos.unsqueeze(2) - uav_pos.unsqueeze(1)  # [E, i, j, 2]: pos_i - pos_j
         near = offset.abs().amax(-1) <= self.radius
         gives_way = earlier & (uav_squared <= self.sight_squared) & near

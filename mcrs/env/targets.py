@@ -1,4 +1,4 @@
-"""Moving targets beyond the paper (``target_motion=random_walk``; the paper's targets are static)."""
+"""Moving targets (``target_motion=random_walk``), a variant beyond the paper's static targets."""
 
 from __future__ import annotations
 
@@ -8,13 +8,11 @@ from mcrs.env.config import EnvConfig
 
 
 class TargetWalk:
-    """Each step, each target tries with ``target_move_prob`` one of the 8 moves of eq. 1 (uniform).
+    """Each step, each target tries with ``target_move_prob`` one of the 8 moves of eq. 1, uniformly.
 
     The move happens when the new cell is on the grid, not a no-fly cell and held by no target at the start
-    of the step; of several targets choosing one free cell, the lowest-indexed moves, the others stay.
-    Draws, from the env's generator before the readings: ``rand [E, K]`` (does it try), then
-    ``randint(0, 8) [E, K]`` (which move).
-    """
+    of the step; when several targets choose one free cell, the lowest-indexed one moves. The draws come
+    from the env's generator before the readings: ``rand [E, K]``, then ``randint(0, 8) [E, K]``."""
 
     def __init__(self, config: EnvConfig, moves: torch.Tensor, device: torch.device) -> None:
         E = config.num_envs
@@ -26,7 +24,7 @@ class TargetWalk:
         return [self.is_no_fly]
 
     def start(self, envs: torch.Tensor, no_fly_cells: torch.Tensor) -> None:
-        """New episodes in ``envs`` with no-fly zones on flat cells ``no_fly_cells [M, Z]``."""
+        """Start new episodes in ``envs`` with no-fly zones on the flat cells ``no_fly_cells [M, Z]``."""
         is_no_fly = torch.zeros(envs.numel(), self.config.n_cells, dtype=torch.bool, device=envs.device)
         self.is_no_fly[envs] = is_no_fly.scatter_(1, no_fly_cells, True)
 

@@ -1,27 +1,25 @@
-"""The MCRS-LCR environment as a batched TorchRL ``EnvBase`` (``batch_size=[num_envs]``).
+"""The MCRS-LCR environment as a batched TorchRL ``EnvBase`` with ``batch_size=[num_envs]``.
 
 Keys (``E = num_envs``, ``N = n_uavs``)::
 
     ("agents", "observation")   [E, N, obs_dim]  float32, paper eqs. 18-21
-    ("agents", "action_mask")   [E, N, 8]        bool, moves that stay on the grid (and the shields': mcrs/env/shield.py)
-    ("agents", "action")        [E, N]           int64 in 0..7 (the action spec)
+    ("agents", "action_mask")   [E, N, 8]        bool, on-grid moves less those the shields forbid
+    ("agents", "action")        [E, N]           int64 in 0..7
     ("agents", "reading")       [E, N]           bool, this step's sensor reading (True = "F")
     ("agents", "position")      [E, N, 2]        int64 cell (x, y)
-    "state"                     [E, state_dim]   float32, paper eq. 22 (table-2 dimension)
+    "state"                     [E, state_dim]   float32, paper eq. 22
     "state_map"                 [E, 2, L1, L2]   float32, global m(U) and m(F) as an image
-    "state_counts"              [E, L1*L2, 2]    int16, global (positive, negative) detection counts per
-                                                 cell: the state's maps are a function of them (compact
-                                                 states of the episodic memory); float32 when
-                                                 evidence_decay > 0 (aged counts)
+    "state_counts"              [E, L1*L2, 2]    int16 global (positive, negative) counts per cell;
+                                                 float32 when evidence_decay > 0
     "step_count"                [E, 1]           int64
-    "reward"                    [E, 1]           float32 team reward (r1 + r2 + r3 + r4)
-    "reward_terms"              [E, 4]           float32 (r1, r2, r3, r4), for analysis
-    "done" / "terminated" / "truncated"  [E, 1]  bool (episodes end by the time limit only)
-    ("metrics", name)           [E]              float32 running episode metrics (see ``METRICS``)
+    "reward"                    [E, 1]           float32 team reward r1 + r2 + r3 + r4
+    "reward_terms"              [E, 4]           float32 (r1, r2, r3, r4)
+    "done" / "terminated" / "truncated"  [E, 1]  bool; episodes end by the time limit only
+    ("metrics", name)           [E]              float32 running episode metrics (``METRICS``)
 
-With ``expose_beliefs=True`` also ``("agents", "belief_map")`` ``[E, N, 2, L1, L2]`` (each UAV's fused
-m(U), m(F)) and ``"neighbours"`` ``[E, N, N]`` (this step's communication graph).
-"""
+The state's maps are a function of ``state_counts``, which the episodic memory stores as compact states.
+With ``expose_beliefs=True`` there are also ``("agents", "belief_map")`` ``[E, N, 2, L1, L2]``, each UAV's
+fused m(U) and m(F), and ``"neighbours"`` ``[E, N, N]``, this step's communication graph."""
 
 from __future__ import annotations
 
@@ -40,7 +38,7 @@ class MCRSEnv(EnvBase):
     """Multi-UAV reconnaissance and search with limited communication range, batched over environments.
 
     Args:
-        config: a validated :class:`EnvConfig`, or a preset name (``"map10"``, ``"map15"``, ``"map20"``).
+        config: an :class:`EnvConfig` or a preset name (``"map10"``, ``"map15"``, ``"map20"``).
         device: overrides ``config.device``.
         **overrides: config fields to change, e.g. ``num_envs=1024, comm_range=3.0``.
     """
@@ -93,10 +91,8 @@ class MCRSEnv(EnvBase):
     def reset_to(
         self, uav_positions: torch.Tensor, no_fly_positions: torch.Tensor, target_positions: torch.Tensor
     ) -> TensorDictBase:
-        """Start every environment from a given scene (cells ``(x, y)``) and return the reset tensordict.
-
-        Shapes and rules as :meth:`MCRSCore.reset_to`; step on from the returned tensordict as usual.
-        """
+        """Start every environment from a given scene (see :meth:`MCRSCore.reset_to`) and return the reset
+        tensordict."""
         return self._to_tensordict(
             self.core.reset_to(uav_positions, no_fly_positions, target_positions), with_reward=False
         )
@@ -137,14 +133,12 @@ class MCRSEnv(EnvBase):
 
 
 def spec_leaves(config: EnvConfig, num_envs: int, device: str | torch.device) -> dict[str, dict[str, Any]]:
-    """The specs of :class:`MCRSEnv` for ``config`` as nested dicts of leaf specs, without an env:
-    ``observation`` (with ``agents`` ``[E, N]`` and ``metrics`` ``[E]`` nested), ``action``, ``reward`` and
-    ``done``, for ``num_envs`` environments on ``device``.
+    """Return the specs of :class:`MCRSEnv` for ``config`` as nested dicts of leaf specs, without building an
+    env.
 
-    The env wraps them in ``Composite`` specs. On the ``meta`` device nothing is allocated, whatever the
-    config's size (TorchRL's ``Composite`` cannot hold a ``Bounded`` spec there, hence the plain dicts):
-    :mod:`mcrs.experiment.training.resources` sizes a step from them before refusing a config.
-    """
+    The keys are ``observation``, ``action``, ``reward`` and ``done``. Plain dicts are used because
+    TorchRL's ``Composite`` cannot hold a ``Bounded`` spec on the ``meta`` device, where
+    :mod:`mcrs.experiment.training.resources` sizes a step without allocating anything."""
     c, E, N, dev = config, num_envs, config.n_uavs, torch.device(device)
     agents: dict[str, Any] = {
         "observation": Bounded(-1.0, 1.0, shape=(E, N, c.obs_dim), dtype=torch.float32, device=dev),

@@ -1,23 +1,18 @@
 """Compact, bit-exact storage of the env's global state for the episodic buffer D_E.
 
-A map20 state is 880 float32 values (3.5 kB); a million of them would not fit the memory budget. The state
-is a function of small integers (see ``mcrs/env/core.py``, ``MCRSCore._result``; where each part lies is
-:class:`~mcrs.env.layout.StateLayout`'s business, read from it here):
+A map20 state is 880 float32 values (3.5 kB), too much for a million entries. The state is a function of
+small integers (:class:`~mcrs.env.layout.StateLayout` says where each part lies):
 
-- the maps m(U), m(F) (``StateLayout.unknown``, ``.full``: cells x-major) are ``belief_masses`` of the
-  global detection counts ``state_counts [cells, 2]`` (positive, negative) of each cell;
-- with ``no_fly_prior=known`` the no-fly cells, whose positions the state holds, read m(U) = m(F) = 0
-  whatever their counts (:meth:`StateCodec.clear_zones`);
-- the positions (``StateLayout.positions``: UAVs, no-fly zones, targets, ``P = N + Z + K`` cells) are
-  ``p.to(float32) / pos_scale`` with ``StateLayout.pos_scale = (width - 1, height - 1)`` clamped to >= 1.
+- the maps m(U) and m(F) are ``belief_masses`` of the global counts ``state_counts [cells, 2]``;
+- with ``no_fly_prior=known`` the no-fly cells read m(U) = m(F) = 0 whatever their counts
+  (:meth:`StateCodec.clear_zones`);
+- the positions of the ``P = N + Z + K`` UAVs, zones and targets are ``p.to(float32) / pos_scale``.
 
-So an entry stores the counts (``uint8`` while every count is <= 255, else ``int16``: 800 B for map20) and
-the integer positions (``uint8`` [P, 2]: 80 B), and :meth:`StateCodec.decode` rebuilds the float32 state
-*bit for bit*: the maps are gathered from a table holding ``belief_masses`` of every count pair, computed by
-the env's own function (elementwise float32 maths, so a table entry equals the env's value for that pair;
-the tests check it on real rollouts with ``torch.equal``), and the positions go through the env's division.
-Decoding is on the re-embedding path (every stored state, at every embedding update), hence the table.
-"""
+An entry stores the counts (``uint8`` while every count is <= 255, else ``int16``: 800 B for map20) and the
+integer positions (``uint8 [P, 2]``: 80 B). :meth:`StateCodec.decode` rebuilds the float32 state bit for
+bit from a table of ``belief_masses`` of every count pair, computed by the env's own function, and from the
+env's division for the positions. The tests check it on real rollouts with ``torch.equal``. Every embedding
+update re-embeds every stored state, hence the table."""
 
 from __future__ import annotations
 
@@ -32,19 +27,16 @@ from mcrs.env.layout import StateLayout
 
 MAX_COUNT = 2**15 - 1  # the widest code, int16
 U8_MAX = 255
-# Tables for int16 codes are built up to the largest counts present; above this many entries the maps are
-# computed directly with belief_masses instead (the same elementwise maths, only slower).
+# Tables for int16 codes cover the largest counts present; above this many entries the maps are computed
+# with belief_masses directly.
 MAX_TABLE_ENTRIES = 1 << 22
 _LITTLE_ENDIAN = sys.byteorder == "little"
 MAP_CHECKS = 64  # states of each encoded batch whose maps are checked against their counts
 
 
 class StateCodec:
-    """Encodes env states ``[B, state_dim]`` as ``(codes [B, cells, 2], positions [B, P, 2])`` and back.
-
-    Args:
-        config: the env's config; the codec is only valid for this map (see :meth:`identity`).
-    """
+    """Encode env states ``[B, state_dim]`` as ``(codes [B, cells, 2], positions [B, P, 2])`` and back. The
+    codec is valid only for the map of ``config`` (:meth:`identity`)."""
 
     def __init__(self, config: EnvConfig) -> None:
         self.config = config
@@ -68,7 +60,8 @@ class StateCodec:
 
     # ------------------------------------------------------------------------------------------ identity
     def identity(self) -> dict[str, Any]:
-        """What a stored state depends on: a memory saved for another map (or sensor model) is refused."""
+        """Return what a stored state depends on, so that a memory saved for another map or sensor model is
+        refused."""
         c = self.config
         return {
             "map": c.name,
@@ -85,7 +78,7 @@ class StateCodec:
         }
 
     def identity_mismatch(self, other: dict[str, Any]) -> str | None:
-        """Why states encoded under ``other`` (an :meth:`identity`) cannot be decoded here; None if they can."""
+        """Return why states encoded under ``other`` cannot be decoded here, or None."""
         mine = self.identity()
         other = {"no_fly_prior": "unknown", **other}  # a memory saved before the field held unread zones
         diffs = [f"{k}: saved {other.get(k)!r}, here {v!r}" for k, v in mine.items() if other.get(k) != v]
@@ -95,14 +88,12 @@ class StateCodec:
     def encode(
         self, counts: torch.Tensor, state: torch.Tensor, check_maps: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``counts [B, cells, 2]`` (ints) and ``state [B, state_dim]`` -> ``(codes, positions)``.
+        """Encode ``counts [B, cells, 2]`` and ``state [B, state_dim]`` as ``(codes, positions)``.
 
-        ``codes`` are the counts as ``uint8`` when every count of the batch is <= 255, else ``int16``
-        (the memory promotes its storage then). ``positions [B, P, 2]`` are the cells recovered from the
-        state (rounded ``state * pos_scale``), checked to reproduce the state's positions exactly. With
-        ``check_maps``, up to ``MAP_CHECKS`` evenly spaced states are also checked to have the maps of
-        their counts (counts of another step, or of another sensor model, are refused).
-        """
+        ``codes`` are the counts as ``uint8`` when every count of the batch is <= 255, else ``int16``.
+        ``positions [B, P, 2]`` are the cells recovered from the state and checked to reproduce it exactly.
+        With ``check_maps``, up to ``MAP_CHECKS`` evenly spaced states are also checked to have the maps of
+        their counts, which refuses counts of another step or sensor model."""
         B = state.shape[0] if state.dim() == 2 else -1
         if state.dim() != 2 or state.shape[1] != self.state_dim:
             raise ValueError(f"state must have shape [B, {self.state_dim}], got {tuple(state.shape)}")
@@ -144,13 +135,9 @@ class StateCodec:
     def decode(
         self, codes: torch.Tensor, positions: torch.Tensor, out: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """The env's float32 state ``[B, state_dim]``, bit-exact, from ``codes`` and ``positions``.
-
-        ``out`` (``[B, state_dim]`` float32, contiguous) may be given to reuse a buffer. For ``uint8``
-        storage the whole state is one gather: every output value is an entry of one table (m(U) and m(F)
-        of each count pair, ``cell / pos_scale`` of each cell coordinate), indexed by an int32 array built
-        with three elementwise ops.
-        """
+        """Decode ``codes`` and ``positions`` into the env's float32 state ``[B, state_dim]``, bit for bit.
+        ``out`` may pass a contiguous buffer to reuse. For ``uint8`` codes the whole state is one gather
+        from a single table."""
         B = codes.shape[0]
         if out is None:
             out = torch.empty(B, self.state_dim, dtype=torch.float32, device=codes.device)
@@ -177,8 +164,7 @@ class StateCodec:
         return self.clear_zones(out, positions)
 
     def clear_zones(self, out: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-        """Set m(U) and m(F) of each state's no-fly cells to 0 in ``out`` ``[B, >= 2 cells]`` (in place) when
-        zones are known (``no_fly_prior=known``); ``positions`` ``[B, P, 2]`` are the states' cells."""
+        """Zero m(U) and m(F) of each state's no-fly cells in ``out`` in place when ``no_fly_prior=known``."""
         if not self.known_zones or positions.shape[0] == 0 or self._zone_slots.start == self._zone_slots.stop:
             return out
         zones = positions[:, self._zone_slots].long()
@@ -188,8 +174,8 @@ class StateCodec:
         return out
 
     def _state_table(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """The one-gather table ``[m(U) (65536), m(F) (65536), x / scale_x (256), y / scale_y (256)]`` and
-        the position offsets ``[2 P]`` into it."""
+        """Return the one-gather table ``[m(U) (65536), m(F) (65536), x / scale_x (256), y / scale_y (256)]``
+        and the position offsets into it."""
         key = (str(device), "state")
         if key not in self._tables:
             with torch.inference_mode(False):  # cached: must not become an inference tensor
@@ -206,7 +192,7 @@ class StateCodec:
         self._tables[(str(device), "offsets")] = (maps.numel() + axis).repeat(self.n_positions)
 
     def _index_buffer(self, rows: int, device: torch.device) -> torch.Tensor:
-        """A reused int32 ``[rows, state_dim]`` buffer (a fresh one per call would fault its pages in)."""
+        """Return a reused int32 ``[rows, state_dim]`` buffer, so pages are not faulted in per call."""
         buffer = self._index
         if buffer is None or buffer.device != device or buffer.shape[0] < rows:
             with torch.inference_mode(False):  # reused: must not become an inference tensor
@@ -214,7 +200,7 @@ class StateCodec:
         return buffer[:rows]
 
     def decode_map(self, codes: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-        """The maps ``[B, 2 * cells]`` (``StateLayout.unknown``, ``.full``) of ``codes [B, cells, 2]``."""
+        """Return the maps ``[B, 2 * cells]`` of ``codes [B, cells, 2]``."""
         B, C = codes.shape[0], self.n_cells
         if codes.shape[1:] != (C, 2):
             raise ValueError(f"codes must have shape [B, {C}, 2], got {tuple(codes.shape)}")

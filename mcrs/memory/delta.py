@@ -1,17 +1,14 @@
 """What the paper's delta means: the tolerance within which two standardised keys are "the same state".
 
-The paper (section 6.3, eq. 35, after EMU) sizes delta from the buffer: ``delta = (2 * 3 sigma_x)^dim(x) / M``,
-the volume of key space (keys spread over +-3 sigma in each of dim(x) dimensions) that each of the M entries
-would own if the buffer were full and evenly spread. With sigma = 1 (standardised keys), dim(x) = 4 and
-M = 1M that is 1.3e-3, table 3's value. Two readings of that number:
+The paper (section 6.3, eq. 35, after EMU) sizes delta from the buffer as ``delta = (2 * 3 sigma_x)^dim(x) / M``:
+the key-space volume each of M entries would own in a full, evenly spread buffer. With sigma = 1,
+dim(x) = 4 and M = 1M that is table 3's 1.3e-3. Two readings:
 
-* ``volume`` (the default): delta is that volume per entry. An entry matches the keys of a neighbourhood of
-  volume delta around it: a box of half-side ``delta^(1/d) / 2`` (0.095 at 1.3e-3, d = 4) or a ball of the
-  same volume. States then merge, and look-ups find the memories of other trajectories, as section 5.2
-  and figure 3e describe ("retrieve memories from similar states within a larger threshold").
-* ``literal``: delta is itself the tolerance (EMU's code: ``np.allclose(..., atol=delta)`` on standardised
-  keys). At 1.3e-3 the nearest other key of our runs lies 20-65x farther, so no two states ever merge and
-  every look-up returns a trajectory's own return (docs/MEMORY.md has the measurements).
+* ``volume`` (default): an entry matches a neighbourhood of volume delta, a box of half-side
+  ``delta^(1/d) / 2`` (0.095 at d = 4) or a ball of the same volume. States merge and look-ups find other
+  trajectories' memories, as section 5.2 and figure 3e describe.
+* ``literal``: delta is the tolerance itself, as in EMU's code (``np.allclose(..., atol=delta)``). At
+  1.3e-3 the nearest other key lies 20-65x farther, so no two states merge (docs/MEMORY.md).
 """
 
 from __future__ import annotations
@@ -27,11 +24,9 @@ def unit_ball_volume(dim: int) -> float:
 
 
 def match_tolerance(delta: float, rule: str, shape: str, key_dim: int) -> float:
-    """The tolerance the index applies (box half-side or ball radius, standardised units) for ``delta``.
-
-    ``rule="literal"``: ``delta`` itself. ``rule="volume"``: the tolerance whose neighbourhood of ``shape``
-    ("box" or "ball") in ``key_dim`` dimensions has volume ``delta``.
-    """
+    """Return the tolerance the index applies for ``delta``: a box half-side or ball radius in standardised
+    units. ``rule="literal"`` returns ``delta``; ``rule="volume"`` returns the tolerance whose ``shape`` in
+    ``key_dim`` dimensions has volume ``delta``."""
     if rule not in DELTA_RULES:
         raise ValueError(f"delta rule must be one of {', '.join(DELTA_RULES)}, got {rule!r}")
     if not (isinstance(delta, (int, float)) and 0 < delta < math.inf):

@@ -1,39 +1,18 @@
-"""The episodic buffer D_E (paper Algorithm 1; spec "Episodic buffer D_E"), batched and exact.
+"""The episodic buffer D_E (paper Algorithm 1), batched and exact.
 
 An entry holds a key ``x = phi(s, t/T)`` (float32 ``[key_dim]``), the highest return ``H`` seen from it,
-the state ``s`` in the compact bit-exact form of :class:`~mcrs.memory.codec.StateCodec`, the step ``t``
-(the embedding's time input is ``t / T`` in float32, :meth:`EpisodicMemory.normalised_time`) and the id
-of the episode that wrote it (so a look-up can tell another trajectory's memory from its own).
-Everything is a preallocated tensor of ``capacity`` rows (1M map20 entries: about 0.9 GiB); look-ups go
-through the exact grid index of :mod:`mcrs.memory.index`, which is kept current at every insertion.
-"Within delta" is a Euclidean ball (squared distance strictly below ``delta^2``) or EMU's per-dimension
-box (every ``|z_i - z'_i| <= delta``) on standardised keys (``shape``); "nearest" is the smallest float32
-squared distance among those, the lowest slot on ties. What delta the paper means is
-:mod:`mcrs.memory.delta`'s business: this class takes the tolerance itself.
+the state ``s`` in the compact form of :class:`~mcrs.memory.codec.StateCodec`, the step ``t`` and the id of
+the episode that wrote it, so a look-up can tell another trajectory's memory from its own. Columns are
+preallocated tensors of ``capacity`` rows (1M map20 entries take about 0.9 GiB). Look-ups use the exact
+grid index of :mod:`mcrs.memory.index`, kept current at every insertion; :mod:`mcrs.memory.resolution`
+resolves each batch. Eviction is a FIFO ring: before a batch of n transitions is resolved, the oldest
+entries are evicted so that the whole batch fits. A shifted entry keeps its slot and its age.
 
-**Insertion (Algorithm 1)** and EMU's desirability (``track_desirability``: N_call, N_xi, xi): what a
-batch does is computed by :mod:`mcrs.memory.resolution` (exactly the sequential loop's result, in batch);
-this class stores the entries and applies that outcome.
-
-**Eviction (FIFO ring, batched).** Before a batch of n transitions is resolved, if ``size + n >
-capacity`` the ``size + n - capacity`` oldest entries (insertion order) are evicted, so the whole batch
-fits whatever its number of new entries; the batch never sees the evicted entries. A shifted entry keeps
-its slot and its age. New entries take the next slots of the ring.
-
-**Statistics of the key standardisation** (per-dimension mean and std over the live keys) are recomputed
-at every index rebuild, and only then:
-
-- when an insertion finds the buffer empty, from the keys of that batch (before resolving it);
-- after an insertion that leaves the buffer at least twice as large as at the previous refresh (so while
-  the buffer is filling: sizes ~n, 2n, 4n, ...);
-- after an insertion that leaves more stale index records (left by shifts and evictions) than
-  ``stale_fraction`` of the live entries (a purge);
-- at :meth:`EpisodicMemory.refresh_keys` (re-embedding).
-
-:meth:`EpisodicMemory.load_state_dict` restores the saved statistics instead (the saved format:
-:mod:`mcrs.memory.persistence`). Between refreshes a look-up
-equals the brute-force nearest neighbour over the current keys standardised with the current statistics.
-"""
+The key standardisation statistics are recomputed at an index rebuild, and only then: when an insertion
+finds the buffer empty (from that batch's keys), when the buffer has doubled since the last refresh, when
+stale index records exceed ``stale_fraction`` of the live entries, and at
+:meth:`EpisodicMemory.refresh_keys`. :meth:`EpisodicMemory.load_state_dict` restores the saved statistics
+instead (format: :mod:`mcrs.memory.persistence`)."""
 
 from __future__ import annotations
 
@@ -80,21 +59,19 @@ class EpisodicMemory:
     """D_E: keys, highest returns and compact states of up to ``capacity`` visited states.
 
     Args:
-        embedding: phi, any module with ``forward(state [..., D], time [...]) -> [..., key_dim]`` and an int
-            ``key_dim`` attribute. It is called under ``torch.no_grad`` / ``inference_mode``.
+        embedding: phi, a module with ``forward(state [..., D], time [...]) -> [..., key_dim]`` and an int
+            ``key_dim`` attribute; called without gradients.
         codec: the :class:`StateCodec` of the env's map.
         capacity: number of entries (table 3: 1M).
-        tolerance: the match tolerance on standardised keys: the ball's radius or the box's half-side
-            (:func:`mcrs.memory.delta.match_tolerance` turns the paper's delta into it).
+        tolerance: the match tolerance on standardised keys (:func:`mcrs.memory.delta.match_tolerance`).
         gamma: discount of the returns H.
-        max_steps: T of the env (the embedding's time input is ``t / T``); default: the codec's.
+        max_steps: T of the env, for the time input ``t / T``; defaults to the codec's.
         track_desirability: keep EMU's N_call, N_xi and xi.
         counter_reset: EMU's ``flag_memory_cnt_reset``: a desirability shift restarts N_call = N_xi = 1.
-        shape: ``"ball"`` or EMU's ``"box"`` (see :mod:`mcrs.memory.index`).
-        device: where every tensor of the memory lives.
+        shape: ``"ball"`` or EMU's ``"box"`` (:mod:`mcrs.memory.index`).
         stale_fraction: rebuild the index when stale records exceed this fraction of the entries.
-        check_states: check that inserted states have the maps of their counts (a sample of each batch;
-            see :meth:`StateCodec.encode`). Off only for synthetic states in tests.
+        check_states: check that a sample of each inserted batch has the maps of its counts; off only for
+            synthetic states in tests.
     """
 
     def __init__(
@@ -163,7 +140,7 @@ class EpisodicMemory:
         return self.size
 
     def columns(self) -> dict[str, torch.Tensor]:
-        """Every per-entry array that an entry's data lives in (``[capacity, ...]``; ``live`` aside)."""
+        """Every per-entry ``[capacity, ...]`` array except ``live``."""
         columns = {"keys": self.keys, "returns": self.returns, "step": self.step, "codes": self.codes}
         columns.update(positions=self.positions, episode=self.episode)
         if self.track_desirability:
@@ -187,7 +164,7 @@ class EpisodicMemory:
             yield 0, end - self.capacity
 
     def _stored(self) -> Stored:
-        """The arrays Algorithm 1's resolution reads (views, not copies)."""
+        """Views of the arrays that Algorithm 1's resolution reads."""
         if not self.track_desirability:
             return Stored(self.keys, self.live, self.returns)
         return Stored(self.keys, self.live, self.returns, self.n_call, self.n_xi, self.xi)
@@ -239,14 +216,16 @@ class EpisodicMemory:
     def lookup(
         self, state: torch.Tensor, time: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Embed ``state [..., D]`` at ``time [...]`` (t/T) and look the keys up: ``(H, hit, slot)``, each ``[...]``."""
+        """Embed ``state [..., D]`` at ``time [...]`` (t/T) and look the keys up; return ``(H, hit, slot)``,
+        each ``[...]``."""
         keys = self._embed(state, torch.as_tensor(time).expand(state.shape[:-1]))
         value, hit, slot = self.lookup_keys(keys.reshape(-1, self.key_dim))
         lead = state.shape[:-1]
         return value.view(lead), hit.view(lead), slot.view(lead)
 
     def lookup_keys(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """For raw keys ``[M, key_dim]``: ``(H [M] float32 (0 on a miss), hit [M] bool, slot [M] int64 (-1))``."""
+        """Look up raw keys ``[M, key_dim]``; return ``(H [M], hit [M], slot [M])`` with H = 0 and slot = -1
+        on a miss."""
         keys = keys.to(self.device, torch.float32)
         slot, _ = self.index.nearest(self.index.standardise(keys), self.keys, self.live)
         hit = slot >= 0
@@ -254,12 +233,12 @@ class EpisodicMemory:
         return value, hit, slot
 
     def written_by(self, slot: torch.Tensor) -> torch.Tensor:
-        """The id of the episode whose transition the entries ``slot`` hold (-1 for slot -1 or unknown)."""
+        """Return the id of the episode that wrote each entry of ``slot``; -1 for slot -1 or unknown."""
         slot = slot.to(self.device)
         return torch.where(slot >= 0, self.episode[slot.clamp(min=0)], UNKNOWN_EPISODE)
 
     def desirable_ratio(self, slot: torch.Tensor) -> torch.Tensor:
-        """EMU's N_xi / N_call of the entries ``slot`` (float32; 0 where slot is -1)."""
+        """Return EMU's N_xi / N_call of the entries ``slot`` as float32; 0 where slot is -1."""
         if not self.track_desirability:
             raise RuntimeError("desirable_ratio needs track_desirability=True")
         slot = slot.to(self.device)
@@ -270,7 +249,7 @@ class EpisodicMemory:
     def sample(
         self, n: int, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``n`` entries drawn uniformly (with replacement): ``(state [n, D], time [n], H [n])``."""
+        """Draw ``n`` entries uniformly with replacement; return ``(state [n, D], time [n], H [n])``."""
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty episodic memory")
         draw = torch.randint(self.size, (n,), generator=generator).to(self.device)
@@ -293,13 +272,18 @@ class EpisodicMemory:
         desirable: torch.Tensor | None = None,
         episode: torch.Tensor | None = None,
     ) -> InsertStats:
-        """Algorithm 1 on whole episodes: ``state [E, T, D]``, ``counts [E, T, cells, 2]`` (the env's
-        ``state_counts`` of the same states), ``reward [E, T]`` (r_t of s_t -> s_{t+1}), ``desirable [E]``
-        (EMU; required when tracking desirability), ``episode [E]`` (int ids of the episodes, recorded
-        with the entries they write; -1 when not given).
+        """Apply Algorithm 1 to whole episodes.
 
-        ``T`` may be ``max_steps + 1``: the terminal state s_T is stored too, with a reward of 0 after it
-        (so H(s_T) = 0, as EMC stores it) and the last transition has a memory to look up."""
+        ``T`` may be ``max_steps + 1``: the terminal state s_T is then stored with H(s_T) = 0, as EMC
+        stores it, so that the last transition has a memory to look up.
+
+        Args:
+            state: ``[E, T, D]``.
+            counts: ``[E, T, cells, 2]``, the env's ``state_counts`` of the same states.
+            reward: ``[E, T]``, r_t of s_t -> s_{t+1}.
+            desirable: ``[E]``, EMU's flag; required when tracking desirability.
+            episode: ``[E]`` int ids recorded with the entries they write; -1 when not given.
+        """
         E, T = self._check_batch(state, counts, reward, desirable, episode)
         D, cells, n = self.codec.state_dim, self.codec.n_cells, E * T
         if n == 0:
@@ -375,7 +359,7 @@ class EpisodicMemory:
         desirable: torch.Tensor | None,
         episode: torch.Tensor | None,
     ) -> tuple[int, int]:
-        """The batch's ``(E, T)``, after checking the shapes :meth:`insert` needs and that it fits."""
+        """Check the shapes :meth:`insert` needs and that the batch fits; return ``(E, T)``."""
         D, cells = self.codec.state_dim, self.codec.n_cells
         if state.dim() != 3 or state.shape[2] != D:
             raise ValueError(f"state must have shape [E, T, {D}], got {tuple(state.shape)}")
@@ -408,7 +392,7 @@ class EpisodicMemory:
         return count
 
     def _maintain(self) -> None:
-        """Rebuild the index (and refresh the statistics) when it is stale or the buffer has doubled."""
+        """Rebuild the index and refresh the statistics when it is stale or the buffer has doubled."""
         stale = len(self.index) - self.size
         if self.size >= 2 * max(self.stats_size, 1) or stale > self.stale_fraction * self.size:
             self.rebuild_index()
@@ -422,10 +406,8 @@ class EpisodicMemory:
     # ------------------------------------------------------------------------------------ re-embedding
     def refresh_keys(self, chunk: int = 4096) -> None:
         """Re-embed every stored state with the current embedding, then rebuild the index and statistics.
-
-        Chunks of ``chunk`` states are decoded into one reused buffer and embedded under inference mode
-        (a few thousand states per chunk keep the CNN's activations in cache).
-        """
+        States are decoded ``chunk`` at a time into one reused buffer, small enough to keep the CNN's
+        activations in cache."""
         _check_int("chunk", chunk, 1)
         buffer = torch.empty(min(chunk, max(self.size, 1)), self.codec.state_dim, device=self.device)
         with torch.inference_mode():
@@ -444,19 +426,16 @@ class EpisodicMemory:
 
     # ------------------------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
-        """The filled part (oldest first), the ring position, the statistics and the codec's identity.
-
-        Plain tensors, ints, floats, strings, bools and dicts only: ``torch.load(weights_only=True)`` reads it
-        (the format: :mod:`mcrs.memory.persistence`).
-        """
+        """Return the filled part (oldest first), the ring position, the statistics and the codec's identity.
+        It holds only plain types, so ``torch.load(weights_only=True)`` reads it
+        (:mod:`mcrs.memory.persistence`)."""
         return memory_state(self)
 
     @torch.inference_mode(False)
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict`; refuses one from another map, key_dim, or that does not fit.
+        """Restore a :meth:`state_dict`, refusing one from another map or key_dim, or one that does not fit.
 
-        With the same capacity the entries return to their slots, so look-ups answer exactly as before
-        (slots included); otherwise they are laid out oldest first from slot 0. The saved statistics are
-        restored (not recomputed); this memory's own tolerance and gamma apply from now on.
-        """
+        With the same capacity the entries return to their slots, so look-ups answer exactly as before;
+        otherwise they are laid out oldest first from slot 0. The saved statistics are restored, and this
+        memory's own tolerance and gamma apply from now on."""
         restore_memory(self, state)

@@ -1,54 +1,30 @@
 """Exact nearest-neighbour-within-delta look-ups over the keys of D_E, batched and always current.
 
-Why not a KD-tree: the reference code (EMC/EMU) queries a scipy tree one transition at a time and rebuilds
-it every 200 episodes, so entries added in between are invisible. Only neighbours within the tolerance
-``delta`` matter, so a sorted grid answers exactly, for a whole batch at once, and new entries are visible
-immediately (an insertion merges a few thousand records into the sorted arrays: no rebuild).
+The reference code (EMC/EMU) queries a scipy KD-tree one transition at a time and rebuilds it every 200
+episodes, so entries added in between are invisible. Only neighbours within ``delta`` matter, so a sorted
+grid answers exactly for a whole batch, and new entries are visible at once without a rebuild.
 
-**Geometry.** Distances are taken on *standardised* keys ``z = (x - mean) / std`` (float32, per dimension,
-statistics over the buffer; see "Statistics" below). "Within delta" means, exactly and everywhere (index,
-tests, reference implementation)::
+Distances are taken on standardised float32 keys ``z = (x - mean) / std``. "Within delta" means, in the
+index, the tests and the reference implementation alike::
 
-    squared_distance(z_q, z_p) < float32(delta ** 2)
+    squared_distance(z_q, z_p) < float32(delta ** 2)      # shape="ball"
+    max_i |z_q[i] - z_p[i]| <= float32(delta)             # shape="box", EMU's np.allclose(atol=delta)
 
-with :func:`squared_distance` summing the float32 squared differences dimension by dimension in order
-(``shape="ball"``), or, with ``shape="box"`` (EMU's ``np.allclose(..., rtol=0, atol=delta)``)::
+In both shapes the nearest candidate has the smallest squared distance, the lowest slot on ties.
 
-    max_i |z_q[i] - z_p[i]| <= float32(delta)
+A record is a sort key, the slot and a copy of the slot's standardised key, in arrays sorted by the key
+(:mod:`mcrs.memory.sorted_records`). The sort key ``(prefix << 32) + order(z[d-1])`` packs the cells
+``floor(z[i] / side)`` of the first d - 1 dimensions (each modulo ``2^b``, ``b = 31 // (d - 1)``) and an
+order-preserving integer of the last coordinate. So for each of the at most ``2^(d-1)`` cells met by ``[z -
+reach, z + reach]`` a query reads one contiguous range, found by ``searchsorted``. New records go to a
+small sorted array, merged into the main one past a sixteenth of its size.
 
-In both shapes the nearest candidate is the one of smallest squared distance (lowest slot on ties).
-
-**Layout (why it is fast at a large delta).** At eq. 35's tolerance a query's neighbourhood holds up to
-tens of entries, so the cost is the candidates. A record is a *sort key*, the slot and a copy of the slot's
-standardised key, in three arrays sorted by the sort key (CSR: candidates are read from consecutive
-memory, not gathered from random slots). The sort key is ``(prefix << 32) + order(z[d-1])``: ``prefix``
-packs the cell ``floor(z[i] / side)`` of the first d - 1 dimensions (each modulo ``2^b``,
-``b = 31 // (d - 1)``; cells sharing a prefix only add candidates), ``order`` maps the last coordinate's
-float32 to an order-preserving integer. So for each of the at most ``2^(d-1)`` cells met by
-``[z - reach, z + reach]`` a query reads exactly the records whose last coordinate lies in
-``[z[d-1] - reach, z[d-1] + reach]`` (two ``searchsorted`` on sorted values: cache-friendly), then tests
-them dimension by dimension, dropping a pair as soon as a coordinate leaves the box (or the ball's
-partial sum, which can only grow, reaches delta^2). Added records go to a small sorted *recent* array,
-merged into the main one past a sixteenth of it (a full copy, amortised over many insertions).
-The record arrays and their merge live in :mod:`mcrs.memory.sorted_records`; this module is the grid.
-
-**Exactness.** Cells have side ``2 delta (1 + 2^-10)``, computed in float64 from the float32 z. A point
-within delta of a query differs from it by less than ``reach = delta (1 + 2^-11)`` in every dimension (in
-either shape; float32 subtraction is correctly rounded), so it lies in a cell met by
-``[z - reach, z + reach]``: at most two per dimension since ``2 reach < side``. The last coordinate's
-bounds are rounded outwards to float32 (``nextafter``). Exact for ``|z| / delta < 1e10``.
-
-**Records and staleness.** The owner adds a record for every slot whose key it writes (new or shifted;
-:meth:`GridIndex.add`). Records left behind (a shifted slot's old key, an evicted slot) stay: a candidate
-counts only if its slot is live and its copy equals the slot's current standardised key, so a stale record
-only costs a little time until the next rebuild purges it.
-
-**Statistics.** ``mean`` and ``std`` change only at :meth:`GridIndex.rebuild` with ``refresh=True`` or
-through :meth:`GridIndex.set_statistics` (on an empty index or before a rebuild); the owner
-(:class:`~mcrs.memory.episodic.EpisodicMemory`) documents when. Between two refreshes a look-up always
-equals the brute-force nearest neighbour over the current live keys standardised with the current
-statistics (ties: lowest slot).
-"""
+Cells have side ``2 delta (1 + 2^-10)`` and queries reach ``delta (1 + 2^-11)``, at most two cells per
+dimension, with the last coordinate's bounds rounded outwards; this is exact for ``|z| / delta < 1e10``.
+The owner adds a record for every slot whose key it writes. Stale records stay until the next rebuild, but
+a candidate counts only if its slot is live and holds the record's key. The statistics change only at a
+refreshing rebuild or :meth:`GridIndex.set_statistics`; in between, a look-up equals the brute-force
+nearest neighbour over the live keys."""
 
 from __future__ import annotations
 
@@ -82,11 +58,9 @@ NO_MATCH = torch.iinfo(torch.int64).max
 
 
 def squared_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """float32 squared Euclidean distance over the last dimension, summed dimension by dimension in order.
-
-    The one definition of the distance used by the index, the memory and the tests, so that results are
-    bit-for-bit comparable (a library reduction may sum in another order).
-    """
+    """float32 squared Euclidean distance over the last dimension, summed dimension by dimension in order. The
+    index, the memory and the tests all use this definition, so their results agree bit for bit; a library
+    reduction may sum in another order."""
     diff = a - b
     sq = diff * diff
     out = sq[..., 0]
@@ -96,8 +70,8 @@ def squared_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 class QueryPlan(NamedTuple):
-    """For each (query, cell) pair its ``query [R]``; the sort-key bounds (R starts, R exclusive stops)
-    ascending (``sorted [2R]``) with the permutation that sorted them (``order``)."""
+    """Per (query, cell) pair its ``query [R]``, and the sort-key bounds (R starts, R exclusive stops) sorted,
+    with their ``order``."""
 
     query: torch.Tensor
     sorted: torch.Tensor
@@ -108,11 +82,11 @@ class GridIndex:
     """The sorted grid over the slots of a key storage ``[capacity, key_dim]`` owned by the caller.
 
     Args:
-        key_dim: dimension d of the keys (1..8; a query searches up to 2^(d-1) cells).
-        tolerance: the match tolerance on standardised keys (> 0): the ball's radius or the box's half-side.
-        capacity: number of slots (records carry the slot number).
-        device: where the records live (the keys' device).
-        shape: ``"ball"`` or ``"box"`` (see the module docstring).
+        key_dim: dimension d of the keys, 1..8; a query searches up to 2^(d-1) cells.
+        tolerance: delta on standardised keys: the ball's radius or the box's half-side.
+        capacity: number of slots.
+        device: where the records live, the keys' device.
+        shape: ``"ball"`` or ``"box"``.
     """
 
     def __init__(
@@ -164,7 +138,8 @@ class GridIndex:
         return (keys.to(torch.float32) - self.mean) / self.std
 
     def set_statistics(self, keys: torch.Tensor) -> None:
-        """Per-dimension mean and std (population, floor ``STD_FLOOR``) of ``keys [n, d]``; kept if n == 0."""
+        """Set per-dimension mean and population std (floor ``STD_FLOOR``) of ``keys [n, d]``; keep them if n
+        == 0."""
         if keys.shape[0] == 0:
             return
         wide = keys.to(torch.float64)
@@ -181,11 +156,9 @@ class GridIndex:
         return ((cells & mask) << self._shifts).sum(-1)
 
     def query_cubes(self, z: torch.Tensor) -> QueryPlan:
-        """The :class:`QueryPlan` of standardised queries ``z [M, d]`` (reusable against any records).
-
-        The cells met by ``[z - reach, z + reach]`` in the first d - 1 dimensions are built dimension by
-        dimension (bit i of a cell's number: the lower or the upper cell along dimension i).
-        """
+        """Return the :class:`QueryPlan` of standardised queries ``z [M, d]``, reusable against any records.
+        The cells met by ``[z - reach, z + reach]`` are built dimension by dimension: bit i of a cell's
+        number picks the lower or the upper cell along dimension i."""
         M, d = z.shape
         wide = z.to(torch.float64)
         last = wide[:, -1]
@@ -224,10 +197,8 @@ class GridIndex:
         )
 
     def rebuild(self, keys: torch.Tensor, slots: torch.Tensor, refresh: bool = True) -> None:
-        """Index exactly ``slots`` (their keys ``keys[slots]``), dropping every old record.
-
-        With ``refresh`` the statistics are first recomputed over those keys.
-        """
+        """Index exactly ``slots``, dropping every old record; ``refresh`` first recomputes the statistics
+        over their keys."""
         current = keys[slots]
         if refresh:
             self.set_statistics(current)
@@ -236,12 +207,12 @@ class GridIndex:
         self._buffers = [None, None]
 
     def clear(self) -> None:
-        """Drop every record (the statistics stay)."""
+        """Drop every record; the statistics stay."""
         self.records, self.recent = self.records.prefix(0), self.recent.prefix(0)
 
     def add(self, keys: torch.Tensor, slots: torch.Tensor) -> None:
-        """Add records for ``slots`` whose keys are ``keys [n, d]`` (raw, not standardised); the caller adds
-        one for every slot whose key it wrote (new or changed)."""
+        """Add records for ``slots`` with raw keys ``keys [n, d]``; the caller adds one for every slot whose
+        key it writes."""
         if slots.numel() == 0:
             return
         self.recent = merge_records(self.recent, self._records_of(self.standardise(keys), slots))
@@ -249,14 +220,14 @@ class GridIndex:
             self.flush()
 
     def flush(self) -> None:
-        """Merge the recent records into the main ones now (:meth:`add` does it past a share of them)."""
+        """Merge the recent records into the main ones now."""
         if self.recent.order.numel():
             total = len(self)
             self.records = merge_records(self.records, self.recent, self._spare(total))
             self.recent = self.recent.prefix(0)
 
     def _spare(self, size: int) -> Records:
-        """The merge buffer (of two, reused: no fresh pages per insert) not holding the current records."""
+        """Return whichever of the two reused merge buffers does not hold the current records."""
         holding = self.records.order.untyped_storage().data_ptr()
         for i, buffer in enumerate(self._buffers):
             if buffer is not None and buffer.order.untyped_storage().data_ptr() == holding:
@@ -282,12 +253,11 @@ class GridIndex:
         live: torch.Tensor,
         cubes: QueryPlan | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """For standardised queries ``z [M, d]``: ``(slot [M] int64, squared distance [M] float32)`` of the
-        nearest live slot within delta (lowest slot on ties), or ``(-1, inf)``.
+        """Return ``(slot [M] int64, squared distance [M] float32)`` of the nearest live slot within delta of
+        each query, or ``(-1, inf)``.
 
-        ``keys [capacity, d]`` are the current raw keys, ``live [capacity]`` bool marks the live slots;
-        ``cubes`` may pass :meth:`query_cubes` of ``z`` when already computed.
-        """
+        ``z [M, d]`` are standardised queries, ``keys [capacity, d]`` the current raw keys and ``live
+        [capacity]`` the live slots. ``cubes`` may pass :meth:`query_cubes` of ``z``."""
         M = z.shape[0]
         best = torch.full((M,), NO_MATCH, dtype=torch.int64, device=z.device)
         cubes = self.query_cubes(z) if cubes is None else cubes
@@ -307,8 +277,8 @@ class GridIndex:
         live: torch.Tensor,
         cubes: QueryPlan | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every (query, live slot) pair within delta, each once: ``(query [P], slot [P], d2 [P])``,
-        sorted by query then slot."""
+        """Return every (query, live slot) pair within delta once, as ``(query [P], slot [P], d2 [P])`` sorted
+        by query then slot."""
         cubes = self.query_cubes(z) if cubes is None else cubes
         parts = list(self._candidates(z, cubes, keys, live))
         return unique_pairs(parts, self.slot_bits, z.device)
@@ -316,8 +286,9 @@ class GridIndex:
     def pairs(
         self, z: torch.Tensor, cubes: QueryPlan | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every ordered pair ``(i, j)``, ``i != j``, of the points ``z [n, d]`` within delta of each other:
-        ``(i [P], j [P], d2 [P])`` sorted by i then j (used to find interacting transitions in a batch)."""
+        """Return every ordered pair ``(i, j)``, ``i != j``, of the points ``z [n, d]`` within delta of each
+        other. The result ``(i [P], j [P], d2 [P])`` is sorted by i then j; it finds interacting
+        transitions in a batch."""
         n = z.shape[0]
         records = self._records_of(z, torch.arange(n, device=z.device))
         parts = []
@@ -341,11 +312,9 @@ class GridIndex:
         keys: torch.Tensor | None = None,
         live: torch.Tensor | None = None,
     ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-        """Yield, chunk by chunk, the candidates ``(query, slot, d2)`` within delta (duplicates possible).
-
-        With ``keys`` and ``live`` a candidate also needs a live slot whose current standardised key is the
-        record's copy (stale records drop out); without them every record is current (``pairs``).
-        """
+        """Yield, chunk by chunk, the candidates ``(query, slot, d2)`` within delta; duplicates are possible.
+        With ``keys`` and ``live`` a candidate also needs a live slot whose current standardised key equals
+        the record's copy, so stale records drop out."""
         if z.shape[0] == 0 or records.order.numel() == 0:
             return
         plan = self.query_cubes(z) if cubes is None else cubes
@@ -390,9 +359,9 @@ class GridIndex:
     def _inside(
         self, columns: torch.Tensor, query: torch.Tensor, coords: torch.Tensor, index: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The candidate pairs (query, record index) within delta and their squared distance, tested one
-        dimension at a time in order (the float32 sum of :func:`squared_distance`): a pair leaves as soon as
-        a coordinate falls outside the box, or the ball's partial sum (which can only grow) reaches delta^2."""
+        """Return the candidate pairs (query, record index) within delta and their squared distance.
+        Dimensions are tested in order, summing as :func:`squared_distance` does; a pair leaves as soon as
+        it fails the box or its partial sum reaches delta^2."""
         d2 = None
         for i in range(columns.shape[0]):
             diff = columns[i].index_select(0, query) - coords[i].index_select(0, index)
@@ -410,8 +379,8 @@ class GridIndex:
         return query, index, d2
 
     def matches(self, a: torch.Tensor, b: torch.Tensor, d2: torch.Tensor | None = None) -> torch.Tensor:
-        """Whether standardised keys ``a`` and ``b`` ``[..., d]`` are within delta (this index's shape);
-        ``d2`` may pass their :func:`squared_distance`."""
+        """Whether standardised keys ``a`` and ``b`` ``[..., d]`` are within delta; ``d2`` may pass their
+        squared distance."""
         if self.shape == "box":
             return (a - b).abs().amax(-1) <= self.tolerance_f32
         return (squared_distance(a, b) if d2 is None else d2) < self.tolerance_sq

@@ -1,10 +1,8 @@
-"""Saving and restoring the episodic buffer D_E: the checkpoint format of
-:class:`~mcrs.memory.episodic.EpisodicMemory` (its ``state_dict`` and ``load_state_dict``).
+"""The checkpoint format of :class:`~mcrs.memory.episodic.EpisodicMemory`: its ``state_dict`` and
+``load_state_dict``.
 
-Apart from the memory because the format (what is saved, which saved buffers fit which memory) is a
-contract with the checkpoints on disk, not part of Algorithm 1. The functions take the memory as an
-argument and read and write its arrays; they do not import its module, which imports them.
-"""
+The format is a contract with checkpoints on disk, so it lives apart from Algorithm 1. The functions take
+the memory as an argument and do not import its module, which imports them."""
 
 from __future__ import annotations
 
@@ -17,9 +15,8 @@ UNKNOWN_EPISODE = -1  # the episode id of an entry written without one (and of e
 
 
 def memory_state(memory: Any) -> dict[str, Any]:
-    """The filled part of ``memory`` (oldest first), the ring position, the statistics and the codec's
-    identity: plain tensors, ints, floats, strings, bools and dicts only (``torch.load(weights_only=True)``
-    reads it)."""
+    """Return the filled part of ``memory`` (oldest first), the ring position, the statistics and the codec's
+    identity. It holds only plain types, so ``torch.load(weights_only=True)`` reads it."""
     slots = memory.live_slots()
     state: dict[str, Any] = {
         "version": STATE_VERSION,
@@ -39,8 +36,8 @@ def memory_state(memory: Any) -> dict[str, Any]:
 
 
 def restore_memory(memory: Any, state: dict[str, Any]) -> None:
-    """Restore a :func:`memory_state` into ``memory``; refuses one from another map, key_dim, or that does
-    not fit (see :meth:`~mcrs.memory.episodic.EpisodicMemory.load_state_dict`)."""
+    """Restore a :func:`memory_state` into ``memory``, refusing one from another map or key_dim, or one that
+    does not fit."""
     if state.get("version") != STATE_VERSION:
         raise ValueError(f"episodic memory state version {state.get('version')!r}, expected {STATE_VERSION}")
     mismatch = memory.codec.identity_mismatch(state["codec"])

@@ -1,33 +1,26 @@
 """Algorithm 1's batched resolution: what a batch of transitions does to the episodic buffer D_E.
 
-It works over arrays and the index only, never over the memory object: :func:`in_order` lays a batch
-out in the algorithm's order, :func:`resolve` reads the stored keys, returns, live flags and EMU counters
-(:class:`Stored`: views, never written) and the :class:`~mcrs.memory.index.GridIndex` of the live keys,
-and returns the batch's net effect (:class:`Outcome`: which transitions create entries, which slots they
-shift, the new counters); :func:`apply_outcome` writes it into the arrays it is handed.
-:class:`~mcrs.memory.episodic.EpisodicMemory` owns the storage and drives the three.
+It works over arrays and the index only. :func:`in_order` lays a batch out in the algorithm's order,
+:func:`resolve` reads the stored entries (:class:`Stored`, views never written) and the
+:class:`~mcrs.memory.index.GridIndex` of the live keys and returns the batch's net effect
+(:class:`Outcome`), and :func:`apply_outcome` writes it. :class:`~mcrs.memory.episodic.EpisodicMemory` owns
+the storage and drives the three.
 
-**Insertion (Algorithm 1).** The transitions of a batch ``[E, T]`` are taken in the order episode
-0..E-1, each walked backwards t = T-1..0, with ``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``. For each: the
-nearest key within delta (standardised, strict ``<``) -> if ``H < R``: ``H <- R`` and the entry's key,
-state and step are replaced (memory shift), else nothing; no key within delta -> a new entry
-``(x, R, s, t)``. The result is *exactly* that of this sequential loop, computed in batch: a transition
-that has no other batch key within delta and shares no stored neighbour (within delta) with another
-transition cannot see or be seen by the rest of the batch, so it is resolved from one batched look-up;
-only the others (rare) are walked in order, in plain Python over precomputed candidate lists.
+Insertion: the transitions of a batch ``[E, T]`` are taken episode by episode, each walked backwards, with
+``R_t = r_t + gamma R_{t+1}`` and ``R_T = 0``. The nearest key within delta is updated when ``H < R``: H,
+key, state and step are replaced (a memory shift). With no key within delta a new entry ``(x, R, s, t)`` is
+added. The result equals that of this sequential loop. A transition with no batch key within delta that
+shares no stored neighbour with another transition cannot interact with the rest, so it is resolved from
+one batched look-up; only the few others are walked in order.
 
-**EMU (``track_desirability``).** Each entry also counts N_call (hits) and N_xi (hits from desirable
-transitions) and carries xi (reached by a desirable transition). A transition is desirable when its
-episode is, or - EMU's optimality propagation - when a later transition of its episode (walked earlier,
-backwards in time) hit an entry whose xi is set: desirability spreads backwards from any state known to
-lead to a desirable outcome. On a hit: N_call += 1, N_xi += desirable; the entry shifts when ``H < R``
-*or* when a desirable transition meets an entry with xi False; a shift sets ``H <- R`` (in the second case
-possibly lower: EMU's reference re-anchors the entry on the desirable trajectory) and
-``xi <- xi or desirable``; with ``counter_reset`` (EMU's ``flag_memory_cnt_reset``, off by default there
-and here) that second kind of shift also restarts N_call = N_xi = 1. A new entry starts with N_call = 1,
-N_xi = xi = desirable. Tracking walks every transition in order (the propagation chains them).
-
-"""
+EMU (``track_desirability``): each entry also counts N_call (hits) and N_xi (hits from desirable
+transitions) and carries xi (reached by a desirable transition). A transition is desirable when its episode
+is, or when a later transition of its episode hit an entry with xi set (EMU's optimality propagation). On a
+hit N_call += 1 and N_xi += desirable. The entry shifts when ``H < R`` or when a desirable transition meets
+an entry with xi False; the shift sets ``H <- R``, possibly lower in the second case as EMU's reference
+does, and ``xi <- xi or desirable``. With ``counter_reset`` (EMU's ``flag_memory_cnt_reset``, off by
+default) the second kind of shift restarts N_call = N_xi = 1. A new entry starts with N_call = 1 and N_xi =
+xi = desirable. Tracking walks every transition in order, since the propagation chains them."""
 
 from __future__ import annotations
 
@@ -42,11 +35,9 @@ from mcrs.memory.index import GridIndex
 
 
 def discounted_returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
-    """``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``, over the last dimension, in float32.
-
-    One loop over T in numpy (float32 multiply, then add: no fused multiply-add, so every element is
-    rounded the same way): a hundred small torch ops would cost ten times more.
-    """
+    """Return ``R_t = r_t + gamma R_{t+1}``, ``R_T = 0``, over the last dimension in float32. One numpy loop
+    over T, multiplying then adding without fused multiply-add, rounds every element the same way and costs
+    a tenth of the torch ops."""
     r = reward.detach().to("cpu", torch.float32).numpy()
     returns = np.empty_like(r)
     running = np.zeros(r.shape[:-1], dtype=np.float32)
@@ -58,8 +49,7 @@ def discounted_returns(reward: torch.Tensor, gamma: float) -> torch.Tensor:
 
 
 class Transitions(NamedTuple):
-    """A batch of whole episodes ``[E, T]`` in Algorithm 1's order: transition ``j = e * T + (T - 1 - t)``
-    (episode by episode, each walked backwards in time)."""
+    """A batch of whole episodes ``[E, T]`` in Algorithm 1's order: transition ``j = e * T + (T - 1 - t)``."""
 
     flat: torch.Tensor  # [n] int64: the row e * T + t of transition j in the flattened batch
     returns: torch.Tensor  # [n] float32: R_t = r_t + gamma R_{t+1}, R_T = 0
@@ -68,7 +58,7 @@ class Transitions(NamedTuple):
 
 
 def in_order(reward: torch.Tensor, gamma: float, desirable: torch.Tensor | None = None) -> Transitions:
-    """The transitions of ``reward [E, T]`` (and ``desirable [E]``) in the order Algorithm 1 walks them."""
+    """Return the transitions of ``reward [E, T]`` and ``desirable [E]`` in the order Algorithm 1 walks them."""
     E, T = reward.shape
     dev = reward.device
     flat = (torch.arange(E, device=dev).unsqueeze(1) * T + torch.arange(T - 1, -1, -1, device=dev)).reshape(
@@ -85,7 +75,7 @@ def in_order(reward: torch.Tensor, gamma: float, desirable: torch.Tensor | None 
 
 @dataclass(frozen=True)
 class Stored:
-    """The stored entries as resolution reads them: the memory's own ``[capacity]`` arrays (no copies)."""
+    """The stored entries as resolution reads them: views of the memory's own ``[capacity]`` arrays."""
 
     keys: torch.Tensor  # [C, key_dim] float32 raw keys
     live: torch.Tensor  # [C] bool
@@ -100,14 +90,13 @@ class Stored:
 
     @property
     def track(self) -> bool:
-        """Whether EMU's desirability is tracked (the counters are given)."""
+        """Whether EMU's desirability is tracked."""
         return self.n_call is not None
 
 
 class Neighbours(NamedTuple):
-    """Pairs of keys within delta, sorted by ``asker`` then ``other``: ``asker [P]`` is a transition,
-    ``other [P]`` a stored slot (its stored neighbours) or another transition (its batch neighbours),
-    ``d2 [P]`` their squared distance."""
+    """Pairs of keys within delta, sorted by ``asker`` then ``other``. ``asker [P]`` is a transition, ``other
+    [P]`` a stored slot or another transition, ``d2 [P]`` their squared distance."""
 
     asker: torch.Tensor
     other: torch.Tensor
@@ -116,7 +105,7 @@ class Neighbours(NamedTuple):
 
 @dataclass
 class Outcome:
-    """The net effect of a batch on the memory (slots and the transitions whose data they take)."""
+    """The net effect of a batch on the memory: slots, and the transitions whose data they take."""
 
     new_from: torch.Tensor  # [nu] transitions that create an entry, in order (they take the next slots)
     shift_slots: torch.Tensor  # existing or new slots whose key/state/H end up from another transition
@@ -140,14 +129,13 @@ def resolve(
     T: int,
     counter_reset: bool = False,
 ) -> Outcome:
-    """Algorithm 1 for the transitions ``z [n, d]`` (standardised keys, in order; ``T`` per episode)
-    against the ``stored`` entries, whose live keys ``index`` holds; ``R [n]`` their returns, ``wanted
-    [n]`` their episodes' desirability (EMU), ``write`` the slot of the first new entry.
+    """Apply Algorithm 1 to the transitions ``z [n, d]`` against the ``stored`` entries, whose live keys
+    ``index`` holds.
 
-    Independent transitions (no batch key within delta, no stored neighbour within delta shared with
-    another transition) are resolved from the batched look-up; the interacting ones sequentially. With
-    EMU's desirability every transition is walked in order: the propagation within an episode chains them.
-    """
+    ``z`` are standardised keys in order, ``T`` per episode, ``R [n]`` their returns, ``wanted [n]`` their
+    episodes' desirability and ``write`` the slot of the first new entry. Independent transitions are
+    resolved from the batched look-up and interacting ones sequentially; with desirability tracking all are
+    walked in order."""
     dev, track = stored.keys.device, stored.track
     n = z.shape[0]
     cubes = index.query_cubes(z)
@@ -212,9 +200,9 @@ def resolve(
 def _by_distance(
     owner: torch.Tensor, item: torch.Tensor, d2: torch.Tensor, n: int
 ) -> tuple[list[int], list[int], list[float]]:
-    """Candidate lists in CSR form: ``(start [n + 1], item, d2)`` with the candidates of ``owner`` j at
-    ``start[j]:start[j + 1]``, sorted by distance, ties in the given order (the inputs come sorted by
-    owner then item, and the sort is stable)."""
+    """Return candidate lists in CSR form ``(start [n + 1], item, d2)``, each owner's sorted by distance. The
+    candidates of owner j are at ``start[j]:start[j + 1]``; ties keep the input order, which is sorted by
+    owner then item."""
     order = torch.sort((owner << 32) | d2.view(torch.int32).to(torch.int64), stable=True).indices
     counts = torch.bincount(owner, minlength=n)
     start = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
@@ -234,18 +222,14 @@ def _sequential(
     T: int,
     counter_reset: bool,
 ) -> dict[str, Any]:
-    """Algorithm 1, in order, for the interacting transitions ``group`` (ascending), given their stored
-    neighbours ``near`` and batch neighbours ``pairs`` and the transitions' ``returns``; with desirability
-    tracking ``group`` is every transition, and ``wanted`` spreads backwards within an episode
-    (transitions ``e*T .. e*T + T-1`` walk it from s_{T-1} down) from any hit on an entry with xi set.
+    """Walk Algorithm 1 in order over the interacting transitions ``group``.
 
-    Their candidates are precomputed, each transition's sorted by distance (then slot, or then position
-    in the batch): stored neighbours within delta (valid while the entry still holds its old key: the
-    first valid one is the best) and earlier batch keys within delta (valid while some entry holds that
-    key: scanned until the distance exceeds the best found, as ties compare slots). Independent
-    transitions touch none of these, except that their new entries take slots: a new entry of transition
-    j takes slot ``write + (new entries before j)``.
-    """
+    ``near`` holds their stored neighbours and ``pairs`` their batch neighbours, each sorted by distance. A
+    stored neighbour is valid while the entry still holds its old key, so the first valid one is the best.
+    An earlier batch key is valid while some entry holds it, so those are scanned until the distance
+    exceeds the best found. A new entry of transition j takes slot ``write + (new entries before j)``. With
+    desirability tracking ``group`` is every transition and ``wanted`` spreads backwards within an episode
+    from any hit on an entry with xi set."""
     dev, C, track = stored.keys.device, stored.capacity, stored.track
     in_group = torch.zeros_like(new_free)
     in_group[group] = True
@@ -327,8 +311,8 @@ def _walked(
     shifts: int,
     counters: tuple[set[int], dict[int, int], dict[int, int], dict[int, bool]] | None,
 ) -> dict[str, Any]:
-    """What the walk of :func:`_sequential` did, as tensors: the new entries, the slots whose data a
-    transition took, and (EMU) the counters of every slot it changed."""
+    """Return what the walk of :func:`_sequential` did as tensors: new entries, shifted slots and, for EMU,
+    changed counters."""
     owner_slots = sorted(owner)
     result: dict[str, Any] = {
         "new": torch.tensor(new, dtype=torch.int64, device=dev),
@@ -359,13 +343,12 @@ def apply_outcome(
     by_transition: Sequence[tuple[torch.Tensor, torch.Tensor]],
     by_row: Sequence[tuple[torch.Tensor, torch.Tensor]],
 ) -> torch.Tensor:
-    """Write ``outcome``'s new entries and shifts into the memory's ``[C, ...]`` arrays; the new slots.
+    """Write ``outcome``'s new entries and shifts into the memory's ``[C, ...]`` arrays; return the new slots.
 
-    ``by_transition`` pairs an array with its batch values in transition order (``[n, ...]``), ``by_row``
-    with values in the batch's row order (``[n, m]``, read through ``flat``). New entries take consecutive
-    ring slots from ``write`` (slice copies) and are marked ``live``; the shifts come after (row copies: a
-    new entry may be shifted later in the same batch). EMU's counters are the caller's to write.
-    """
+    ``by_transition`` pairs an array with its batch values in transition order, ``by_row`` with values in
+    the batch's row order, read through ``flat``. New entries take consecutive ring slots from ``write``
+    and are marked ``live``; the shifts come after, since a new entry may be shifted later in the same
+    batch. EMU's counters are the caller's to write."""
     C = live.shape[0]
     nu = outcome.new_from.numel()
     first = min(nu, C - write)
@@ -389,8 +372,8 @@ def apply_outcome(
 
 
 def _row_view(t: torch.Tensor) -> torch.Tensor:
-    """``t [N, ...]`` (contiguous) as ``[N, m]`` of the widest integer type dividing a row's bytes: row
-    copies (``index_copy_``) of narrow types are several times slower than of int64."""
+    """View ``t [N, ...]`` as ``[N, m]`` of the widest integer type dividing a row's bytes, since row copies
+    of narrow types are slow."""
     t = t.view(t.shape[0], -1)
     row_bytes = t.shape[1] * t.element_size()
     for dtype in (torch.int64, torch.int32, torch.int16):

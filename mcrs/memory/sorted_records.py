@@ -1,10 +1,7 @@
-"""The sorted record arrays behind :class:`~mcrs.memory.index.GridIndex` and the array primitives they use.
+"""The sorted record arrays behind :class:`~mcrs.memory.index.GridIndex`, and the array primitives they use.
 
-Kept apart from the index because they know nothing of its geometry (cells, delta, statistics): a
-:class:`Records` is three arrays sorted by an int64 key, :func:`merge_records` merges a few sorted records
-into many with one masked copy per array, and the helpers pick numpy's implementation on the CPU where it
-is faster than torch's (docs/PERFORMANCE.md, "Figures behind constants").
-"""
+They know nothing of the index's geometry. The helpers use numpy on CPU where it is faster than torch
+(docs/PERFORMANCE.md, "Figures behind constants")."""
 
 from __future__ import annotations
 
@@ -26,14 +23,14 @@ def float_order(x: torch.Tensor) -> torch.Tensor:
 
 
 def flatnonzero(mask: torch.Tensor) -> torch.Tensor:
-    """Indices ``[k]`` of the True elements of a 1-D ``mask`` (numpy's on the CPU: about 10x torch's)."""
+    """Return the indices ``[k]`` of the True elements of a 1-D ``mask``; numpy on CPU is about 10x faster."""
     if mask.device.type == "cpu":
         return torch.from_numpy(np.flatnonzero(mask.numpy()))
     return mask.nonzero().squeeze(1)
 
 
 def repeat(values: torch.Tensor, counts: torch.Tensor, total: int) -> torch.Tensor:
-    """``values[i]`` repeated ``counts[i]`` times (``total`` in all; numpy's on the CPU: about 2x torch's)."""
+    """Repeat ``values[i]`` ``counts[i]`` times, ``total`` in all; numpy on CPU is about 2x faster."""
     if values.device.type == "cpu":
         return torch.from_numpy(np.repeat(values.numpy(), counts.numpy()))
     return torch.repeat_interleave(values, counts, output_size=total)
@@ -47,8 +44,8 @@ def search_sorted(sequence: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
 
 
 class Records(NamedTuple):
-    """Index records sorted by ``order`` (int64 sort keys), with their ``slot`` (int32) and the copy of the
-    slot's standardised key they were made from (``coords [d, n]`` float32, one row per dimension)."""
+    """Index records sorted by int64 ``order``, with their int32 ``slot`` and the standardised key copy
+    ``coords [d, n]``."""
 
     order: torch.Tensor
     slot: torch.Tensor
@@ -59,10 +56,8 @@ class Records(NamedTuple):
 
 
 def merge_records(a: Records, b: Records, out: Records | None = None) -> Records:
-    """Merge sorted records ``b`` (few) into sorted records ``a`` (many): one masked copy per array.
-
-    ``out`` (capacity at least the sum, not overlapping ``a``) may provide the memory.
-    """
+    """Merge the few sorted records ``b`` into the many ``a`` with one masked copy per array; ``out`` may
+    provide the memory."""
     total = a.order.numel() + b.order.numel()
     if out is None:
         out = Records(
@@ -97,8 +92,8 @@ def _merge_into(
 def unique_pairs(
     parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]], bits: int, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Concatenate (query, slot, d2) parts, sorted by query then slot, each pair once (a slot can be found
-    twice: a stale record and a current one with the same key)."""
+    """Concatenate (query, slot, d2) parts sorted by query then slot, each pair once; a stale and a current
+    record may both find a slot."""
     if not parts:
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         return empty, empty, torch.zeros(0, dtype=torch.float32, device=device)

@@ -1,11 +1,8 @@
-"""Attaching the episodic memory to training batches: a TorchRL replay-buffer transform.
+"""A TorchRL replay-buffer transform that attaches the episodic memory's answers to training batches.
 
-``ReplayBuffer.sample()`` runs its transforms on the sampled batch, so appending :class:`EpisodicLookup`
-to the episode buffer (``buffer.append_transform(EpisodicLookup(memory, T))``) gives every sampled batch
-the memory's answer for each transition ``t -> t+1``, looked up with the *current* embedding and keys (so
-the answers follow the memory as it grows and as its embedding is retrained). Any TorchRL replay buffer of
-episodes ``[B, T+1]`` with a state key works; the loss reads the keys written here.
-"""
+``ReplayBuffer.sample()`` runs its transforms on the sampled batch, so
+``buffer.append_transform(EpisodicLookup(memory, T))`` looks up every transition ``t -> t+1`` with the
+current embedding and keys. Any replay buffer of episodes ``[B, T+1]`` with a state key works."""
 
 from __future__ import annotations
 
@@ -16,24 +13,22 @@ from torchrl.envs import Transform
 
 
 class EpisodicLookup(Transform):
-    """Writes, for each transition ``t`` of an episode batch ``[B, T+1]``:
+    """Write the memory's answer for each transition ``t`` of an episode batch ``[B, T+1]``.
 
-    - ``memory_return`` ``[B, T+1, 1]``: H(phi(s_{t+1}, (t+1)/T)), 0 without a memory within delta;
-    - ``memory_hit`` ``[B, T+1]``: whether a stored key lies within delta;
-    - ``memory_ratio`` ``[B, T+1, 1]`` (``with_ratio=True``, EMU): N_xi / N_call of the entry found.
+    - ``memory_return`` ``[B, T+1, 1]``: H(phi(s_{t+1}, (t+1)/T)), 0 without a memory within delta; -
+    ``memory_hit`` ``[B, T+1]``: whether a stored key lies within delta; - ``memory_ratio`` ``[B, T+1, 1]``
+    with ``with_ratio=True`` (EMU): N_xi / N_call of the entry found.
 
-    The last row (no transition) is padding: no hit.
-
-    When the batch carries the id of each episode (``episode_key``, ``[B, T+1]`` int), the transform also
-    counts, over the look-ups since :meth:`pop_statistics`, how many hit and how many hit an entry written
-    by *another* episode (``foreign``): the memory only adds to a trajectory's own return when that happens.
+    The last row has no transition and never hits. When the batch carries episode ids (``episode_key``),
+    the transform also counts hits on entries written by another episode, since only those add to a
+    trajectory's own return.
 
     Args:
-        memory: an :class:`~mcrs.memory.EpisodicMemory` (``lookup(state, time) -> (value, hit, slot)``).
-        max_steps: the episode length T (the embedding's time input is t / T).
+        memory: an :class:`~mcrs.memory.EpisodicMemory`.
+        max_steps: the episode length T.
         state_key: where the batch keeps the states ``s_0 .. s_T``.
-        with_ratio: also write the desirability ratio (EMU's incentive).
-        episode_key: where the batch keeps the episode ids (optional in the batch).
+        with_ratio: also write EMU's desirability ratio.
+        episode_key: where the batch may keep the episode ids.
     """
 
     def __init__(
@@ -75,7 +70,7 @@ class EpisodicLookup(Transform):
         return tensordict
 
     def pop_statistics(self) -> dict[str, float]:
-        """``lookup_hit_rate`` and ``foreign_hit_rate`` (per look-up) since the last call; empty if none."""
+        """Return ``lookup_hit_rate`` and ``foreign_hit_rate`` since the last call; empty if none."""
         lookups, hits, foreign = self._counts.tolist()
         self._counts.zero_()
         if not lookups:

@@ -1,8 +1,6 @@
-"""The networks: the recurrent agent and its acting policy, the mixers, the state embeddings phi.
+"""The networks: the recurrent agent and its acting policy, the mixers and the state embeddings phi.
 
-Plain ``nn.Module`` / TorchRL modules that know nothing of training: the loss (``mcrs.objectives``) and
-the experiment (``mcrs.experiment``) sit above them. From the environment they read only its layouts.
-"""
+They know nothing of training, and read only the layouts of the environment."""
 
 from mcrs.models.acting import AgentStep, EpsilonGreedy, make_acting_policy, recurrent_primer
 from mcrs.models.agent import RecurrentAgent

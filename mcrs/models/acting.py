@@ -1,25 +1,23 @@
-"""The acting policy: recurrent agent step -> masked greedy choice -> masked epsilon-greedy exploration.
+"""The acting policy: a recurrent agent step, a masked greedy choice, then masked epsilon-greedy exploration.
 
-Built from TorchRL parts: :class:`~torchrl.modules.QValueModule` (greedy choice honouring the action mask),
-:class:`~torchrl.modules.EGreedyModule` (random allowed action with probability epsilon; we set epsilon in
-closed form instead of its per-frame ``step`` loop) and a :class:`~torchrl.envs.TensorDictPrimer` that
-carries the recurrent state and the last action from one step to the next. At ``step_count == 0`` the
-hidden state and the last action are reset, so the policy needs no reset hook.
+It is built from TorchRL's :class:`~torchrl.modules.QValueModule` and
+:class:`~torchrl.modules.EGreedyModule`, with epsilon set in closed form, and a
+:class:`~torchrl.envs.TensorDictPrimer` that carries the recurrent state and the last action between steps.
+Both are reset at ``step_count == 0``, so the policy needs no reset hook.
 
-Keys (``group`` is ``"agents"``; ``E`` envs, ``N`` agents, ``A`` actions, ``H`` hidden width)::
+Keys (``E`` envs, ``N`` agents, ``A`` actions, ``H`` hidden width)::
 
     reads   (group, "observation")          [E, N, obs]   the env
             (group, "action_mask")          [E, N, A]     the env (bool)
-            (group, "rnn_hidden")           [E, N, H]     recurrent_primer (a transform of the env)
+            (group, "rnn_hidden")           [E, N, H]     recurrent_primer
             (group, "last_action")          [E, N]        recurrent_primer
-            "step_count"                    [E, 1]        TorchRL's StepCounter (MCRSEnv writes its own)
+            "step_count"                    [E, 1]        TorchRL's StepCounter or MCRSEnv
     writes  (group, "action_value")         [E, N, A]
             (group, "action")               [E, N]        int64
             (group, "chosen_action_value")  [E, N, 1]
             ("next", group, "rnn_hidden"), ("next", group, "last_action")
 
-A missing key raises a ``KeyError`` that names the transform providing it.
-"""
+A missing key raises a ``KeyError`` naming the transform that provides it."""
 
 from __future__ import annotations
 
@@ -73,7 +71,7 @@ class AgentStep(TensorDictModuleBase):
 
 
 class RememberAction(TensorDictModuleBase):
-    """Carry this step's actions to the next step (the agents' last-action input)."""
+    """Carry this step's actions to the next step as the agents' last-action input."""
 
     def __init__(self, group: str = "agents") -> None:
         super().__init__()
@@ -90,7 +88,7 @@ class EpsilonGreedy(EGreedyModule):
     """TorchRL's masked epsilon-greedy with a closed-form linear schedule over env steps."""
 
     def set_env_steps(self, env_steps: int) -> float:
-        """Set epsilon for ``env_steps`` collected so far; returns it."""
+        """Set and return epsilon for ``env_steps`` collected so far."""
         start, end = float(self.eps_init), float(self.eps_end)
         fraction = min(1.0, env_steps / max(1, self.annealing_num_steps))
         eps = start + (end - start) * fraction
@@ -129,11 +127,9 @@ def make_acting_policy(
     eps_anneal_steps: int = 50_000,
     group: str = "agents",
 ) -> tuple[TensorDictSequential, TensorDictSequential, EpsilonGreedy]:
-    """Return ``(greedy_policy, exploration_policy, epsilon_module)`` sharing the agent's parameters.
-
-    The exploration policy draws a random *allowed* action with probability epsilon, per agent, under
-    ``ExplorationType.RANDOM`` (the collector's default); the greedy policy never explores.
-    """
+    """Return ``(greedy_policy, exploration_policy, epsilon_module)`` sharing the agent's parameters. Under
+    ``ExplorationType.RANDOM``, the collector's default, the exploration policy draws a random allowed
+    action per agent with probability epsilon."""
     device = next(agent.parameters()).device
     greedy = TensorDictSequential(
         AgentStep(agent, group),

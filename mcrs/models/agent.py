@@ -1,10 +1,8 @@
 """The recurrent agent network shared by all agents (pymarl's RNN agent).
 
-``Linear(in, H) -> ReLU -> GRU(H) -> Linear(H, n_actions)``; the input is the agent's observation,
-optionally followed by the one-hot last action and the one-hot agent id (parameter sharing needs the id
-to let agents specialise). Agents are folded into the batch, so one ``nn.GRU`` call unrolls every agent
-of every episode at once: no Python loop over agents or time.
-"""
+``Linear(in, H) -> ReLU -> GRU(H) -> Linear(H, n_actions)`` over the agent's observation, optionally
+followed by the one-hot last action and the one-hot agent id, which lets shared parameters specialise.
+Agents are folded into the batch, so one ``nn.GRU`` call unrolls every agent of every episode."""
 
 from __future__ import annotations
 
@@ -19,12 +17,9 @@ class RecurrentAgent(nn.Module):
     """Per-agent Q network with parameter sharing.
 
     Args:
-        obs_dim: size of one agent's observation.
-        n_actions: number of discrete actions.
-        n_agents: number of agents (size of the one-hot id).
         hidden_dim: width of the input layer and of the GRU.
         agent_id: append the one-hot agent id to the input.
-        last_action: append the one-hot previous action (zeros at the first step).
+        last_action: append the one-hot previous action, zeros at the first step.
     """
 
     def __init__(
@@ -48,15 +43,12 @@ class RecurrentAgent(nn.Module):
         self.fc1 = nn.Linear(self.input_dim, hidden_dim)
         self.rnn = nn.GRU(hidden_dim, hidden_dim, batch_first=True)
         self.fc2 = nn.Linear(hidden_dim, n_actions)
-        #: Unroll with :func:`mcrs.models.gru.gru_sequence` on the CPU (the same values to float rounding,
-        #: less CPU time; EMC's curiosity networks switch it on); False keeps ``nn.GRU``.
+        #: Unroll with :func:`mcrs.models.gru.gru_sequence` on CPU, which is cheaper; EMC's curiosity sets it.
         self.fused_cpu_gru = False
 
     def build_inputs(self, observation: torch.Tensor, last_action: torch.Tensor | None) -> torch.Tensor:
-        """Concatenate ``observation [..., N, obs]`` with the optional one-hot inputs.
-
-        ``last_action`` is ``[..., N]`` int64 with ``-1`` meaning "no previous action" (the first step).
-        """
+        """Concatenate ``observation [..., N, obs]`` with the optional one-hot inputs; ``last_action`` -1
+        means none."""
         parts = [observation]
         if self.last_action:
             if last_action is None:
@@ -69,7 +61,7 @@ class RecurrentAgent(nn.Module):
         return torch.cat(parts, dim=-1) if len(parts) > 1 else observation
 
     def step(self, inputs: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One time step: ``inputs [..., N, in]``, ``hidden [..., N, H]`` -> ``(q [..., N, A], hidden)``."""
+        """Run one time step: ``inputs [..., N, in]``, ``hidden [..., N, H]`` -> ``(q [..., N, A], hidden)``."""
         lead = inputs.shape[:-1]
         x = F.relu(self.fc1(inputs)).reshape(1, -1, self.hidden_dim)
         h = hidden.reshape(1, -1, self.hidden_dim)
@@ -78,7 +70,7 @@ class RecurrentAgent(nn.Module):
         return self.fc2(h), h
 
     def unroll(self, inputs: torch.Tensor) -> torch.Tensor:
-        """Whole episodes from a zero hidden state: ``inputs [B, T, N, in]`` -> ``q [B, T, N, A]``."""
+        """Unroll whole episodes from a zero hidden state: ``inputs [B, T, N, in]`` -> ``q [B, T, N, A]``."""
         B, T, N, _ = inputs.shape
         if self.fused_cpu_gru and inputs.device.type == "cpu":  # time-major: each step's rows are contiguous
             x = self.fc1(inputs).transpose(0, 1).reshape(T, B * N, self.hidden_dim).relu_()
@@ -86,6 +78,5 @@ class RecurrentAgent(nn.Module):
         x = F.relu(self.fc1(inputs))  # [B, T, N, H]
         x = x.permute(0, 2, 1, 3).reshape(B * N, T, self.hidden_dim)  # agents folded into the batch
         out, _ = self.rnn(x)
-        # fc2 on the contiguous GRU output, then the view back: on the permuted [B, T, N, H] view the
-        # linear layer ran as a batched matmul over an expanded weight, several times slower on a CPU.
+        # fc2 on the contiguous GRU output: on the permuted view it runs as a much slower batched matmul.
         return self.fc2(out).reshape(B, N, T, self.n_actions).permute(0, 2, 1, 3)

@@ -1,9 +1,7 @@
 """Training a state embedding: paper eq. 31's loss and the trainer that fits an embedding on D_E's samples.
 
-Apart from :mod:`mcrs.models.embeddings` because the networks need none of it: the random projection is
-never trained, and the memory only calls an embedding. The experiment builds an :class:`EmbeddingTrainer`
-for a trainable embedding and fits it on samples of the episodic buffer.
-"""
+The networks in :mod:`mcrs.models.embeddings` need none of this, since the random projection is never
+trained and the memory only calls an embedding."""
 
 from __future__ import annotations
 
@@ -22,14 +20,12 @@ def embedding_loss(
     returns: torch.Tensor,
     state_weight: float = 0.1,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Paper eq. 31: ``mean (H - H_hat)^2 + state_weight * mean (s - s_hat)^2``.
+    """Paper eq. 31: ``mean (H - H_hat)^2 + state_weight * mean (s - s_hat)^2``, with already scaled
+    ``returns``.
 
-    Both terms are means over their values: this project's choice (EMU's code sums both, ``MSELoss
-    (reduction="sum")``, on raw H; docs/MEMORY.md). A sum over the D values (hundreds of belief cells)
-    would make the reconstruction outweigh the return by that factor, and eq. 31 with lambda_1 = 0.1
-    means the return term to dominate, so that keys carry return semantics.
-    ``returns`` must already be scaled (see :class:`EmbeddingTrainer`).
-    """
+    Both terms are means over their values, this project's choice; EMU's code sums both on raw H
+    (docs/MEMORY.md). A sum over hundreds of belief cells would let the reconstruction outweigh the return,
+    while eq. 31 with lambda_1 = 0.1 means the return to dominate so that keys carry return semantics."""
     if not embedding.trainable:
         raise TypeError(f"{type(embedding).__name__} is not trainable: it has no decoder and no loss")
     keys = embedding(state, time)
@@ -50,17 +46,13 @@ Sampler = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
 
 class EmbeddingTrainer:
-    """Trains a trainable embedding on a sample of the episodic buffer (EMU: 102,400 samples, batches of 1024).
+    """Train a trainable embedding on a sample of the episodic buffer (EMU: 102,400 samples, batches of 1024).
 
-    ``fit(sample)`` draws ``samples`` entries in one call ``sample(samples) -> (state [n, D], time [n],
-    returns [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches, each gradient
-    clipped to norm ``grad_clip`` (EMU clips at pymarl's 10). The returns are standardised by the mean and
-    std of the drawn sample before the loss: ours reach hundreds, a decoder head would need thousands of
-    Adam steps to reach raw returns, and the affine map keeps their ranking, which is what shapes the
-    keys. In raw units the return term would outweigh the state term std(H)^2 times more, so standardised
-    returns are the conservative choice: the return term still dominates (eq. 31's lambda_1 = 0.1, both
-    terms per-value means), and the trainer reports both terms, weighted, for every fit.
-    """
+    ``fit(sample)`` draws ``samples`` entries with ``sample(samples) -> (state [n, D], time [n], returns
+    [n])`` and takes ``samples // batch_size`` Adam steps on shuffled minibatches, clipping gradients to
+    norm ``grad_clip`` (EMU: pymarl's 10). Returns are standardised by the sample's mean and std first:
+    ours reach hundreds, which a decoder head would need thousands of steps to fit, and the affine map
+    keeps their ranking. The return term still dominates, and every fit reports both weighted terms."""
 
     def __init__(
         self,
@@ -93,11 +85,9 @@ class EmbeddingTrainer:
         self.optimizer = torch.optim.Adam(embedding.parameters(), lr=lr)
 
     def fit(self, sample: Sampler, generator: torch.Generator | None = None) -> dict[str, float]:
-        """Draw ``samples`` entries, take ``samples // batch_size`` Adam steps; mean stats over the steps.
-
-        The minibatches are a permutation drawn from ``generator`` (the global RNG when None). The stats
-        also give the return standardisation used (``return_mean``, ``return_std``).
-        """
+        """Draw ``samples`` entries and take ``samples // batch_size`` Adam steps; return the mean stats over
+        the steps. The minibatch order is drawn from ``generator``, or the global RNG when None. The stats
+        include the return standardisation used (``return_mean``, ``return_std``)."""
         device = next(self.embedding.parameters()).device
         state, time, returns = (torch.as_tensor(x).to(device, torch.float32) for x in sample(self.samples))
         n = state.shape[0]
@@ -128,7 +118,7 @@ class EmbeddingTrainer:
         return result
 
     def state_dict(self) -> dict[str, Any]:
-        """The optimizer's state (Adam moments), for checkpoints; the embedding saves its own."""
+        """Return the optimizer's state for checkpoints; the embedding saves its own."""
         return {"optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

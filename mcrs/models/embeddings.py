@@ -1,24 +1,17 @@
-"""State embeddings phi: the keys of the episodic buffer D_E (spec "Embeddings phi"; paper section 5, eq. 31).
+"""State embeddings phi, the keys of the episodic buffer D_E (paper section 5, eq. 31).
 
-The three memories of the paper differ only here:
+The paper's three memories differ only here:
 
 - :class:`RandomProjection` (EMC): a fixed Gaussian projection of the flat state, never trained.
 - :class:`FCEmbedding` (SEMU, EMU's dCAE): a fully connected encoder-decoder conditioned on t/T.
-- :class:`CNNEmbedding` (CNN-SEMU, paper figure 3d/3f): the map part of the state goes through a CNN whose last
-  layer covers the whole remaining map, the rest (positions) and t/T through a fully connected layer.
+- :class:`CNNEmbedding` (CNN-SEMU, figure 3d/3f): a CNN over the map part of the state, and a fully
+  connected layer over the positions and t/T.
 
-Every embedding maps ``state [*B, D]`` (float32) and ``time [*B]`` (t/T in [0, 1]) to keys ``[*B, key_dim]``.
-The trainable ones also have a decoder, ``reconstruct(keys, time) -> (state_hat [*B, D], return_hat [*B])``,
-trained by :class:`~mcrs.models.embedding_training.EmbeddingTrainer` on
-:func:`~mcrs.models.embedding_training.embedding_loss` (eq. 31).
-
-The state layout is the env's, read from :class:`mcrs.env.layout.MapImage`: the maps m(U) and m(F) come
-first, as an image ``[2, width, height]`` (the env's ``state_map``); the remaining values are the scaled
-positions. The CNN needs only the map's size, not the numbers of UAVs, zones and targets behind it.
-
-Parameters are initialised from ``seed`` inside :func:`torch.random.fork_rng`: two embeddings built with one
-seed are identical, and building one leaves the global RNG where it was.
-"""
+Every embedding maps ``state [*B, D]`` and ``time [*B]`` (t/T) to keys ``[*B, key_dim]``. The trainable
+ones also decode, ``reconstruct(keys, time) -> (state_hat [*B, D], return_hat [*B])``, and are trained by
+:class:`~mcrs.models.embedding_training.EmbeddingTrainer` on eq. 31. The state starts with the maps as an
+image ``[2, width, height]`` (:class:`mcrs.env.layout.MapImage`). Parameters are drawn from ``seed`` inside
+:func:`torch.random.fork_rng`, so one seed gives one embedding and the global RNG is untouched."""
 
 from __future__ import annotations
 
@@ -38,7 +31,7 @@ Kernel = int | tuple[int, int]
 
 # ------------------------------------------------------------------------------------------------ helpers
 def positive_int(name: str, value: Any) -> int:
-    """``value`` if it is a positive int (not a bool), else a ValueError naming ``name``."""
+    """Return ``value`` if it is a positive int, else raise a ValueError naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ValueError(f"{name} must be a positive int, got {value!r}")
     return value
@@ -65,7 +58,7 @@ def _flatten_inputs(state: torch.Tensor, time: torch.Tensor | float | None, stat
 
 
 def _linear_with_time(layer: nn.Linear, x: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-    """``layer(cat([x, time[:, None]], -1))`` without the concatenation (a copy of every state otherwise)."""
+    """Compute ``layer(cat([x, time[:, None]], -1))`` without copying every state into a concatenation."""
     weight = layer.weight
     out = F.linear(x, weight[:, :-1], layer.bias)
     return out + time.unsqueeze(-1) * weight[:, -1]
@@ -84,11 +77,8 @@ def conv_output_size(size: int, kernel: int, stride: int, padding: int) -> int:
 
 
 def default_cnn_kernels(map_shape: tuple[int, int], layers: int = 3) -> list[tuple[int, int]]:
-    """Paper figure 3f generalised: 3x3 stride-2 layers, then one kernel the size of the remaining map.
-
-    20x20 -> 10 -> 5 -> 5x5 kernel (the paper's); 10x10 -> 5 -> 3 -> 3x3; 15x15 -> 8 -> 4 -> 4x4; a
-    non-square map gets a rectangular last kernel.
-    """
+    """Return figure 3f's layers for any map: 3x3 stride-2 layers, then one kernel the size of the remaining
+    map. 20x20 -> 10 -> 5 -> 5x5 kernel (the paper's); 10x10 -> 5 -> 3 -> 3x3; 15x15 -> 8 -> 4 -> 4x4."""
     size_x, size_y = map_shape
     for _ in range(layers - 1):
         size_x, size_y = conv_output_size(size_x, 3, 2, 1), conv_output_size(size_y, 3, 2, 1)
@@ -100,9 +90,8 @@ class StateEmbedding(nn.Module):
     """Base class: ``forward(state [*B, D], time [*B]) -> keys [*B, key_dim]`` for any leading shape ``*B``."""
 
     trainable: bool = True
-    # On the CPU and without autograd, batches are encoded this many states at a time: the activations
-    # then stay in the caches instead of streaming through memory (faster: docs/PERFORMANCE.md, "Figures
-    # behind constants"). Same result; GPUs take the batch in one pass.
+    # On CPU without autograd, batches are encoded this many states at a time so the activations stay in
+    # cache (docs/PERFORMANCE.md, "Figures behind constants"). GPUs take the batch in one pass.
     inference_chunk: int = 1024
 
     def __init__(self, state_dim: int, key_dim: int) -> None:
@@ -126,16 +115,14 @@ class StateEmbedding(nn.Module):
         return keys
 
     def workspace(self, rows: int, like: torch.Tensor) -> torch.Tensor | None:
-        """Scratch memory reused by every chunk of one chunked pass (None: the embedding needs none)."""
+        """Return scratch memory reused by every chunk of a chunked pass, or None."""
         return None
 
     def encode(
         self, state: torch.Tensor, time: torch.Tensor | None, workspace: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """Keys of a flat batch: ``state [N, D]``, ``time [N]`` -> ``[N, key_dim]`` (inputs already checked).
-
-        ``workspace`` is :meth:`workspace`'s scratch memory, given only in chunked inference passes.
-        """
+        """Return keys ``[N, key_dim]`` of a checked flat batch; ``workspace`` is given only in chunked
+        inference passes."""
         raise NotImplementedError
 
     def reconstruct(
@@ -146,12 +133,8 @@ class StateEmbedding(nn.Module):
 
 
 class RandomProjection(StateEmbedding):
-    """EMC's key: ``x = s @ P`` with ``P [D, key_dim]`` drawn once from N(0, 1/key_dim), i.e. std 1/sqrt(key_dim).
-
-    This is EMC's ``rng.normal(0, 1/sqrt(latent_dim), (latent_dim, state_dim))`` (spec: N(0, 1/dim(x))).
-    ``P`` is a buffer (saved in the state dict, moved by ``.to``), not a parameter: it is never trained, and
-    the time is ignored.
-    """
+    """EMC's key ``x = s @ P``, with ``P [D, key_dim]`` drawn once from N(0, 1/key_dim). This is EMC's
+    ``rng.normal(0, 1/sqrt(latent_dim), ...)``. ``P`` is a buffer, never trained; the time is ignored."""
 
     trainable = False
 
@@ -221,15 +204,12 @@ class FCEmbedding(_EncoderDecoder):
 
 
 class CNNEmbedding(_EncoderDecoder):
-    """CNN-SEMU's encoder (paper figure 3d, 3f): a CNN on the map, a fully connected layer on the rest.
+    """CNN-SEMU's encoder (paper figure 3d, 3f): a CNN on the map and a fully connected layer on the rest.
 
-    The head of the state is the map image ``[2, width, height]`` (m(U), m(F): the env's ``state_map``,
-    :class:`~mcrs.env.layout.MapImage`). It goes through ``len(channels)`` convolutions: 3x3 stride 2 padding 1
-    layers, then a stride-1 unpadded layer whose kernel is the remaining spatial size, so its single output
-    position sees the whole map (paper: 20x20 -> 10 -> 5 -> 5x5 kernel), each followed by a ReLU. The rest of
-    the state (positions) and t/T go through ``Linear(rest + 1, hidden) -> ReLU``. The two feature vectors are
-    concatenated and mapped linearly to the key.
-    """
+    The map image ``[2, width, height]`` goes through 3x3 stride-2 padded convolutions, then an unpadded
+    one whose kernel covers the remaining map, each followed by a ReLU. The positions and t/T go through
+    ``Linear(rest + 1, hidden) -> ReLU``. The two feature vectors are concatenated and mapped linearly to
+    the key."""
 
     def __init__(
         self,
@@ -280,18 +260,13 @@ class CNNEmbedding(_EncoderDecoder):
         self.output = nn.Linear(channels[-1] + hidden_dim, key_dim)
 
     def workspace(self, rows: int, like: torch.Tensor) -> torch.Tensor:
-        """A channels-last map image ``[rows, width, height, 2]`` that every chunk copies its maps into.
-
-        A fresh image per chunk would make the allocator fetch (and page-fault) new memory each time: on
-        2 cores that cost more than the convolutions.
-        """
+        """Return a channels-last image ``[rows, width, height, 2]`` reused by every chunk; fresh ones cost
+        more page faults than the convolutions on 2 cores."""
         return like.new_empty(rows, *self.map_shape, 2)
 
     def map_features(self, state: torch.Tensor, workspace: torch.Tensor | None = None) -> torch.Tensor:
-        """CNN features ``[N, channels[-1]]`` of the map image at the head of a flat batch ``state [N, D]``.
-
-        The image is laid out channels-last (NHWC), oneDNN's native layout on the CPU (no reorders).
-        """
+        """Return CNN features ``[N, channels[-1]]`` of the maps of ``state [N, D]``, laid out channels-last
+        for oneDNN on CPU."""
         image = self.map_image.image(state)
         if workspace is None:
             h = image.contiguous(memory_format=torch.channels_last)
@@ -338,11 +313,8 @@ def make_embedding(
     cnn_channels: Sequence[int] = (8, 16, 32),
     seed: int = 0,
 ) -> StateEmbedding:
-    """Build the embedding ``kind`` ("random" EMC, "fc" SEMU, "cnn" CNN-SEMU), parameters drawn from ``seed``.
-
-    The trainable ones are initialised inside ``torch.random.fork_rng`` seeded with ``seed``: deterministic,
-    and the global RNG is left untouched.
-    """
+    """Build the embedding ``kind`` ("random" EMC, "fc" SEMU, "cnn" CNN-SEMU) with parameters drawn from
+    ``seed``."""
     if kind not in EMBEDDINGS:
         raise ValueError(f"kind must be one of {EMBEDDINGS}, got {kind!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):

@@ -1,17 +1,13 @@
-"""A CPU GRU over whole sequences that costs less than ``nn.GRU``: EMC's curiosity unrolls four per update.
+"""A CPU GRU over whole sequences that is cheaper than ``nn.GRU``; EMC's curiosity unrolls four per update.
 
-Why not ``nn.GRU`` on the CPU: ATen precomputes the input gates of every step in one GEMM whose
-``[T*M, 3H]`` output does not stay in cache (and, without autograd, runs it as a batched matmul over an
-expanded weight), and its backward pass stacks per-step gradients and runs one weight-gradient GEMM per
-step. Here the input gates are computed step by step (the working set stays in cache), the backward pass
-keeps the gate gradients of all steps so that each weight gradient is one GEMM, and the large buffers are
-reused between calls instead of being allocated (and page-faulted in) afresh.
+On CPU, ``nn.GRU`` computes the input gates of every step in one GEMM whose output leaves the cache, and
+its backward pass runs one weight-gradient GEMM per step. Here the input gates are computed step by step,
+the backward pass makes each weight gradient one GEMM, and large buffers are reused between calls.
 
-The forward pass performs ATen's operations in ATen's order (only the input-gate GEMM is split by step), the
-backward pass sums in another order: values and gradients agree with ``nn.GRU`` to float rounding
-(``tests/test_gru.py``). One backward pass per graph (``retain_graph`` and a second pass are refused).
-Input time-major ``[T, M, in]``, zero initial state, one layer, biases: what :class:`RecurrentAgent` uses.
-"""
+The forward pass does ATen's operations in ATen's order; the backward pass sums in another order, so values
+and gradients agree with ``nn.GRU`` to float rounding (``tests/test_gru.py``). A graph allows one backward
+pass. It covers what :class:`RecurrentAgent` uses: time-major input ``[T, M, in]``, a zero initial state,
+one layer, biases."""
 
 from __future__ import annotations
 
@@ -33,7 +29,7 @@ class _Buffers:
 
 
 def _borrow(like: Tensor, shapes: tuple[tuple[int, ...], ...]) -> _Buffers:
-    """Free buffers of these shapes from this thread's pool, or new ones (the pool holds one set per key)."""
+    """Return free buffers of these shapes from this thread's pool, or new ones."""
     key = (shapes, like.dtype, like.device)
     free = getattr(_pool, "free", None)
     if free is None:
@@ -57,8 +53,8 @@ def gru_forward(
     gh_all: Tensor | None = None,
     n_all: Tensor | None = None,
 ) -> Tensor:
-    """Hidden states ``[T+1, M, H]`` (row 0 the zero initial state). Given ``gh_all [T, M, 3H]`` and
-    ``n_all [T, M, H]``, keeps there what the backward pass needs: ``r, z, W_hn h + b_hn`` and ``n``."""
+    """Return the hidden states ``[T+1, M, H]``, row 0 being the zero initial state. It keeps in ``gh_all [T,
+    M, 3H]`` and ``n_all [T, M, H]`` what the backward pass needs: r, z, ``W_hn h + b_hn`` and n."""
     T, M, _ = x.shape
     H = w_hh.shape[1]
     w_ih_t, w_hh_t = w_ih.t(), w_hh.t()
@@ -133,8 +129,8 @@ class _GRUSequence(torch.autograd.Function):
 
 
 def gru_sequence(x: Tensor, rnn: nn.GRU) -> Tensor:
-    """Outputs ``[T, M, H]`` of a one-layer ``rnn`` (with biases) over time-major ``x [T, M, in]`` from a zero
-    hidden state; differentiable with respect to ``x`` and the weights when autograd records."""
+    """Return the outputs ``[T, M, H]`` of a one-layer ``rnn`` over time-major ``x [T, M, in]`` from a zero
+    hidden state; differentiable."""
     if rnn.num_layers != 1 or rnn.bidirectional or not rnn.bias:
         raise ValueError("gru_sequence supports a one-layer, unidirectional GRU with biases")
     args = (x.contiguous(), rnn.weight_ih_l0, rnn.weight_hh_l0, rnn.bias_ih_l0, rnn.bias_hh_l0)

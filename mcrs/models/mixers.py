@@ -1,32 +1,25 @@
-"""Value mixers, all in TorchRL's :class:`~torchrl.modules.models.multiagent.Mixer` family.
+"""Value mixers in TorchRL's :class:`~torchrl.modules.models.multiagent.Mixer` family.
 
 - :class:`VDNMixer` is TorchRL's, used as is.
-- :class:`QMixer` extends TorchRL's ``QMixer`` with pymarl's two-layer hypernetworks (``hypernet_layers=2``,
-  the paper's default); with ``hypernet_layers=1`` it is TorchRL's mixer unchanged.
-- :class:`DMAQMixer` is QPLEX's ``dmaq`` mixer (duplex dueling with the multi-head attention advantage
-  weights). Besides the chosen values and the state it needs the joint action (one-hot) and each agent's
-  greedy value, so ``forward`` takes four inputs. Our :class:`~mcrs.objectives.ValueFactorisationLoss`
-  passes them.
-- :class:`QPLEXMixer` is the same mixer for TorchRL's ``QMixerLoss`` and any code written for ``QMixer``:
-  ``QMixer``'s constructor plus ``n_actions``, and it reads only keys that TorchRL's ``QValueModule`` and
-  ``QMixerLoss`` write (``chosen_action_value``, the state, ``action_value``), deriving the taken action
-  and the greedy value from them.
+- :class:`QMixer` adds pymarl's two-layer hypernetworks (``hypernet_layers=2``, the paper's default) to
+  TorchRL's ``QMixer``; with ``hypernet_layers=1`` it is TorchRL's mixer.
+- :class:`DMAQMixer` is QPLEX's ``dmaq`` mixer. It also needs the one-hot joint action and each agent's
+  greedy value, which :class:`~mcrs.objectives.ValueFactorisationLoss` passes.
+- :class:`QPLEXMixer` is the same mixer for TorchRL's ``QMixerLoss``: it reads only the keys that
+  ``QValueModule`` and ``QMixerLoss`` write and derives the taken action and greedy value from them.
 
-Every mixer maps chosen values ``[*B, N, 1]`` (and the state ``[*B, *state_shape]``) to ``[*B, 1]``.
-Wrapped in a :class:`~tensordict.nn.TensorDictModule` they read and write these keys (see
-:func:`mixer_in_keys`)::
+Every mixer maps chosen values ``[*B, N, 1]`` and the state ``[*B, *state_shape]`` to ``[*B, 1]``. As a
+:class:`~tensordict.nn.TensorDictModule` it reads and writes (:func:`mixer_in_keys`)::
 
     ("agents", "chosen_action_value")   [*B, N, 1]  every mixer
     "state"                             [*B, S]     QMixer, DMAQMixer
     ("agents", "action_one_hot")        [*B, N, A]  DMAQMixer
     ("agents", "max_action_value")      [*B, N, 1]  DMAQMixer
-    ("agents", "action_value")          [*B, N, A]  QPLEXMixer (every action's value, masked ones very low)
+    ("agents", "action_value")          [*B, N, A]  QPLEXMixer (masked actions very low)
     "chosen_action_value"               [*B, 1]     output
 
-The state can be any tensor of shape ``[*B, *state_shape]``; a task without a global state (VMAS) can
-pass the agents' stacked observations: ``state_key=("agents", "observation")``,
-``state_shape=(N, obs_dim)``.
-"""
+A task without a global state (VMAS) can pass the stacked observations: ``state_key=("agents",
+"observation")``, ``state_shape=(N, obs_dim)``."""
 
 from __future__ import annotations
 
@@ -74,9 +67,7 @@ def _hypernet(in_dim: int, out_dim: int, hidden: int, layers: int, device) -> nn
 
 class QMixer(TorchRLQMixer):
     """QMIX with pymarl's hypernetworks: ``hyper_w_1`` and ``hyper_w_final`` get ``hypernet_layers`` layers.
-
-    Monotonicity (``dQ_tot/dQ_i >= 0``) comes from TorchRL's ``mix``: absolute hypernetwork weights.
-    """
+    Monotonicity (``dQ_tot/dQ_i >= 0``) comes from TorchRL's ``mix``, which takes absolute weights."""
 
     def __init__(
         self,
@@ -99,17 +90,13 @@ class QMixer(TorchRLQMixer):
 
 
 class DMAQMixer(Mixer):
-    """QPLEX's ``dmaq`` mixer: ``Q_tot = V_tot + A_tot`` with ``V_tot = sum_i Q_i`` after a weighted head and
-    ``A_tot = sum_i (Q_i - maxQ_i).detach() * (lambda_i(s, a) - 1)``.
+    """QPLEX's ``dmaq`` mixer: ``Q_tot = V_tot + A_tot``.
 
-    The joint argmax of ``Q_tot`` is the agents' own argmaxes (IGM): at greedy actions every advantage is
-    zero and elsewhere it is at most zero, because ``lambda_i > 0`` and the weighted head is increasing.
+    ``V_tot = sum_i Q_i`` after a weighted head, and ``A_tot = sum_i (Q_i - maxQ_i).detach() * (lambda_i(s,
+    a) - 1)``. The joint argmax of ``Q_tot`` is the agents' own argmaxes (IGM), because ``lambda_i > 0``
+    and the weighted head is increasing.
 
     Args:
-        state_shape: shape of the global state.
-        n_agents: number of agents.
-        n_actions: number of actions (for the joint-action input of the advantage weights).
-        device: torch device.
         hypernet_embed: hidden width of the weighted head's hypernetworks.
         n_kernels: attention heads of the advantage weights.
         adv_hypernet_layers: depth of the advantage-weight extractors (1, 2 or 3). QPLEX uses 1 on SMAC
@@ -171,7 +158,8 @@ class DMAQMixer(Mixer):
         return self.mix(chosen, state, action_one_hot, max_value)
 
     def advantage_weights(self, state: torch.Tensor, action_one_hot: torch.Tensor) -> torch.Tensor:
-        """``lambda_i(s, a)`` ``[M, N]`` (> 0) for flat ``state [M, S]`` and ``action_one_hot [M, N * A]``."""
+        """Return ``lambda_i(s, a)`` ``[M, N]`` (> 0) for flat ``state [M, S]`` and ``action_one_hot [M, N *
+        A]``."""
         M, K, N = state.shape[0], self.n_kernels, self.n_agents
         key = self.key_extractors(state).abs().unsqueeze(-1) + 1e-10  # [M, K, 1]
         agents = torch.sigmoid(self.agents_extractors(state)).view(M, K, N)
@@ -203,24 +191,17 @@ class DMAQMixer(Mixer):
 
 
 class QPLEXMixer(DMAQMixer):
-    """QPLEX for TorchRL's ``QMixerLoss``: ``QMixer``'s constructor plus ``n_actions``, three inputs.
+    """QPLEX for TorchRL's ``QMixerLoss``: ``QMixer``'s constructor plus ``n_actions``, and three inputs.
 
     ``forward(chosen_action_value [*B, N, 1], state [*B, *state_shape], action_value [*B, N, A])``.
-    ``QMixerLoss`` re-runs the value network on a copy of the batch, so there ``(group, "action")`` holds
-    the *greedy* action, not the taken one; the only record of the taken action is
-    ``chosen_action_value``, which the loss gathers from ``action_value`` at the taken action. So the taken
-    action is the entry of ``action_value`` equal to ``chosen_action_value`` (an exact copy, the same test
-    TorchRL's ``QValueModule`` uses for one-hot actions; on an exact tie the first equal action is used),
-    and the greedy value is ``action_value.max(-1)`` (``QValueModule`` has already masked unavailable
-    actions). For the bootstrap value ``QMixerLoss`` passes the greedy choice, whose advantage is 0.
+    ``QMixerLoss`` re-runs the value network on a copy of the batch, so ``(group, "action")`` there holds
+    the greedy action; the taken action survives only in ``chosen_action_value``. It is found as the first
+    entry of ``action_value`` equal to it, the test ``QValueModule`` uses. The greedy value is
+    ``action_value.max(-1)``, already masked by ``QValueModule``.
 
     Args:
-        state_shape: shape of the global state (or of the stacked observations used as one).
-        mixing_embed_dim: hidden width of QPLEX's hypernetworks (its ``hypernet_embed``; its own
+        mixing_embed_dim: hidden width of QPLEX's hypernetworks (its ``hypernet_embed``; QPLEX's own
             ``mixing_embed_dim`` is unused in the reference code).
-        n_agents: number of agents.
-        n_actions: number of discrete actions.
-        device: torch device.
         n_kernels: attention heads of the advantage weights (QPLEX: 4 on SMAC, 10 on matrix games).
         adv_hypernet_layers: depth of the advantage-weight extractors (1 on SMAC, 3 on matrix games).
     """
@@ -312,7 +293,7 @@ def make_mixer(
 
 
 def mixer_in_keys(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> list[NestedKey]:
-    """The tensordict keys a mixer reads, in ``forward``'s order (see the module docstring)."""
+    """Return the tensordict keys a mixer reads, in ``forward``'s order."""
     keys: list[NestedKey] = [(group, "chosen_action_value")]
     if mixer.needs_state:
         keys.append(state_key)
@@ -343,11 +324,8 @@ class MixerModule(TensorDictModule):
 
 
 def mixer_module(mixer: Mixer, group: str = "agents", state_key: NestedKey = "state") -> MixerModule:
-    """Wrap a mixer as a TensorDictModule writing the root ``"chosen_action_value"``.
-
-    The result is what TorchRL's ``QMixerLoss`` takes as ``mixer_network``; with :class:`QPLEXMixer` it
-    reads only keys that ``QValueModule`` and ``QMixerLoss`` write.
-    """
+    """Wrap a mixer as a TensorDictModule writing the root ``"chosen_action_value"``. The result is what
+    TorchRL's ``QMixerLoss`` takes as ``mixer_network``."""
     return MixerModule(
         mixer, in_keys=mixer_in_keys(mixer, group, state_key), out_keys=["chosen_action_value"]
     )

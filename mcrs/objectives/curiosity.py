@@ -1,16 +1,12 @@
-"""EMC's curiosity (Zheng et al. 2021): an intrinsic reward from how badly a predictor network predicts
-the individual Q values of a separately trained VDN learner.
+"""EMC's curiosity (Zheng et al. 2021): an intrinsic reward from how badly a predictor predicts the Q values
+of a separate VDN learner.
 
-Per update: the VDN learner (its own recurrent agent, TorchRL's ``VDNMixer``, our TD loss on the extrinsic
-reward) takes one step and its target network follows it softly (TorchRL ``SoftUpdate``, tau 0.005); the
-predictor, an agent network of the same shape, learns to output 10x the soft target's Q values; the
-prediction error at ``t+1`` (L2 over actions, mean over agents) times ``scale`` is the intrinsic reward of
-transition ``t``. It enters the main learner's TD target only. The scale decays by ``decay_rate`` every
-``decay_cycle`` env steps (EMC's SMAC setting: 0.001, 0.9, 100k).
+Each update the VDN learner takes one TD step and its target follows softly (tau 0.005). The predictor
+learns to output 10x the soft target's Q values, and its error at ``t+1`` (L2 over actions, mean over
+agents) times ``scale`` is the intrinsic reward of transition ``t``, added to the main TD target only. The
+scale decays by ``decay_rate`` every ``decay_cycle`` env steps (EMC's SMAC setting: 0.001, 0.9, 100k).
 
-Deviation from EMC's code, on purpose: the soft target that the predictor chases is the VDN learner's own
-target network (EMC keeps a third copy); the two only differ in how often they move.
-"""
+Unlike EMC's code, which keeps a third copy, the predictor chases the VDN learner's own target network."""
 
 from __future__ import annotations
 
@@ -34,14 +30,10 @@ class EMCCuriosity(nn.Module):
     """The VDN learner, its soft target and the predictor; :meth:`update` returns the intrinsic reward.
 
     Args:
-        agent: an agent network whose architecture both the VDN learner and the predictor copy (each gets
-            its own fresh parameters, drawn from torch's generator).
-        gamma: discount of the VDN learner.
+        agent: the network whose architecture the VDN learner and the predictor copy with fresh parameters.
         scale, decay_rate, decay_cycle: the intrinsic reward scale and its step decay.
-        tau: soft target update rate.
-        grad_clip: gradient-norm clip of both networks.
-        make_optimizer: builds an optimiser over a parameter list (the trainer passes the main learner's
-            ``train.optimizer`` setting); pymarl's RMSprop (lr 5e-4, alpha 0.99, eps 1e-5) by default.
+        make_optimizer: builds an optimiser over a parameter list; pymarl's RMSprop (lr 5e-4, alpha 0.99,
+            eps 1e-5) by default.
     """
 
     def __init__(
@@ -84,13 +76,13 @@ class EMCCuriosity(nn.Module):
         self.predictor_optimizer = make(self.predictor_params)
 
     def set_env_steps(self, env_steps: int) -> float:
-        """The scale at ``env_steps`` (closed form, so a resumed run has the same schedule)."""
+        """Set the scale for ``env_steps`` in closed form, so a resumed run keeps the schedule."""
         self.scale = self.base_scale * self.decay_rate ** (int(env_steps) // self.decay_cycle)
         return self.scale
 
     def update(self, episodes: TensorDictBase, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Train the VDN learner and the predictor on ``episodes`` ``[B, T+1]``; return the intrinsic reward
-        ``[B, T+1, 1]`` (row t: transition t -> t+1; the last row is padding) and diagnostics."""
+        """Train on ``episodes`` ``[B, T+1]``; return the intrinsic reward ``[B, T+1, 1]`` (last row padding)
+        and diagnostics."""
         # The agent inputs, built once for the four unrolls (a shallow copy: the caller's batch stays as it was).
         inputs = self.vdn_loss.agent_inputs(episodes)
         shared = episodes.copy().set(self.vdn_loss.tensor_keys.agent_inputs, inputs)
@@ -119,7 +111,7 @@ class EMCCuriosity(nn.Module):
         return intrinsic, stats
 
     def state_dict_all(self) -> dict:
-        """Networks, soft target and optimisers (checkpoints)."""
+        """Return the networks, soft target and optimisers for checkpoints."""
         return {
             "modules": self.state_dict(),
             "vdn_optimizer": self.vdn_optimizer.state_dict(),

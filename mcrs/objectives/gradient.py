@@ -18,8 +18,8 @@ def gradient_step(
     step: int,
     term: str = "loss_td",
 ) -> torch.Tensor:
-    """Backward, clip, step; returns the gradient norm. Raises :class:`TrainingDiverged` before the weights
-    change when the loss or the gradient norm is NaN or infinite (``step`` and ``term`` name where)."""
+    """Backward, clip and step; return the gradient norm. Raises :class:`TrainingDiverged` before the weights
+    change when the loss or the gradient norm is not finite; ``step`` and ``term`` name where."""
     if not torch.isfinite(loss):
         raise TrainingDiverged(f"non-finite {term}={loss.item()} at env step {step}")
     optimizer.zero_grad(set_to_none=True)

@@ -1,18 +1,13 @@
 """EMU's episodic incentive (Na et al. 2024) as strategy objects, chosen once from ``algo.incentive``.
 
-One object serves both ends: the episodic memory asks it which collected episodes are desirable
-(:meth:`Incentive.desirable`, which feeds the memory's N_xi / N_call counts), the TD loss asks it for the
-incentive ``r_p`` added to its target (:meth:`Incentive.reward`). So neither the loss nor the memory's
-callback branches on the incentive's name::
+The memory asks the strategy which episodes are desirable (:meth:`Incentive.desirable`) and the TD loss
+asks it for ``r_p`` (:meth:`Incentive.reward`), so neither branches on the name::
 
     none     Incentive()             no incentive (every algorithm but EMU)
     fixed    FixedThreshold(R_thr)   desirable: return >= R_thr; r_p = gamma * N_xi/N_call * max(H - Q', 0)
     change   EvaluationThreshold()   desirable: return >= the latest evaluation return; r_p = gamma * max(H - Q', 0)
 
-with ``H = H(phi(s_{t+1}))`` the memory's value and ``Q' = Q_tot_target(s_{t+1})`` on memory hits (0 on
-misses). A new incentive subclasses :class:`Incentive` and overrides the two methods (and ``in_keys`` if it
-reads more of the batch); an algorithm hands it to the loss and the memory (``mcrs.experiment.training.algorithms``).
-"""
+Here ``H = H(phi(s_{t+1}))`` and ``Q' = Q_tot_target(s_{t+1})`` on memory hits, 0 on misses."""
 
 from __future__ import annotations
 
@@ -24,13 +19,13 @@ from mcrs.choices import INCENTIVES
 
 
 class Incentive:
-    """No incentive: the base of the strategies, and the strategy of every algorithm but EMU.
+    """No incentive: the base of the strategies.
 
     Attributes:
         name: the ``algo.incentive`` value it stands for.
-        reads_memory: whether :meth:`reward` needs the memory's look-ups (``memory_return``, ``memory_hit``).
-        in_keys: the further batch keys it reads, by their ``ValueFactorisationLoss.tensor_keys`` names.
-        tracks_desirability: whether the memory counts N_xi / N_call (episodes marked by :meth:`desirable`).
+        reads_memory: whether :meth:`reward` needs ``memory_return`` and ``memory_hit``.
+        in_keys: further batch keys it reads, by their ``ValueFactorisationLoss.tensor_keys`` names.
+        tracks_desirability: whether the memory counts N_xi / N_call.
     """
 
     name: str = "none"
@@ -39,7 +34,7 @@ class Incentive:
     tracks_desirability: bool = False
 
     def desirable(self, returns: torch.Tensor, last_eval_reward: float | None) -> torch.Tensor | None:
-        """Which episodes (returns ``[E]``) are desirable (bool ``[E]``); ``None``: no episode is marked."""
+        """Return which episodes (returns ``[E]``) are desirable as bool ``[E]``, or None."""
         return None
 
     def reward(
@@ -50,14 +45,13 @@ class Incentive:
         gamma: float,
         read: Callable[[str], torch.Tensor],
     ) -> torch.Tensor | None:
-        """The incentive ``r_p`` ``[B, T, 1]`` added to the TD target, or ``None`` for none.
+        """Return the incentive ``r_p`` ``[B, T, 1]`` added to the TD target, or None.
 
         Args:
-            memory_return: ``H(phi(s_{t+1}))`` ``[B, T, 1]`` (``None`` unless ``reads_memory``).
-            hit: the memory hits as weights ``[B, T, 1]``: 1 on a hit of a real transition, else 0.
+            memory_return: ``H(phi(s_{t+1}))`` ``[B, T, 1]``; None unless ``reads_memory``.
+            hit: 1 on a memory hit of a real transition, else 0, ``[B, T, 1]``.
             next_value: the target network's ``Q_tot(s_{t+1})`` ``[B, T, 1]``.
-            gamma: the discount.
-            read: the batch's transitions at a key of ``in_keys`` (``read("memory_ratio")`` ``[B, T, 1]``).
+            read: the batch's transitions at a key of ``in_keys``.
         """
         return None
 
@@ -88,8 +82,8 @@ class FixedThreshold(Incentive):
 
 
 class EvaluationThreshold(Incentive):
-    """EMU-change: the threshold is the latest greedy evaluation's return (none before the first: no
-    episode is desirable), and ``r_p`` drops the N_xi / N_call factor."""
+    """EMU-change: the threshold is the latest greedy evaluation's return, and ``r_p`` drops the N_xi / N_call
+    factor."""
 
     name = "change"
     reads_memory = True
@@ -111,7 +105,7 @@ INCENTIVE_TYPES: dict[str, Callable[[float], Incentive]] = {
 
 
 def make_incentive(name: str | Incentive, threshold: float = 365.0) -> Incentive:
-    """The strategy of ``algo.incentive`` ``name`` (an :class:`Incentive` is returned as it is)."""
+    """Return the strategy named ``name``; an :class:`Incentive` is returned as it is."""
     if isinstance(name, Incentive):
         return name
     if name not in INCENTIVE_TYPES:

@@ -1,62 +1,37 @@
 """The value-factorisation TD loss over whole episodes, as a TorchRL :class:`LossModule`.
 
 TorchRL's ``QMixerLoss`` works on single transitions with a feed-forward value network and no double-Q
-target; pymarl-style learners need recurrent agents unrolled over whole episodes, masked greedy choices,
-double-Q targets and optionally TD(lambda). This module does that and reuses TorchRL for the rest: any
-TorchRL :class:`~torchrl.modules.models.multiagent.Mixer` (``VDNMixer``, our ``QMixer`` and ``DMAQMixer``),
-the target parameters of :meth:`LossModule.convert_to_functional` (so ``HardUpdate``/``SoftUpdate`` work),
-and the return estimators of :mod:`torchrl.objectives.value.functional`.
+target. Pymarl-style learners need recurrent agents unrolled over whole episodes, masked greedy choices,
+double-Q targets and optionally TD(lambda). This loss adds those and reuses TorchRL's mixers, its target
+parameters (so ``HardUpdate``/``SoftUpdate`` work) and the estimators of
+:mod:`torchrl.objectives.value.functional`.
 
-Input: an *episode batch* ``[B, T + 1]`` (see :func:`mcrs.experiment.training.replay.episodes_from_rollout`, which
-turns any TorchRL collector batch into it, splitting episodes that end early). Keys, all renamable with
-:meth:`set_keys`::
+The input is an episode batch ``[B, T + 1]`` (:func:`mcrs.experiment.training.replay.episodes_from_rollout`
+builds one from any collector batch). Keys, renamable with :meth:`set_keys`::
 
-    observation   [B, T+1, N, obs]   o_0 .. o_T (o_T is the final next observation); read by the agent
-    action_mask   [B, T+1, N, A]     bool, allowed actions at every step; optional (absent: all allowed)
-    state         [B, T+1, *S]       s_0 .. s_T; QMIX and QPLEX only (VDN reads no state). A task without
-                                     a global state can use the stacked observations (state=observation)
+    observation   [B, T+1, N, obs]   o_0 .. o_T
+    action_mask   [B, T+1, N, A]     bool; optional, all allowed when absent
+    state         [B, T+1, *S]       s_0 .. s_T; QMIX and QPLEX only (state=observation works too)
     action        [B, T+1, N]        a_0 .. a_{T-1}, last row padding
-    reward        [B, T+1, 1]        r_t of the transition t -> t+1, last row padding; or per agent
-                  [B, T+1, N, 1]     (VMAS' ("agents", "reward")), reduced to a team reward by
-                                     ``reward_reduction`` ("mean", as BenchMARL, or "sum")
-    done          [B, T+1, 1]        the transition ends the episode (truncation or termination)
+    reward        [B, T+1, 1]        r_t of t -> t+1, last row padding; per agent [B, T+1, N, 1] is
+                                     reduced by reward_reduction ("mean" as BenchMARL, or "sum")
+    done          [B, T+1, 1]        the transition ends the episode
     terminated    [B, T+1, 1]        the transition ends in a terminal state (no bootstrap)
-    filled        [B, T+1]           the transition is real (False on padding and on the last row); optional
-    action_value  [B, T+1, N, A]     written by a TorchRL agent network (below), not read from the batch
-    agent_inputs  [B, T+1, N, in]    optional: the recurrent agent's inputs, already built by the caller
-                                     (used as they are instead of being built again from the batch)
+    filled        [B, T+1]           the transition is real; optional
+    action_value  [B, T+1, N, A]     written by a TorchRL agent network, not read from the batch
+    agent_inputs  [B, T+1, N, in]    optional recurrent-agent inputs built by the caller
 
-The agent network is either our :class:`~mcrs.models.agent.RecurrentAgent` (unrolled over whole episodes
-from a zero hidden state; every item must start at a reset) or any TorchRL ``TensorDictModule`` writing
-per-agent action values at the ``action_value`` key, e.g. a ``QValueActor`` over ``MultiAgentMLP``. The
-latter is feed-forward: it is run on every step of the batch at once (on a copy holding only its in_keys,
-so the taken actions are never overwritten by its greedy ones), and items may start mid-episode.
-A missing key raises a ``KeyError`` naming the key and where it usually comes from.
+The agent network is either :class:`~mcrs.models.agent.RecurrentAgent`, unrolled from a zero hidden state
+so every item must start at a reset, or any TorchRL module writing per-agent values at ``action_value``.
+The latter runs on every step at once, on a copy holding only its in_keys so the taken actions are never
+overwritten, and items may start mid-episode. A missing key raises a ``KeyError`` naming where it usually
+comes from.
 
-What an algorithm adds to the batch (EMC's curiosity, the episodic memory) reaches the loss one way: its
-callback writes these keys into the sampled batch in ``on_train_batch``, before the update
-(:mod:`mcrs.experiment.training.callbacks`); row t describes the transition t -> t+1::
-
-    memory_return [B, T+1, 1]        H(phi(s_{t+1})): the highest return stored near s_{t+1}
-    memory_hit    [B, T+1]           a stored key lies within delta of phi(s_{t+1})
-    memory_ratio  [B, T+1, 1]        N_xi / N_call of that entry (EMU's desirability); read by the
-                                     FixedThreshold incentive
-                  (all three: EpisodicMemoryCallback, through mcrs.memory.EpisodicLookup; read when
-                  memory_weight > 0 or the incentive reads the memory)
-    intrinsic_reward [B, T+1, 1]     a reward added to the TD target only (EMC's CuriosityCallback), optional
-
-- ``memory_weight`` (lambda, eq. 32): ``loss += lambda * sum_hits (r_t + gamma H - Q_tot)^2 / n_valid``; a
-  transition without a memory contributes nothing (the sum runs over hits, the mean over all valid
-  transitions, so the term's weight grows with the hit rate, as EMC's does).
-- ``incentive`` (EMU), a strategy of :mod:`mcrs.objectives.incentive`: its ``r_p`` is added to the TD
-  target, e.g. ``r_p = gamma * ratio * max(H - Q_tot_target(s_{t+1}), 0)`` on hits (``FixedThreshold``);
-  ``EvaluationThreshold`` (EMU-change) drops the ratio.
-
-Keys are configurable with :meth:`set_keys` (``observation``, ``action``, ``action_mask``, ``state``,
-``reward``, ``done``, ``terminated``, ``filled``, ``action_value``, ``memory_return``, ``memory_hit``,
-``memory_ratio``, ``intrinsic_reward``, ``agent_inputs``), so the loss plugs into other TorchRL multi-agent
-tasks.
-"""
+Algorithms' callbacks add keys to the sampled batch in ``on_train_batch``: the memory's look-ups
+(``memory_return``, ``memory_hit``, ``memory_ratio``; :class:`mcrs.memory.EpisodicLookup`) and EMC's
+``intrinsic_reward``, added to the TD target only. ``memory_weight`` (lambda, eq. 32) adds ``lambda *
+sum_hits (r_t + gamma H - Q_tot)^2 / n_valid``, so the term grows with the hit rate as EMC's does; an
+``incentive`` (:mod:`mcrs.objectives.incentive`) adds its ``r_p`` to the TD target."""
 
 from __future__ import annotations
 
@@ -99,7 +74,7 @@ REWARD_REDUCTIONS = ("mean", "sum")
 
 
 def mask_unavailable(q: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
-    """``q`` with unavailable actions set to a huge negative value: never chosen by any argmax."""
+    """Return ``q`` with unavailable actions set so low that no argmax chooses them."""
     return q.masked_fill(~action_mask, NEG_INF)
 
 
@@ -107,27 +82,19 @@ class ValueFactorisationLoss(LossModule):
     """Double-Q TD loss of a mixed team value ``Q_tot = mixer(Q_1(a_1), ..., Q_N(a_N), s)``.
 
     Args:
-        agent_network: the shared recurrent agent (:class:`RecurrentAgent`), or a TorchRL
-            ``TensorDictModule`` writing per-agent action values ``[*B, N, A]`` at the ``action_value`` key
-            (e.g. ``QValueActor`` over ``MultiAgentMLP``; feed-forward, no recurrence).
-        mixer: a TorchRL ``Mixer``: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer`,
-            :class:`~mcrs.models.mixers.DMAQMixer` or :class:`~mcrs.models.mixers.QPLEXMixer`.
-        gamma: discount factor.
+        agent_network: the shared :class:`RecurrentAgent`, or a TorchRL ``TensorDictModule`` writing
+            per-agent action values ``[*B, N, A]`` at ``action_value``, e.g. ``QValueActor`` over
+            ``MultiAgentMLP``.
+        mixer: ``VDNMixer``, :class:`~mcrs.models.mixers.QMixer`, :class:`~mcrs.models.mixers.DMAQMixer` or
+            :class:`~mcrs.models.mixers.QPLEXMixer`.
         td_lambda: 0 for one-step targets (pymarl), in (0, 1] for TD(lambda) (pymarl2 uses 0.6).
-        double_q: pick the bootstrap action with the online network (True) or the target network.
+        double_q: pick the bootstrap action with the online network rather than the target network.
         memory_weight: lambda of the one-step memory target (eq. 32); 0 switches it off.
-        incentive: EMU's episodic incentive, an :class:`~mcrs.objectives.incentive.Incentive` strategy, or
-            its ``algo.incentive`` name: ``"none"``, ``"fixed"`` (scaled by the desirability ratio) or
-            ``"change"`` (no ratio).
-        reward_reduction: how per-agent rewards ``[..., N, 1]`` become the team reward: ``"mean"`` or
-            ``"sum"``; a team reward ``[..., 1]`` is used as it is.
-        reward_scale: the unit of the values the networks learn: the team reward and the memory's
-            returns (both the env's) are multiplied by it in every target, so ``Q_tot`` learns
-            ``reward_scale`` times the env's return (for returns far from the range the optimiser's
-            settings were chosen on; docs/TRAINING.md). EMC's intrinsic reward is the learner's own and
-            is not scaled. The logged values (``q_taken_mean``, ``target_mean``, ``td_error_abs``,
-            ``memory_target_mean``, ``incentive_mean``) are divided back into the env's units; the losses
-            are in the learner's.
+        incentive: an :class:`~mcrs.objectives.incentive.Incentive` or its ``algo.incentive`` name.
+        reward_reduction: ``"mean"`` or ``"sum"`` of per-agent rewards ``[..., N, 1]``.
+        reward_scale: factor on the team reward and the memory's returns in every target, so ``Q_tot``
+            learns that multiple of the env's return (docs/TRAINING.md). EMC's intrinsic reward is not
+            scaled. Logged values are divided back into env units; the losses are in the learner's.
     """
 
     INCENTIVES = INCENTIVES
@@ -153,8 +120,7 @@ class ValueFactorisationLoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    #: What every forward returns; the memory and curiosity terms' statistics come only with those terms
-    #: (:attr:`out_keys`): an algorithm without them logs no scalar that would always read 0.
+    #: What every forward returns; the other terms' statistics come only with those terms (:attr:`out_keys`).
     BASE_OUT_KEYS = ("loss", "loss_td", "q_taken_mean", "target_mean", "td_error_abs")
 
     agent_network: RecurrentAgent | TensorDictModuleBase
@@ -210,10 +176,8 @@ class ValueFactorisationLoss(LossModule):
 
     @property
     def out_keys(self) -> tuple[str, ...]:
-        """What :meth:`forward` returns: :data:`BASE_OUT_KEYS`, ``memory_hit_rate`` with the memory's
-        look-ups, ``loss_memory`` and ``memory_target_mean`` with the memory target (``memory_weight > 0``),
-        ``incentive_mean`` with EMU's incentive, ``intrinsic_mean`` when the batch has an intrinsic reward
-        (EMC's curiosity; not known before the batch, so not listed here)."""
+        """Return what :meth:`forward` returns: :data:`BASE_OUT_KEYS` and the statistics of the terms in use.
+        ``intrinsic_mean`` depends on the batch, so it is not listed."""
         keys = [*self.BASE_OUT_KEYS]
         if self.uses_memory:
             keys.append("memory_hit_rate")
@@ -225,7 +189,7 @@ class ValueFactorisationLoss(LossModule):
 
     @property
     def uses_memory(self) -> bool:
-        """Whether batches must carry the memory look-ups (``memory_return``, ``memory_hit``...)."""
+        """Whether batches must carry the memory look-ups."""
         return self.memory_weight > 0 or self.incentive.reads_memory
 
     @property
@@ -240,11 +204,11 @@ class ValueFactorisationLoss(LossModule):
         return in_keys + [getattr(keys, name) for name in self.incentive.in_keys]
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        """No TorchRL value estimator object: the returns come from its functional estimators."""
+        """Do nothing: the returns come from TorchRL's functional estimators."""
 
     # ------------------------------------------------------------------ pieces, public for tests and reuse
     def require(self, tensordict: TensorDictBase, name: str) -> torch.Tensor:
-        """``tensordict[tensor_keys.<name>]``, or a ``KeyError`` naming the key and where it comes from."""
+        """Return ``tensordict[tensor_keys.<name>]``, or raise a ``KeyError`` naming where it comes from."""
         key = getattr(self.tensor_keys, name)
         value = tensordict.get(key, None)
         if value is None:
@@ -255,8 +219,8 @@ class ValueFactorisationLoss(LossModule):
         return value
 
     def agent_inputs(self, episodes: TensorDictBase) -> torch.Tensor | TensorDictBase:
-        """The agents' inputs: for the recurrent agent ``[B, T+1, N, in]`` (observations with the previous
-        actions and ids); for a TorchRL agent a shallow copy of the batch holding only its in_keys."""
+        """Return the recurrent agent's inputs ``[B, T+1, N, in]``, or for a TorchRL agent a shallow copy of
+        the batch with its in_keys."""
         if not self.recurrent:
             in_keys = self.agent_network.in_keys
             missing = [key for key in in_keys if episodes.get(key, None) is None]
@@ -292,8 +256,7 @@ class ValueFactorisationLoss(LossModule):
         target: bool = False,
         inputs: torch.Tensor | TensorDictBase | None = None,
     ) -> torch.Tensor:
-        """Per-agent action values ``[B, T+1, N, A]`` (online or target net); the recurrent agent starts
-        every item from a zero hidden state, a TorchRL agent sees every step on its own."""
+        """Return per-agent action values ``[B, T+1, N, A]`` of the online or target network."""
         inputs = self.agent_inputs(episodes) if inputs is None else inputs
         if not target:
             return self._run_agent(inputs)
@@ -311,7 +274,7 @@ class ValueFactorisationLoss(LossModule):
         max_value: torch.Tensor,
         target: bool = False,
     ) -> torch.Tensor:
-        """``Q_tot [..., 1]`` from chosen values ``[..., N]`` (online or target mixer parameters)."""
+        """Return ``Q_tot [..., 1]`` from chosen values ``[..., N]`` with the online or target mixer."""
         args: list[torch.Tensor] = [chosen.unsqueeze(-1)]
         if self.mixer.needs_state:
             args.append(state.contiguous())  # TorchRL's mixers view() the state
@@ -326,7 +289,7 @@ class ValueFactorisationLoss(LossModule):
             return mixer(*args)
 
     def targets(self, reward: torch.Tensor, next_value: torch.Tensor, done, terminated) -> torch.Tensor:
-        """One-step or TD(lambda) targets ``[B, T, 1]`` with TorchRL's return estimators."""
+        """Return one-step or TD(lambda) targets ``[B, T, 1]`` from TorchRL's return estimators."""
         if self.td_lambda == 0.0:
             return td0_return_estimate(self.gamma, next_value, reward, terminated, done=done)
         return td_lambda_return_estimate(
@@ -340,8 +303,8 @@ class ValueFactorisationLoss(LossModule):
         inputs: torch.Tensor | TensorDictBase | None = None,
         greedy_q: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """``[B, T+1, 1]``: the target network's ``Q_tot`` at every state under the bootstrap action (double
-        Q: the online net's greedy action ``greedy_q.argmax``), which the TD target of the step before reads."""
+        """Return ``[B, T+1, 1]``: the target network's ``Q_tot`` at every state under the bootstrap action
+        (the online greedy one with double Q)."""
         action_mask = tensordict.get(self.tensor_keys.action_mask, None)
         state = self.require(tensordict, "state") if self.mixer.needs_state else None
         inputs = self.agent_inputs(tensordict) if inputs is None else inputs
@@ -374,8 +337,7 @@ class ValueFactorisationLoss(LossModule):
         done = done.clone()
         done[:, -1] = True  # the batch ends: bootstrap there, never run a lambda-return across it
 
-        # Both mixers run over all T+1 states (the online one uses rows 0..T-1, the target one rows 1..T):
-        # slicing [B, T+1, S] would make TorchRL's mixers copy the state, which costs more than one row.
+        # Both mixers run over all T+1 states because slicing would make TorchRL's mixers copy the state.
         all_actions = self.require(tensordict, "action")  # [B, T+1, N], the last row is padding
         inputs = self.agent_inputs(tensordict)  # built once for the online and the target network
         q = self.agent_values(tensordict, inputs=inputs)  # [B, T+1, N, A]

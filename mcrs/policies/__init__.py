@@ -21,12 +21,10 @@ POLICIES: dict[str, type[Policy]] = {
 
 
 def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
-    """Build the named policy for ``env_config``; its random choices follow ``seed``.
-
-    ``name`` is a heuristic (``random``, ``lawnmower``, ``greedy``, ``coverage``), the path of an
-    ``mcrs-train`` checkpoint (a ``.pt`` file or a run directory) or of an ``mcrs-export`` file (``.pt2``),
-    whose agent then acts greedily.
-    """
+    """Build the named policy for ``env_config``, its random choices drawn from ``seed``. ``name`` is a
+    heuristic (``random``, ``lawnmower``, ``greedy``, ``coverage``), an ``mcrs-train`` checkpoint or run
+    directory, or an ``mcrs-export`` file; an agent then acts greedily."""
+    # Deferred: the trained and exported agents load TorchRL, which the heuristics do without.
     from mcrs.policies.trained import TrainedPolicy, is_exported, looks_like_checkpoint
 
     if name not in POLICIES and is_exported(name):
@@ -44,9 +42,9 @@ def make_policy(name: str, env_config: EnvConfig, seed: int = 0) -> Policy:
 
 
 def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
-    """``env_config`` as the named policy must play it: a checkpoint's agent keeps the observation fields it
-    was trained with (``far_view``: what the agent reads, not the task: dynamics and rewards are the same),
-    so one evaluation can hold policies that see differently; a heuristic plays ``env_config`` itself."""
+    """Return ``env_config`` as the named policy must play it. A trained agent keeps the observation fields it
+    was trained with, such as ``far_view``; the dynamics and rewards are the same. A heuristic plays
+    ``env_config`` itself."""
     from mcrs.policies import export, trained
 
     if name in POLICIES or not trained.looks_like_checkpoint(name):
@@ -64,9 +62,8 @@ def policy_env(name: str, env_config: EnvConfig) -> EnvConfig:
 
 
 def check_policy(name: str, env_config: EnvConfig) -> None:
-    """Refuse (ValueError, naming the override), before any episode runs or progress is shown, a checkpoint
-    or exported agent trained on another map or team than ``env_config``; reads its config only (what
-    :func:`make_policy` would refuse after loading it). Its observation fields are its own (:func:`policy_env`)."""
+    """Refuse a checkpoint or exported agent trained on another map or team than ``env_config``. It reads only
+    the config, so the ValueError comes before any episode runs."""
     from mcrs.policies import export, trained
 
     if name in POLICIES or not trained.looks_like_checkpoint(name):

@@ -1,10 +1,8 @@
-"""The one policy interface shared by the heuristics (and usable wherever TorchRL expects a policy).
+"""The policy interface of the heuristics, usable wherever TorchRL expects a policy.
 
-A policy reads a batched MCRS tensordict ``[E]`` and writes ``("agents", "action")`` ``[E, N]`` int64.
-It is a :class:`~tensordict.nn.TensorDictModuleBase`, so ``env.rollout(policy=...)`` and TorchRL
-collectors accept it as is. Each policy owns a seeded ``torch.Generator``: the same seed and the same
-tensordicts give the same actions.
-"""
+A policy reads a batched MCRS tensordict ``[E]`` and writes ``("agents", "action")`` ``[E, N]`` int64. As a
+:class:`~tensordict.nn.TensorDictModuleBase` it works with ``env.rollout`` and TorchRL collectors. Each
+policy owns a seeded ``torch.Generator``, so the same seed and tensordicts give the same actions."""
 
 from __future__ import annotations
 
@@ -21,7 +19,7 @@ ACTION = ("agents", "action")
 
 
 class Policy(TensorDictModuleBase):
-    """Base class: subclasses implement :meth:`act`; batching over envs and agents is theirs to keep."""
+    """Base class: subclasses implement :meth:`act`, batched over envs and agents."""
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
         super().__init__()
@@ -38,14 +36,14 @@ class Policy(TensorDictModuleBase):
         return tensordict
 
     def act(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """``[E, N]`` int64 actions, each allowed by ``("agents", "action_mask")``."""
+        """Return ``[E, N]`` int64 actions, each allowed by ``("agents", "action_mask")``."""
         raise NotImplementedError
 
     def _random_keys(self, shape: torch.Size, device: torch.device) -> torch.Tensor:
-        """Uniform keys from the policy's own generator (on its device, then moved to ``device``)."""
+        """Draw uniform keys from the policy's own generator and move them to ``device``."""
         return torch.rand(shape, generator=self.generator, device=self.generator.device).to(device)
 
     def _uniform_among(self, candidates: torch.Tensor) -> torch.Tensor:
-        """Index of a uniformly drawn True entry along the last dim (rows must have one)."""
+        """Return the index of a uniformly drawn True entry along the last dim; every row must have one."""
         keys = self._random_keys(candidates.shape, candidates.device)
         return torch.where(candidates, keys, -1.0).argmax(-1)

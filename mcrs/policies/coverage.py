@@ -1,14 +1,10 @@
 """Coverage baseline: the lawnmower's strips, with detours around the cells the reward would charge.
 
-The plain lawnmower flies straight through no-fly zones (r3) because it never reads its observation.
-This policy keeps the boustrophedon pattern (the same strips and snake path) but, decentralised like the
-greedy baseline, each UAV decides from its own observation plus what it has sensed earlier in the
-episode: the cells of the no-fly zones it has seen (zones do not move, so one sighting suffices, even
-once the zone is out of sight). Snake cells that r3 would charge are skipped, and the UAV heads for its
-waypoint along a shortest path around the charged cells it knows of (a step by straight-line distance
-gets stuck behind a wall of zones). Among equally short moves it takes the larger m(U) (uncertainty
-reduction, r1); it keeps off other UAVs' cells and gives way to lower-indexed UAVs (r4).
-"""
+The plain lawnmower flies through no-fly zones (r3) because it never reads its observation. This policy
+keeps the same snake path, but each UAV decides from its own observation and the zones it has seen this
+episode; zones do not move, so one sighting suffices. It skips snake cells r3 would charge and follows a
+shortest path around the charged cells it knows of. Among equally short moves it prefers larger m(U) (r1),
+keeps off other UAVs' cells and gives way to lower-indexed UAVs (r4)."""
 
 from __future__ import annotations
 
@@ -44,17 +40,14 @@ TIE_TOLERANCE = 1e-6
 
 
 class CoveragePolicy(LawnmowerPolicy):
-    """The lawnmower's snake followed around known charged cells; memory of seen zones per env and UAV.
+    """The lawnmower's snake followed around known charged cells, remembering seen zones per env and UAV.
 
-    Score of a move = ``- PROGRESS * (path length to the waypoint) + GAIN * m(U)(destination)
-    - ZONE_PENALTY * (remembered zones charging it) - UAV_PENALTY * (visible UAVs on it)
-    - CONTACT_PENALTY * (share of each visible lower-indexed UAV's moves ending where r4 charges)``, by
-    :meth:`EnvConfig.violates` under the scenario's ``safety_rule``. Path lengths are 8-connected shortest
-    paths that avoid the cells the UAV knows to be charged. The waypoint pointer skips snake cells that
-    are charged (never reached without r3) and the cell the UAV is on; a waypoint that no known path
-    reaches is given up the step after. Ties are broken with the policy's seeded generator; memory and
-    pointer restart where ``step_count == 0``.
-    """
+    A move scores ``- PROGRESS * (path length to the waypoint) + GAIN * m(U)(destination) - ZONE_PENALTY *
+    (remembered zones charging it) - UAV_PENALTY * (visible UAVs on it) - CONTACT_PENALTY * (share of each
+    visible lower-indexed UAV's moves ending where r4 charges)``, judged by :meth:`EnvConfig.violates`.
+    Path lengths are 8-connected and avoid known charged cells. The waypoint pointer skips charged snake
+    cells and the UAV's own cell, and gives up a waypoint no known path reaches. Ties use the seeded
+    generator; memory and pointer restart where ``step_count == 0``."""
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
         if config.relative_order != "index":
@@ -87,7 +80,7 @@ class CoveragePolicy(LawnmowerPolicy):
         self.zone_known = (self.zone_known & ~new_episode.unsqueeze(-1)) | visible
 
     def _charged_map(self) -> torch.Tensor:
-        """``[E, N, W * H]`` bool (x-major): the cells where r3 would charge, as far as each UAV knows."""
+        """Return ``[E, N, W * H]`` bool, x-major: the cells where r3 would charge, as far as each UAV knows."""
         c = self.config
         E, N, _ = self.zone_known.shape
         zones = torch.zeros(E, N, c.n_cells, device=self.zone_known.device)
@@ -98,14 +91,14 @@ class CoveragePolicy(LawnmowerPolicy):
         return (spread > 0.5).view(E, N, c.n_cells)
 
     def _zone_charges(self, cells: torch.Tensor) -> torch.Tensor:
-        """``[E, N, K]``: remembered zones whose r3 would charge a UAV on each of ``cells [E, N, K, 2]``."""
+        """Count the remembered zones whose r3 would charge a UAV on each of ``cells [E, N, K, 2]``."""
         squared = (cells.unsqueeze(-2) - self.zone_cell.unsqueeze(-3)).pow(2).sum(-1).to(torch.float32)
         charged = self.config.violates(squared, self.config.no_fly_safety) & self.zone_known.unsqueeze(-2)
         return charged.sum(-1)
 
     # ------------------------------------------------------------------ path
     def _waypoints(self, pointer: torch.Tensor) -> torch.Tensor:
-        """``[E, N, K, 2]`` snake cells at pointers ``[E, N, K]`` (the lawnmower's waypoint, one more dim)."""
+        """Return the snake cells ``[E, N, K, 2]`` at pointers ``[E, N, K]``."""
         p = self.path_length.unsqueeze(-1)
         k = torch.where(pointer < p, pointer, 2 * p - 2 - pointer)
         column, row = k // self.config.height, k % self.config.height
@@ -113,7 +106,7 @@ class CoveragePolicy(LawnmowerPolicy):
         return torch.stack([self.strip_first.unsqueeze(-1) + column, y], dim=-1)
 
     def _advance(self, position: torch.Tensor, charged: torch.Tensor) -> None:
-        """Move each pointer to the first snake cell from it on that is neither charged nor reached."""
+        """Move each pointer to the first snake cell from it that is neither charged nor reached."""
         index = (self.pointer.unsqueeze(-1) + self.ahead) % self.cycle.unsqueeze(-1)  # [E, N, C]
         cells = self._waypoints(index)
         flat = cells[..., 0] * self.config.height + cells[..., 1]
@@ -122,10 +115,8 @@ class CoveragePolicy(LawnmowerPolicy):
         self.pointer = torch.where(skip.all(-1), self.pointer, index.gather(-1, first).squeeze(-1))
 
     def _path_lengths(self, charged: torch.Tensor, waypoint: torch.Tensor) -> torch.Tensor:
-        """``[E, N, W * H]``: moves from each cell to the waypoint through uncharged cells (inf: no path).
-
-        Breadth-first search as synchronous relaxation (a 3x3 min-pool per ring), batched over every UAV.
-        """
+        """Return ``[E, N, W * H]`` moves from each cell to the waypoint through uncharged cells (inf without
+        a path), by batched breadth-first search."""
         c = self.config
         E, N, _ = charged.shape
         blocked = charged.view(E * N, 1, c.width, c.height)
@@ -142,8 +133,8 @@ class CoveragePolicy(LawnmowerPolicy):
 
     # ------------------------------------------------------------------ moves
     def _uav_terms(self, observation: torch.Tensor, moves: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[E, N, 8]`` each: visible UAVs on each destination; and, summed over the visible lower-indexed
-        UAVs, the share of their 8 moves that would end where r4 charges with it."""
+        """Return ``[E, N, 8]`` visible UAVs on each destination, and the summed share of lower-indexed UAVs'
+        moves r4 would charge there."""
         offset, visible = self.layout.relative_cells(self.layout.uav_features(observation))  # [E, N, U, 2]
         on = (offset.unsqueeze(-3) == moves.unsqueeze(-2)).all(-1) & visible.unsqueeze(-2)  # [E, N, 8, U]
         reach = offset.unsqueeze(-2) + self.moves  # [E, N, U, 8', 2]
@@ -155,8 +146,8 @@ class CoveragePolicy(LawnmowerPolicy):
     def scores(
         self, observation: torch.Tensor, position: torch.Tensor, mask: torch.Tensor, charged: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[E, N, 8]`` move scores toward the current waypoint (masked moves: -inf), and ``[E, N]``
-        where no allowed move has a known path to the waypoint."""
+        """Return ``[E, N, 8]`` move scores (-inf when masked), and ``[E, N]`` where no allowed move has a
+        known path."""
         c = self.config
         moves = self.moves.expand(*position.shape[:-1], 8, 2)
         destination = position.unsqueeze(-2) + moves
@@ -192,8 +183,8 @@ class CoveragePolicy(LawnmowerPolicy):
 
 
 def charged_offsets(config: EnvConfig) -> torch.Tensor:
-    """``[1, 1, 2r+1, 2r+1]`` float: 1 at each offset from a zone where r3 charges (``config.violates``),
-    as a convolution kernel that spreads a map of zone cells into a map of charged cells."""
+    """Return a ``[1, 1, 2r+1, 2r+1]`` kernel that is 1 at each offset from a zone where r3 charges, to spread
+    zone cells into charged cells."""
     d1 = config.no_fly_safety
     radius = max(config.width, config.height) - 1
     if math.isfinite(d1):

@@ -1,21 +1,17 @@
-"""A trained agent as one self-contained file: a ``torch.export`` program that runs without mcrs.
+"""A trained agent as one self-contained ``torch.export`` program that runs without mcrs.
 
-``export_agent`` writes :class:`~mcrs.policies.trained.GreedyAgentStep` of a checkpoint as a ``.pt2``
-archive (``torch.export.save``) with a JSON description beside the program (``extra/mcrs.json``: the task
-it was trained on, the action table, the inputs and outputs), then loads the file back and checks that it
-computes what the checkpoint's step computes. On a vehicle, or in any other program::
+``export_agent`` writes a checkpoint's :class:`~mcrs.policies.trained.GreedyAgentStep` as a ``.pt2``
+archive with a JSON description (``extra/mcrs.json``: the task, the action table, the inputs and outputs),
+then loads it back and checks that it computes what the checkpoint computes. In any program::
 
     import torch
     step = torch.export.load("agent.pt2").module()
     action, hidden = step(observation, action_mask, last_action, hidden)
 
-The mcrs tools never run a ``.pt2``'s program: ``torch.export.load`` unpickles parts of the archive and
-executes Python text stored in it (shape guards), so a crafted file runs its own code (torch's
-documentation says not to load untrusted files). ``mcrs-eval policy=agent.pt2`` and ``mcrs-render`` read
-the description and the raw weight bytes instead (:func:`read_weights`: plain float32 tensors, nothing
-unpickled, every member of the archive named in advance) into the same ``GreedyAgentStep``.
-:func:`load_exported` is ``torch.export.load`` with the same checks first, for files you made.
-"""
+The mcrs tools never run a ``.pt2``'s program, because ``torch.export.load`` unpickles parts of the archive
+and executes Python stored in it. ``mcrs-eval`` and ``mcrs-render`` read the description and the raw
+float32 weight bytes instead (:func:`read_weights`). :func:`load_exported` is ``torch.export.load`` after
+the same checks, for files you made."""
 
 from __future__ import annotations
 
@@ -99,7 +95,7 @@ class ExportError(ValueError):
 
 
 def description(trained_env: EnvConfig, config: dict[str, Any], source: Path, env_steps: int | None) -> dict:
-    """What ``mcrs.json`` says: enough to build the inputs and read the outputs without mcrs."""
+    """Return what ``mcrs.json`` says: enough to build the inputs and read the outputs without mcrs."""
     layout = ObservationLayout.from_config(trained_env)
     slices = {
         name: [part.start, part.stop]
@@ -142,9 +138,9 @@ def _example_inputs(
 
 
 def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -> Path:
-    """Write the agent of the checkpoint ``policy`` (a ``.pt`` file or a run directory) to ``out``
-    (``.pt2``), atomically (a failure leaves no file, or the old one), once the written file has been
-    loaded back and has computed the checkpoint's actions and hidden states."""
+    """Write the agent of the checkpoint or run directory ``policy`` to ``out`` (``.pt2``), atomically. The
+    file is kept only once it has been loaded back and has computed the checkpoint's actions and hidden
+    states."""
     out = Path(out).expanduser()
     if out.suffix != EXPORTED_SUFFIX:
         raise ExportError(f"out={out}: an exported agent's file name ends in {EXPORTED_SUFFIX}")
@@ -184,10 +180,9 @@ def export_agent(policy: str | Path, out: str | Path, overwrite: bool = False) -
 
 
 def _temporary_folder(out: Path) -> Path:
-    """A hidden folder beside ``out`` for the archive being written, named with this host and process id.
-    The folders an export killed outright (SIGKILL: its ``finally`` never ran) left for ``out`` go first:
-    those of this host whose process is gone and that hold nothing but ``out``'s archive (anything else,
-    another host's on a shared disk, or another file's, is left alone)."""
+    """Return a hidden folder beside ``out`` for the archive being written, named with this host and process
+    id. It first removes folders that killed exports of ``out`` left: this host's, whose process is gone
+    and which hold nothing but ``out``'s archive."""
     host = host_tag()
     mine = re.compile(rf"\.{re.escape(out.stem)}\.{re.escape(host)}-(\d+)\.[A-Za-z0-9_]+\.tmp")
     for stale in out.parent.glob(f".{glob.escape(out.stem)}.*.tmp"):
@@ -203,12 +198,12 @@ def _temporary_folder(out: Path) -> Path:
 
 
 def host_tag() -> str:
-    """This machine's name as a file-name part (a temporary folder's owner on a disk hosts may share)."""
+    """Return this machine's name as a file-name part, since hosts may share a disk."""
     return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
 
 
 def _alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (another user's counts: it is not ours to clean up after)."""
+    """Whether process ``pid`` exists, another user's included."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -222,8 +217,7 @@ def _alive(pid: int) -> bool:
 def _check_written(
     path: Path, step: GreedyAgentStep, shape: tuple[int, int, int], n_actions: int = N_ACTIONS
 ) -> None:
-    """The file just written, loaded back, must compute ``step``'s outputs, and its weights read back
-    (:func:`read_weights`) must be ``step``'s."""
+    """Check that the written file computes ``step``'s outputs and that its weights read back are ``step``'s."""
     program, _, weights = _load(path)
     for E in (1, 3):
         args = _example_inputs(E, *shape, seed=E, n_actions=n_actions)
@@ -235,9 +229,8 @@ def _check_written(
 
 
 def _members(archive: zipfile.ZipFile, path: Path) -> dict[str, zipfile.ZipInfo]:
-    """The archive's members by their name below the top folder; refuses one :data:`MEMBERS` does not name,
-    and a name given twice (zip readers disagree on which copy counts: mcrs would play other weights than
-    the program carries)."""
+    """Return the archive's members by their name below the top folder. It refuses a member :data:`MEMBERS`
+    does not name, and a name given twice, since zip readers disagree on which copy counts."""
     names: dict[str, zipfile.ZipInfo] = {}
     for member in archive.infolist():
         name = member.filename.split("/", 1)[-1]
@@ -253,7 +246,7 @@ def _members(archive: zipfile.ZipFile, path: Path) -> dict[str, zipfile.ZipInfo]
 
 
 def _read(archive: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path, limit: int | None = None) -> bytes:
-    """A member's bytes; a damaged or encrypted member, or one over ``limit`` bytes, refused by name."""
+    """Return a member's bytes, refusing by name a damaged or encrypted member or one over ``limit`` bytes."""
     if limit is not None and member.file_size > limit:
         raise ExportError(
             f"exported agent {path}: {member.filename} holds {member.file_size:,} bytes (at most {limit:,})"
@@ -273,7 +266,7 @@ def _json(archive: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path) -> Any:
 
 
 def _open(path: Path) -> zipfile.ZipFile:
-    """The archive ``path`` after :func:`check_archive`; refuses a file that is not a sane zip."""
+    """Return the archive ``path`` after :func:`check_archive`, refusing a file that is not a sane zip."""
     try:
         if not path.is_file():
             raise ExportError(f"exported agent {path} does not exist")
@@ -288,8 +281,8 @@ def _open(path: Path) -> zipfile.ZipFile:
 
 
 def read_description(path: str | Path) -> dict[str, Any]:
-    """The ``mcrs.json`` of the exported agent ``path``, read from the archive without loading the
-    program; refuses (ExportError) a file that is not an exported mcrs agent of this version."""
+    """Return the ``mcrs.json`` of the exported agent ``path`` without loading the program; raise ExportError
+    for other files."""
     path = Path(path).expanduser()
     with _open(path) as archive:
         return _description(archive, path)
@@ -312,8 +305,8 @@ def _description(archive: zipfile.ZipFile, path: Path) -> dict[str, Any]:
 
 
 def _plain_float32(fqn: str, entry: Any) -> tuple[list[int], str] | None:
-    """The sizes and the member of a weight entry that is a plain contiguous float32 tensor of one or two
-    dimensions, as ``torch.export.save`` writes :class:`RecurrentAgent`'s; None for anything else."""
+    """Return the sizes and member of a plain contiguous 1-D or 2-D float32 weight entry, or None for anything
+    else."""
     try:
         meta = entry["tensor_meta"]
         if len(meta["sizes"]) not in (1, 2) or len(meta["strides"]) != len(meta["sizes"]):
@@ -336,9 +329,9 @@ def _plain_float32(fqn: str, entry: Any) -> tuple[list[int], str] | None:
 
 
 def read_weights(path: str | Path) -> dict[str, torch.Tensor]:
-    """The agent's weights in the exported agent ``path``, as :class:`RecurrentAgent` names them, read as
-    raw little-endian float32 bytes (nothing unpickled): exactly the agent's tensors, each in a member of
-    its own of exactly its size; refuses anything else by name."""
+    """Return the agent's weights in ``path`` as raw little-endian float32, named as :class:`RecurrentAgent`
+    names them. Nothing is unpickled: each tensor must be in a member of its own of exactly its size, and
+    anything else is refused by name."""
     path = Path(path).expanduser()
     with _open(path) as archive:
         return _weights(archive, path)
@@ -386,7 +379,7 @@ def _weights(archive: zipfile.ZipFile, path: Path) -> dict[str, torch.Tensor]:
 
 
 def _trained_env(path: Path, meta: dict[str, Any]) -> EnvConfig:
-    """The scenario the description says the agent was trained on, validated as any env config."""
+    """Return the validated scenario the description says the agent was trained on."""
     try:
         env = meta["env"]
         name = env["name"]
@@ -400,8 +393,8 @@ def _trained_env(path: Path, meta: dict[str, Any]) -> EnvConfig:
 def _agent(
     path: Path, meta: dict[str, Any], trained: EnvConfig, weights: dict[str, torch.Tensor]
 ) -> RecurrentAgent:
-    """The agent of the exported file ``path``, built by mcrs from its description and raw weights; the
-    sizes are checked against the weights read (bounded by the file) before anything is allocated."""
+    """Build the agent of ``path`` from its description and raw weights, checking sizes before allocating
+    anything."""
     try:
         model = meta["model"]
         hidden_dim, agent_id, last_action = (
@@ -433,15 +426,15 @@ def _agent(
 
 
 def load_exported(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
-    """The program of the exported agent ``path`` (``torch.export.load``) and its description, after the
-    checks of :func:`read_description` and :func:`read_weights`. Loading a program runs code stored in the
-    file: use it on files you made or trust; the mcrs tools never call it on a user's file."""
+    """Return the program of the exported agent ``path`` and its description, after the checks of
+    :func:`read_description` and :func:`read_weights`. Loading a program runs code stored in the file: use
+    it only on files you trust."""
     program, meta, _ = _load(Path(path).expanduser())
     return program, meta
 
 
 def _load(path: Path) -> tuple[torch.nn.Module, dict[str, Any], dict[str, torch.Tensor]]:
-    """:func:`load_exported`, and the weights its checks read."""
+    """Run :func:`load_exported` and also return the weights its checks read."""
     with _open(path) as archive:
         meta, weights = _description(archive, path), _weights(archive, path)
     try:
@@ -453,9 +446,8 @@ def _load(path: Path) -> tuple[torch.nn.Module, dict[str, Any], dict[str, torch.
 
 
 def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> TrainedPolicy:
-    """The exported agent ``path`` as a policy of ``env_config`` (which must be the map and team it was
-    trained on): its weights in mcrs's own step, so ``mcrs-eval`` and ``mcrs-render`` play it like a
-    checkpoint without running code from the file."""
+    """Return the exported agent ``path`` as a policy of ``env_config``, which must have its map and team. The
+    weights run in mcrs's own step, so no code from the file runs."""
     path = Path(path).expanduser()
     with _open(path) as archive:
         meta = _description(archive, path)
@@ -478,8 +470,7 @@ def exported_policy(path: str | Path, env_config: EnvConfig, seed: int = 0) -> T
 
 
 def trained_env(path: str | Path) -> EnvConfig | None:
-    """The env config the exported agent's description says it was trained on; None when it has no usable
-    one (loading the policy then names the problem)."""
+    """Return the env config the description says the agent was trained on, or None when it has no usable one."""
     try:
         return _trained_env(Path(path).expanduser(), read_description(path))
     except ValueError:  # ExportError is one: loading the policy names the problem
@@ -487,7 +478,6 @@ def trained_env(path: str | Path) -> EnvConfig | None:
 
 
 def observation_settings(path: str | Path) -> dict[str, Any]:
-    """The exported agent's values of the observation fields (``mcrs.policies.policy_env``); none when its
-    description has no usable env."""
+    """Return the exported agent's values of the observation fields; none without a usable env."""
     trained = trained_env(path)
     return {} if trained is None else {name: getattr(trained, name) for name in OBSERVATION_FIELDS}

@@ -1,9 +1,7 @@
-"""Greedy one-step baseline: decentralised, each UAV sees only its own observation.
+"""Greedy one-step baseline, decentralised: each UAV sees only its own observation.
 
-It moves to the neighbouring cell of highest m(U) in its own fused belief (the largest immediate
-uncertainty reduction, reward r1), while keeping clear of visible no-fly zones (r3) and of the current
-cells of visible UAVs (r4). It is the natural myopic reference for a learned policy.
-"""
+Each UAV moves to the neighbouring cell of highest m(U) in its own fused belief (r1), keeping clear of
+visible no-fly zones (r3) and visible UAVs' cells (r4). It is the myopic reference for a learned policy."""
 
 from __future__ import annotations
 
@@ -20,20 +18,18 @@ TIE_TOLERANCE = 1e-6
 
 
 class GreedyPolicy(Policy):
-    """Score of a move = m(U) of its destination - SAFETY_PENALTY * (violations there); best allowed move.
+    """Take the allowed move with the best score: m(U) of the destination - SAFETY_PENALTY * (violations
+    there).
 
-    A violation is what r3 or r4 would charge at the destination: a visible no-fly zone closer than
-    ``no_fly_safety`` (d1) or a visible other UAV's current cell closer than ``uav_safety`` (d2) under the
-    scenario's ``safety_rule`` (``near``: within), from the relative-position features of the observation.
-    Ties (within 1e-6) are broken uniformly with the policy's seeded generator.
-    """
+    A violation is what r3 or r4 would charge at the destination under the scenario's ``safety_rule``, read
+    from the observation's relative positions. Ties within 1e-6 are broken with the seeded generator."""
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
         super().__init__(config, seed)
         self.moves = torch.tensor(MOVES, dtype=torch.int64, device=torch.device(config.device))
 
     def _violations(self, features: torch.Tensor, radius: float) -> torch.Tensor:
-        """``[E, N, 8]``: visible entities that the reward would charge at each move's destination."""
+        """Count, per move ``[E, N, 8]``, the visible entities the reward would charge at its destination."""
         offset, visible = self.layout.relative_cells(features)  # [E, N, K, 2], [E, N, K]
         moves = self.moves.to(offset.device)
         squared = (
@@ -42,7 +38,7 @@ class GreedyPolicy(Policy):
         return (self.config.violates(squared, radius) & visible.unsqueeze(-2)).sum(-1)
 
     def scores(self, observation: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """``[E, N, 8]`` move scores; masked moves score -inf."""
+        """Return ``[E, N, 8]`` move scores; masked moves score -inf."""
         layout, c = self.layout, self.config
         gain = layout.unknown_by_action(observation)
         violations = self._violations(layout.no_fly_features(observation), c.no_fly_safety)

@@ -5,21 +5,23 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from mcrs.experiment.run import checkpoint as ckpt
+from mcrs.experiment.run.rundir import task_name
+from mcrs.experiment.schema import TrainConfig
+from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
 from mcrs.policies import POLICIES
+from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
 
 #: Episodes and seed of an evaluation of heuristics only, when the command names neither.
 HEURISTIC_EPISODES, HEURISTIC_SEED = 32, 0
 
 
 def default_episodes_seed(names: list[str]) -> tuple[int, int]:
-    """The episodes and seed an evaluation of ``names`` runs when the command names neither: the first
-    trained policy's training evaluations (``train.eval_episodes``, ``train.eval_seed``), so its figures are
-    those its run logged; an exported agent's are the training defaults (its file keeps no train config);
-    heuristics alone: 32 episodes of seed 0."""
-    from mcrs.experiment.run import checkpoint as ckpt
-    from mcrs.experiment.schema import TrainConfig
-    from mcrs.policies.trained import is_exported, looks_like_checkpoint, resolve_checkpoint
+    """Return the episodes and seed an evaluation of ``names`` runs when the command names neither.
 
+    They are the first trained policy's training evaluation settings, so its figures match its run's log.
+    An exported agent keeps no train config and gets the training defaults; heuristics alone get 32
+    episodes of seed 0."""
     trained = [name for name in names if name not in POLICIES and looks_like_checkpoint(name)]
     if not trained:
         return HEURISTIC_EPISODES, HEURISTIC_SEED
@@ -37,11 +39,9 @@ def default_episodes_seed(names: list[str]) -> tuple[int, int]:
 
 
 def policy_label(name: str) -> str:
-    """A policy as tables name it: a heuristic by its name, a trained run by its run name (its folder),
-    with its algorithm when the name does not hold it (``<date>_<time>_<pid>_seed0 (qmix)``), a
-    checkpoint file of a run as ``<run>/<file stem>`` and an exported agent by its file name."""
-    from mcrs.policies.trained import is_exported, looks_like_checkpoint
-
+    """Return a policy's name in tables. A heuristic is named by its name, a run by its folder (with its
+    algorithm when the name lacks it), a checkpoint file as ``<run>/<file stem>`` and an exported agent by
+    its file name."""
     if name in POLICIES or not looks_like_checkpoint(name):
         return name
     path = Path(name).expanduser()
@@ -55,9 +55,7 @@ def policy_label(name: str) -> str:
 
 
 def _algo_of(run_dir: Path) -> str | None:
-    """The algorithm a run directory's ``config.yaml`` names (None when it cannot be read)."""
-    from mcrs.experiment.util.untrusted import UntrustedInput, read_yaml
-
+    """Return the algorithm a run directory's ``config.yaml`` names, or None."""
     try:
         algo = (read_yaml(run_dir / "config.yaml", interpolations=False) or {}).get("algo") or {}
     except (OSError, UntrustedInput, ValueError):
@@ -67,9 +65,6 @@ def _algo_of(run_dir: Path) -> str | None:
 
 
 def run_task_name(run_dir: Path) -> str:
-    """The task's name in a task run's ``config.yaml`` (its class name when the node has no ``name``)."""
-    from mcrs.experiment.run.rundir import task_name
-    from mcrs.experiment.util.untrusted import read_yaml
-
+    """Return the task's name in a task run's ``config.yaml``, or its class name."""
     node = read_yaml(run_dir / "config.yaml", interpolations=False).get("task") or {}
     return task_name(node, "task")

@@ -1,9 +1,7 @@
-"""Lawnmower (boustrophedon) baseline: the classic coverage pattern, with no use of beliefs.
+"""Lawnmower (boustrophedon) baseline: the classic coverage pattern, blind to beliefs.
 
-The x range is split into one strip of columns per UAV. Inside its strip a UAV sweeps the columns one
-after the other, alternating up and down (a snake through every cell of the strip), and at the end of
-the strip it turns back along the same path (ping-pong), so it keeps covering its strip for any T.
-"""
+The x range is split into one strip of columns per UAV. Each UAV snakes through every cell of its strip,
+then back along the same path, so it keeps covering its strip for any T."""
 
 from __future__ import annotations
 
@@ -16,7 +14,7 @@ from mcrs.policies.base import ACTION_MASK, OBSERVATION, Policy
 
 
 def strip_bounds(config: EnvConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """First column ``[N]`` and width ``[N]`` of each UAV's strip (at least one column each)."""
+    """Return the first column ``[N]`` and width ``[N]`` of each UAV's strip, at least one column each."""
     n, width = config.n_uavs, config.width
     edges = torch.arange(n + 1) * width // n
     first = edges[:-1].clamp(max=width - 1)
@@ -24,15 +22,12 @@ def strip_bounds(config: EnvConfig) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class LawnmowerPolicy(Policy):
-    """Each UAV follows the snake path of its own strip; the path pointer is kept per env and UAV.
+    """Each UAV follows the snake path of its own strip, with a path pointer per env and UAV.
 
-    The pointer ``s`` runs over a cycle of length ``2P - 2`` (``P`` cells in the strip): ``s < P`` walks
-    the snake forwards, ``s >= P`` walks it back. At the start of an episode (``step_count == 0``) each
-    UAV aims at the nearer end of its snake. Every step the UAV takes the 8-neighbour move whose
-    (dx, dy) is the sign of (waypoint - position); such a move never leaves the grid. Where the action
-    mask forbids it (a shield: mcrs/env/shield.py), the UAV takes the allowed move that ends nearest the
-    waypoint instead (the lowest action among equals): the pattern stays, the mask is obeyed.
-    """
+    The pointer runs over a cycle of length ``2P - 2`` for ``P`` cells: forwards while ``s < P``, then
+    back. At an episode's start each UAV aims at the nearer end of its snake. Each step it takes the move
+    whose (dx, dy) is the sign of (waypoint - position), which never leaves the grid. Where a shield masks
+    that move, it takes the allowed move ending nearest the waypoint, the lowest action among equals."""
 
     def __init__(self, config: EnvConfig, seed: int = 0) -> None:
         super().__init__(config, seed)
@@ -51,7 +46,7 @@ class LawnmowerPolicy(Policy):
         self.pointer: torch.Tensor | None = None  # [E, N] position in the ping-pong cycle
 
     def waypoint(self, pointer: torch.Tensor) -> torch.Tensor:
-        """``[E, N, 2]`` cell of the snake at each pointer (broadcast over envs)."""
+        """Return the snake cell ``[E, N, 2]`` at each pointer."""
         p = self.path_length
         k = torch.where(pointer < p, pointer, 2 * p - 2 - pointer)  # index along the snake
         column, row = k // self.config.height, k % self.config.height
@@ -59,15 +54,15 @@ class LawnmowerPolicy(Policy):
         return torch.stack([self.strip_first + column, y], dim=-1)
 
     def _start_pointer(self, position: torch.Tensor) -> torch.Tensor:
-        """Pointer to the nearer (in moves) end of each UAV's snake."""
+        """Return the pointer to the nearer end, in moves, of each UAV's snake."""
         start = torch.zeros_like(position[..., 0])
         end = (self.path_length - 1).expand_as(start)
         moves_to = [(self.waypoint(s) - position).abs().amax(-1) for s in (start, end)]
         return torch.where(moves_to[1] < moves_to[0], end, start)
 
     def _restart_pointer(self, position: torch.Tensor, new_episode: torch.Tensor) -> None:
-        """Aim each UAV of a new episode (``new_episode [E, 1]``) at the nearer end of its snake; the
-        pointers of other episodes go on (a batch of another shape or device starts afresh)."""
+        """Aim each UAV of a new episode at the nearer end of its snake; a batch of another shape or device
+        starts afresh."""
         start = self._start_pointer(position)
         if self.pointer is None or self.pointer.shape != start.shape or self.pointer.device != start.device:
             self.pointer = start

@@ -9,7 +9,7 @@ from mcrs.policies.base import ACTION_MASK, Policy
 
 
 class RandomPolicy(Policy):
-    """Each UAV draws uniformly among its allowed moves (the action mask), independently."""
+    """Each UAV draws uniformly and independently among its allowed moves."""
 
     def act(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self._uniform_among(tensordict.get(ACTION_MASK))

@@ -1,11 +1,9 @@
-"""A task's run, rebuilt by the tools: its task from the run's config, its trained agent, a random baseline.
+"""A task's run rebuilt by the tools: its task from the run's config, its trained agent and a random baseline.
 
-A run of any task (``task=...``, or ``Experiment(..., task=...)``) keeps how to rebuild its task in its
-config (``task``: an importable class and its settings, :meth:`mcrs.experiment.training.task.Task.spec`). From it
-``mcrs-eval policy=<run>`` plays the trained agent greedily and, on the same episodes, the random
-baseline (:class:`UniformAllowed`: uniform over each agent's allowed actions), and ``mcrs-export`` writes
-the agent, for any task. MCRS runs (no ``task``) keep their own tools (:mod:`mcrs.policies.trained`).
-"""
+A run of any task keeps how to rebuild it in its config (``task``,
+:meth:`mcrs.experiment.training.task.Task.spec`). From it ``mcrs-eval policy=<run>`` plays the trained
+agent and, on the same episodes, :class:`UniformAllowed`, and ``mcrs-export`` writes the agent. MCRS runs
+have no ``task`` node and use :mod:`mcrs.policies.trained`."""
 
 from __future__ import annotations
 
@@ -23,16 +21,15 @@ from mcrs.experiment.training.evaluation import make_eval_env, rollout_greedy
 from mcrs.experiment.training.task import Task, make_task
 from mcrs.models.acting import make_acting_policy
 from mcrs.models.agent import RecurrentAgent
+from mcrs.policies.trained import looks_like_checkpoint, refuse_replay_block, resolve_checkpoint
 
 #: The random baseline's name in every table of a task's evaluation.
 RANDOM = "random"
 
 
 def task_node(path: str | Path) -> dict[str, Any] | None:
-    """The ``task`` node of the run or checkpoint ``path`` (None: an MCRS run, or not a run at all). Only
-    the config is read (the tensors are mapped)."""
-    from mcrs.policies.trained import looks_like_checkpoint, resolve_checkpoint
-
+    """Return the ``task`` node of the run or checkpoint ``path``, or None for an MCRS run or a non-run; only
+    the config is read."""
     if not looks_like_checkpoint(str(path)) or str(path).endswith(".pt2"):
         return None
     try:
@@ -59,11 +56,9 @@ class TaskRun:
 
 
 def load_task_run(path: str | Path) -> TaskRun:
-    """The agent of the task run or checkpoint ``path``, its task rebuilt from the run's config; refused in
-    one :class:`~mcrs.experiment.run.checkpoint.CheckpointError` line when the task cannot be rebuilt or the
-    agent does not fit it."""
-    from mcrs.policies.trained import refuse_replay_block, resolve_checkpoint
-
+    """Return the agent of the task run or checkpoint ``path`` with its task rebuilt from the run's config.
+    Raises a one-line :class:`~mcrs.experiment.run.checkpoint.CheckpointError` when the task cannot be
+    rebuilt or the agent does not fit it."""
     file = resolve_checkpoint(path)
     state = ckpt.load(file)
     refuse_replay_block(state, file)
@@ -96,8 +91,8 @@ def load_task_run(path: str | Path) -> TaskRun:
 
 
 class UniformAllowed(TensorDictModuleBase):
-    """The random baseline of any task: each agent's action uniform over its allowed actions (the action
-    mask), from its own generator seeded with ``seed``."""
+    """The random baseline of any task: each agent's action uniform over its allowed actions, from a generator
+    seeded with ``seed``."""
 
     def __init__(self, task: Task, seed: int = 0) -> None:
         super().__init__()
@@ -119,8 +114,9 @@ class UniformAllowed(TensorDictModuleBase):
 def task_metrics(
     task: Task, policy: TensorDictModuleBase, episodes: int, seed: int, hidden_dim: int, device: str = "cpu"
 ) -> dict[str, torch.Tensor]:
-    """Every metric of ``task`` for ``episodes`` episodes of ``policy`` (one batch, reset from ``seed``):
-    ``{name: [K]}`` in float64 on the CPU. The same ``seed`` gives every policy the same episodes."""
+    """Return every metric of ``task`` over ``episodes`` episodes of ``policy`` as ``{name: [K]}`` float64 on
+    CPU. The episodes are one batch reset from ``seed``, so the same seed gives every policy the same
+    episodes."""
     env = make_eval_env(task, episodes, hidden_dim, device)
     try:
         metrics = task.episode_metrics(rollout_greedy(env, policy, seed, task.max_steps))
@@ -132,8 +128,8 @@ def task_metrics(
 def evaluate_task_run(
     run: TaskRun, episodes: int, seed: int, device: str = "cpu", label: str | None = None
 ) -> dict[str, dict[str, torch.Tensor]]:
-    """The trained agent (greedy; under ``label``, default its checkpoint's path) and the random baseline
-    on the same ``episodes`` episodes from ``seed``: ``{policy: {metric: [K]}}``."""
+    """Evaluate the greedy trained agent and the random baseline on the same episodes; return ``{policy:
+    {metric: [K]}}``."""
     hidden = run.agent.hidden_dim
     agent = run.agent.to(device)
     greedy, _, _ = make_acting_policy(agent, run.task.n_actions, group=run.task.group)
@@ -144,8 +140,8 @@ def evaluate_task_run(
 
 
 def task_description(run: TaskRun, format_name: str, version: int) -> dict[str, Any]:
-    """What an exported task agent's ``mcrs.json`` says (:func:`mcrs.policies.export.export_agent`): the
-    task node (how to rebuild its env), the sizes, the inputs and the outputs of the program."""
+    """Return what an exported task agent's ``mcrs.json`` says: the task node, the sizes and the program's
+    inputs and outputs."""
     model, task = run.config["model"], run.task
     return {
         "format": format_name,

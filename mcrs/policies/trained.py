@@ -1,8 +1,7 @@
 """A trained agent from an ``mcrs-train`` checkpoint, behind the same interface as the heuristics.
 
-The recurrent state lives in the policy and restarts wherever ``step_count == 0``, so ``env.rollout``,
-``mcrs-eval`` and ``mcrs-render`` run it like any heuristic. Actions are greedy among allowed moves.
-"""
+The recurrent state restarts wherever ``step_count == 0``, so ``env.rollout``, ``mcrs-eval`` and
+``mcrs-render`` run it like any heuristic. Actions are greedy among allowed moves."""
 
 from __future__ import annotations
 
@@ -35,8 +34,7 @@ EXPORTED_SUFFIX = ".pt2"
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint file, or a run directory: its latest ``model_<steps>.pt`` (weights only, small),
-    else ``last.pt``."""
+    """Return a checkpoint file, or a run directory's latest ``model_<steps>.pt``, else its ``last.pt``."""
     path = Path(path).expanduser()
     try:
         if not path.is_dir():
@@ -48,9 +46,8 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 
 def trained_env(path: str | Path) -> EnvConfig | None:
-    """The env config the checkpoint's agent was trained on (a field saved before it existed: its default,
-    the paper's); None without a usable config: loading its policy then names the problem. The tensors are
-    mapped, not read: only the config is needed here, and the policy loads the file next."""
+    """Return the env config the checkpoint's agent was trained on, or None without a usable config. Fields
+    the checkpoint predates take their defaults. Only the config is read; the tensors are mapped."""
     path = resolve_checkpoint(path)
     state = ckpt.load(path, mmap=True)
     refuse_replay_block(state, path)
@@ -63,7 +60,8 @@ def trained_env(path: str | Path) -> EnvConfig | None:
 
 
 def refuse_replay_block(state: Any, path: Path) -> None:
-    """A ``checkpoints/replay_*.pt`` file holds episodes, no agent: refused naming what to pass instead."""
+    """Refuse a ``checkpoints/replay_*.pt`` file, which holds episodes and no agent, naming what to pass
+    instead."""
     if isinstance(state, dict) and "replay_block" in state:
         raise ckpt.CheckpointError(
             f"{path} is a block of its run's replay buffer (episodes), not a checkpoint: pass the run "
@@ -72,31 +70,28 @@ def refuse_replay_block(state: Any, path: Path) -> None:
 
 
 def observation_settings(path: str | Path) -> dict[str, Any]:
-    """The checkpoint's values of :data:`OBSERVATION_FIELDS` (none without a usable config)."""
+    """Return the checkpoint's values of :data:`OBSERVATION_FIELDS`; none without a usable config."""
     trained = trained_env(path)
     return {} if trained is None else {name: getattr(trained, name) for name in OBSERVATION_FIELDS}
 
 
 def looks_like_checkpoint(name: str) -> bool:
-    """A policy name that is a path: a checkpoint, a run directory or an exported agent."""
+    """Whether a policy name is a path: a checkpoint, a run directory or an exported agent."""
     return name.endswith((".pt", EXPORTED_SUFFIX)) or "/" in name or Path(name).expanduser().is_dir()
 
 
 def is_exported(name: str) -> bool:
-    """A policy name that is an ``mcrs-export`` file (mcrs.policies.export)."""
+    """Whether a policy name is an ``mcrs-export`` file."""
     return name.endswith(EXPORTED_SUFFIX)
 
 
 class GreedyAgentStep(nn.Module):
-    """One greedy step of the whole team: what a trained policy computes, as one module.
+    """One greedy step of the whole team, as one module.
 
-    ``forward(observation [E, N, obs] float, action_mask [E, N, A] bool, last_action [E, N] int64 (-1 at an
-    episode's first step), hidden [E, N, H] float (zeros at the first step)) -> (action [E, N] int64,
-    hidden [E, N, H])``: the best allowed action of each agent. Rows (agents) are computed independently,
-    the agent's index in ``N`` being its one-hot id. :class:`TrainedPolicy` acts through it and
-    ``mcrs-export`` writes it as a ``torch.export`` program, so the deployed file computes what
-    ``mcrs-eval`` scores.
-    """
+    ``forward(observation [E, N, obs], action_mask [E, N, A], last_action [E, N], hidden [E, N, H]) ->
+    (action [E, N], hidden)``, where ``last_action`` is -1 and ``hidden`` zeros at an episode's first step.
+    The agent's index in N is its one-hot id. :class:`TrainedPolicy` acts through it and ``mcrs-export``
+    writes it, so the deployed file computes what ``mcrs-eval`` scores."""
 
     def __init__(self, agent: RecurrentAgent) -> None:
         super().__init__()
@@ -126,8 +121,8 @@ class TrainedAgent:
 
 
 def load_trained_agent(path: str | Path) -> TrainedAgent:
-    """The agent of the checkpoint ``path`` (a ``.pt`` file or a run directory), refused by name when the
-    file lacks a usable config or agent or holds NaN or inf weights."""
+    """Return the agent of the checkpoint or run directory ``path``, refusing by name a file without a usable
+    config or agent, or with non-finite weights."""
     path = resolve_checkpoint(path)
     state = ckpt.load(path)
     refuse_replay_block(state, path)
@@ -181,8 +176,8 @@ def load_trained_agent(path: str | Path) -> TrainedAgent:
 def check_playable(
     trained: EnvConfig, env_config: EnvConfig, source: str | Path, legacy: bool = False
 ) -> None:
-    """Refuse (ValueError, naming the override) an agent trained on ``trained`` playing ``env_config``:
-    another map or team, or other observation fields; warn when only a task rule differs."""
+    """Refuse an agent trained on ``trained`` playing ``env_config`` with another map, team or observation
+    fields. The ValueError names the override. Only a differing task rule is warned about."""
     for rule in TASK_RULES:  # allowed (a policy judged under either rule): said
         if getattr(trained, rule) != getattr(env_config, rule):
             made = " (saved before the field existed)" if legacy else ""
@@ -214,7 +209,7 @@ def check_playable(
 
 
 class TrainedPolicy(Policy):
-    """Greedy actions of a trained shared recurrent agent (a checkpoint's, or an exported program's)."""
+    """Greedy actions of a trained shared recurrent agent, from a checkpoint or an exported program."""
 
     def __init__(self, config: EnvConfig, step: nn.Module, hidden_dim: int, seed: int = 0) -> None:
         super().__init__(config, seed)
@@ -233,7 +228,7 @@ class TrainedPolicy(Policy):
 
     @property
     def agent(self) -> RecurrentAgent | None:
-        """The checkpoint's agent network (None for an exported program, which has no modules to show)."""
+        """The checkpoint's agent network; None for an exported program."""
         return self.step.agent if isinstance(self.step, GreedyAgentStep) else None
 
     @torch.no_grad()

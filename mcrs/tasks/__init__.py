@@ -1,5 +1,4 @@
-"""Tasks other than MCRS-LCR: the matrix game, any PettingZoo parallel env, VMAS scenarios
-(``task=simple_spread``, ``task=vmas_navigation``; conf/task/)."""
+"""Tasks other than MCRS-LCR: the matrix game, any PettingZoo parallel env and VMAS scenarios (conf/task/)."""
 
 from mcrs.tasks.matrix_game import (
     PAYOFF,

@@ -8,22 +8,20 @@ Two players pick one of three actions at once and share the payoff::
         a=2   -12     0     0
 
 The optimum (0, 0) is surrounded by penalties, so a monotonic mixer (QMIX, VDN) trained on uniformly random
-joint actions settles on a safe sub-optimal action, while QPLEX's duplex dueling mixer can represent the
-whole table and, with its matrix-game settings (:data:`QPLEX_MATRIX_GAME`), finds (0, 0) on most seeds
-(it is seed-sensitive here, as the reference implementations note). We use it as a second, independent TorchRL multi-agent task for our mixers and
-:class:`~mcrs.objectives.ValueFactorisationLoss`: another agent group, another state key, another episode
-length. Keys (``E = num_envs``, ``N`` players, ``A`` actions)::
+joint actions settles on a safe sub-optimal action. QPLEX's mixer can represent the whole table and, with
+its matrix-game settings (:data:`QPLEX_MATRIX_GAME`), finds (0, 0) on most seeds. It serves as a second,
+independent TorchRL task for the mixers and the loss. Keys (``E = num_envs``, ``N`` players, ``A``
+actions)::
 
-    ("players", "observation")   [E, N, N]  float32, the player's one-hot id (constant)
+    ("players", "observation")   [E, N, N]  float32, the player's one-hot id
     ("players", "action_mask")   [E, N, A]  bool, every action allowed
     ("players", "action")        [E, N]     int64 in 0..A-1
-    "global_state"               [E, 2]     float32, one-hot phase: (1, 0) before the move, (0, 1) after
+    "global_state"               [E, 2]     float32 one-hot phase: (1, 0) before the move, (0, 1) after
     "reward"                     [E, 1]     float32, the shared payoff
-    "done" / "terminated" / "truncated"  [E, 1]  bool: every episode terminates after its single step
+    "done" / "terminated" / "truncated"  [E, 1]  bool; every episode terminates after one step
 
-The env has no ``step_count``: our acting policy needs one, and TorchRL's ``StepCounter`` transform adds it
-(see :func:`make_matrix_game`), as it would for any third-party task.
-"""
+The env has no ``step_count``; TorchRL's ``StepCounter`` adds it (:func:`make_matrix_game`), as for any
+third-party task."""
 
 from __future__ import annotations
 
@@ -43,23 +41,20 @@ PAYOFF = torch.tensor([[8.0, -12.0, -12.0], [-12.0, 0.0, 0.0], [-12.0, 0.0, 0.0]
 GROUP = "players"
 STATE_KEY = "global_state"
 STEP_KEYS = ((GROUP, "observation"), (GROUP, "action_mask"), STATE_KEY)
-#: QPLEX's own matrix-game mixer settings (``qplex.yaml`` of the QPLEX code): 10 heads of 3-layer advantage
-#: extractors. Our default (1 layer, 4 heads) is its SMAC setting (``qplex_sc2.yaml``), which does not find
-#: (0, 0) here.
+#: QPLEX's matrix-game mixer settings (its ``qplex.yaml``): 10 heads of 3-layer advantage extractors. The
+#: default, its SMAC setting (``qplex_sc2.yaml``), does not find (0, 0) here.
 QPLEX_MATRIX_GAME: dict[str, int] = {"n_kernels": 10, "adv_hypernet_layers": 3}
 
 
 class MatrixGameEnv(EnvBase):
     """A one-step cooperative matrix game for ``N`` players, batched over ``num_envs`` environments.
 
-    Args:
-        num_envs: number of independent games stepped at once.
-        payoff: the shared payoff, a tensor of shape ``[A] * N`` (``N >= 2`` players, ``A`` actions each);
-            entry ``payoff[a_1, ..., a_N]`` is paid for the joint action ``(a_1, ..., a_N)``.
-        device: torch device.
+    The dynamics are deterministic, so there is nothing to seed; random actions come from torch's global
+    generator.
 
-    The dynamics are deterministic, so there is nothing to seed: ``_set_seed`` is a no-op. Random actions
-    (``rand_action``, exploration) come from torch's global generator, seeded with ``torch.manual_seed``.
+    Args:
+        payoff: the shared payoff of shape ``[A] * N`` (``N >= 2``); ``payoff[a_1, ..., a_N]`` is paid for
+            the joint action ``(a_1, ..., a_N)``.
     """
 
     batch_locked = True
@@ -154,14 +149,9 @@ class MatrixGameEnv(EnvBase):
 
 
 class MatrixGameTask(Task):
-    """The matrix game as a :class:`~mcrs.experiment.training.task.Task`: ``Experiment(config, run_dir,
-    task=MatrixGameTask())`` trains and evaluates any of our value-factorisation learners on it through the
-    experiment's loop, checkpoints and logs. Its metric is the episode reward: the payoff of the joint
-    action (greedy evaluation: the learned joint action's payoff, 8 at the optimum (0, 0)).
-
-    Args:
-        payoff: the shared payoff, shape ``[A] * N`` (default :data:`PAYOFF`).
-    """
+    """The matrix game as a :class:`~mcrs.experiment.training.task.Task`, e.g. ``Experiment(config, run_dir,
+    task=MatrixGameTask())``. Its metric is the episode reward, the joint action's payoff: 8 at the optimum
+    (0, 0) under greedy evaluation. ``payoff`` defaults to :data:`PAYOFF`."""
 
     name = "matrix_game"
     group = GROUP
@@ -186,7 +176,8 @@ class MatrixGameTask(Task):
 def make_matrix_game(
     num_envs: int = 1, hidden_dim: int = 32, payoff: torch.Tensor = PAYOFF, device: str | torch.device = "cpu"
 ) -> TransformedEnv:
-    """The matrix game with what our recurrent acting policy needs: ``step_count`` and its carried state."""
+    """Return the matrix game with what the recurrent acting policy needs: ``step_count`` and its carried
+    state."""
     base = MatrixGameEnv(num_envs, payoff, device)
     return TransformedEnv(
         base,
@@ -198,11 +189,9 @@ def make_matrix_game(
 
 
 def joint_action_values(loss: ValueFactorisationLoss, episodes: TensorDictBase) -> torch.Tensor:
-    """``Q_tot`` of every joint action at the first step of ``episodes[0]``, as a table of shape ``[A] * N``.
-
-    The per-agent values come from the loss's agent network, the maxima from each agent's own argmax (what
-    QPLEX's advantage is measured against), so the table is what greedy acting maximises.
-    """
+    """Return ``Q_tot`` of every joint action at the first step of ``episodes[0]`` as a table ``[A] * N``. The
+    maxima are each agent's own argmax, what QPLEX's advantage is measured against, so the table is what
+    greedy acting maximises."""
     with torch.no_grad():
         q = loss.agent_values(episodes[:1])[0, 0]  # [N, A]
         N, A = q.shape

@@ -1,23 +1,17 @@
-"""Any PettingZoo ``ParallelEnv`` with discrete actions as a :class:`~mcrs.experiment.training.task.Task`
-(``task=simple_spread``; ``PettingZooTask("mpe2.simple_spread_v3", 25, {"N": 3})`` in Python).
+"""Any PettingZoo ``ParallelEnv`` with discrete actions as a :class:`~mcrs.experiment.training.task.Task`.
 
-A PettingZoo env is one environment of Python objects; :class:`PettingZooBatchEnv` steps ``num_envs`` of
-them as one batched TorchRL ``EnvBase`` in the experiment's key contract (docs/API.md, "Bring your own
-task"). Its keys (``E`` envs, ``N = len(possible_agents)`` agents, every agent with the same spaces, as a
-shared agent network needs)::
+In configs it is e.g. ``task=simple_spread``, in Python ``PettingZooTask("mpe2.simple_spread_v3", 25, {"N":
+3})``. :class:`PettingZooBatchEnv` steps ``num_envs`` PettingZoo envs as one batched TorchRL ``EnvBase`` in
+the experiment's key contract (docs/API.md, "Bring your own task"). Every agent must have the same spaces,
+as a shared agent network needs. Keys (``E`` envs, ``N`` agents)::
 
-    ("agents", "observation")   [E, N, obs]   float32, each agent's observation (flattened; the
-                                              ``"observation"`` entry of a dict observation)
-    ("agents", "action_mask")   [E, N, A]     bool, the ``"action_mask"`` entry of a dict observation when
-                                              there is one, else all True; an agent that has left: all True
-    "state"                     [E, *state]   ``env.state()`` when the env has one, else the observations joined
-    "reward"                    [E, 1]        the team's reward: the agents' rewards summed (or ``mean``)
-    "terminated" / "truncated"  [E, 1]        the episode ends when every agent has terminated or been
-                                              truncated, or at ``max_steps`` (truncated)
+    ("agents", "observation")   [E, N, obs]   float32, flattened; a dict's "observation" entry
+    ("agents", "action_mask")   [E, N, A]     bool, a dict's "action_mask" entry, else all True
+    "state"                     [E, *state]   env.state() if the env has one, else the observations joined
+    "reward"                    [E, 1]        the agents' rewards summed (or mean)
+    "terminated" / "truncated"  [E, 1]        every agent terminated or truncated, or max_steps reached
 
-Stepping a PettingZoo env is a Python call per env: the loop over envs is PettingZoo's nature, the
-tensors it fills are batched.
-"""
+An agent that has left reads zeros with all actions allowed."""
 
 from __future__ import annotations
 
@@ -38,7 +32,8 @@ REWARDS = ("sum", "mean")
 
 
 def _factory(env: str) -> Any:
-    """The callable ``env`` names: ``package.module`` (its ``parallel_env``) or ``package.module:callable``."""
+    """Return the callable ``env`` names: ``package.module`` (its ``parallel_env``) or
+    ``package.module:callable``."""
     module_name, _, attribute = env.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -54,8 +49,8 @@ def _factory(env: str) -> Any:
 
 
 def _spaces(env: Any, spec: str) -> tuple[list[str], int, int, bool]:
-    """The agents, the observation size, the number of actions and whether observations are dicts with an
-    ``action_mask``; refuses what one shared discrete agent cannot play."""
+    """Return the agents, the observation size, the number of actions and whether observations are dicts with
+    an ``action_mask``. It refuses what one shared discrete agent cannot play."""
     agents = list(env.possible_agents)
     if not agents:
         raise ValueError(f"task.env={spec}: the env has no agents")
@@ -82,7 +77,7 @@ def _spaces(env: Any, spec: str) -> tuple[list[str], int, int, bool]:
 
 
 class PettingZooBatchEnv(EnvBase):
-    """``num_envs`` PettingZoo parallel envs as one batched TorchRL env in the task contract's keys."""
+    """``num_envs`` PettingZoo parallel envs as one batched TorchRL env with the task contract's keys."""
 
     batch_locked = True
 
@@ -132,7 +127,7 @@ class PettingZooBatchEnv(EnvBase):
 
     # ------------------------------------------------------------------ one env's arrays
     def _read(self, i: int, env: Any, observations: dict[str, Any]) -> None:
-        """Env ``i``'s observations, masks and state into the batch arrays (an agent gone: zeros, all True)."""
+        """Copy env ``i``'s observations, masks and state into the batch arrays."""
         self._obs[i] = 0.0
         self._mask[i] = True
         for n, agent in enumerate(self.agents):
@@ -168,7 +163,7 @@ class PettingZooBatchEnv(EnvBase):
 
     # ------------------------------------------------------------------ EnvBase hooks
     def _set_seed(self, seed: int | None) -> None:
-        """The next reset of env ``i`` is ``reset(seed=seed + i)``; later ones go on from there."""
+        """Make the next reset of env ``i`` ``reset(seed=seed + i)``."""
         self._seed = seed
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
@@ -222,17 +217,16 @@ class PettingZooBatchEnv(EnvBase):
 
 
 class PettingZooTask(Task):
-    """A PettingZoo ``ParallelEnv`` with discrete actions: a team reward (the agents' summed), action masks
-    from dict observations when present, the global state from ``state()`` or the joined observations.
+    """A PettingZoo ``ParallelEnv`` with discrete actions, a summed team reward and the state from ``state()``
+    or the joined observations.
 
     Args:
         env: ``package.module`` with a ``parallel_env`` function (``mpe2.simple_spread_v3``), or
             ``package.module:callable`` returning a ``ParallelEnv``.
-        max_steps: the time limit: episodes are truncated there (set it to the env's own, MPE's
-            ``max_cycles``, or below).
-        env_kwargs: keyword arguments of ``parallel_env`` (``{"N": 3}``).
-        reward: ``sum`` (default) or ``mean`` of the agents' rewards, the team's reward.
-        name: the task's name in logs and run directories (default: the module's last part).
+        max_steps: where episodes are truncated; the env's own limit (MPE's ``max_cycles``) or below.
+        env_kwargs: keyword arguments of ``parallel_env``, e.g. ``{"N": 3}``.
+        reward: ``sum`` (default) or ``mean`` of the agents' rewards.
+        name: the task's name in logs and run directories; defaults to the module's last part.
     """
 
     group = GROUP

@@ -1,22 +1,19 @@
-"""VMAS scenarios with discrete actions as a :class:`~mcrs.experiment.training.task.Task` (``task=vmas_navigation``).
+"""VMAS scenarios with discrete actions as a :class:`~mcrs.experiment.training.task.Task`
+(``task=vmas_navigation``).
 
-VMAS (``pip install "mcrs[vmas]"``) is a vectorised multi-robot simulator: one ``VmasEnv`` (TorchRL's
-wrapper) steps all ``num_envs`` environments as batched tensors. :class:`VmasTask` puts it in the
-experiment's key contract (docs/API.md, "Bring your own task") with one TorchRL transform,
-:class:`TeamKeys`, and TorchRL's ``StepCounter``:
+VMAS (``pip install "mcrs[vmas]"``) steps all ``num_envs`` environments as batched tensors through
+TorchRL's ``VmasEnv``. :class:`VmasTask` fits it to the experiment's key contract (docs/API.md, "Bring your
+own task") with :class:`TeamKeys` and TorchRL's ``StepCounter``::
 
-    ("agents", "observation")   [E, N, obs]   VMAS's own (every agent in one group, ``ALL_IN_ONE_GROUP``)
-    ("agents", "action_mask")   [E, N, A]     all True: VMAS's discrete actions are always allowed
-    "state"                     [E, N * obs]  the agents' observations joined (VMAS has no global state)
-    "reward"                    [E, 1]        the agents' rewards summed (a team reward)
+    ("agents", "observation")   [E, N, obs]   VMAS's own, every agent in one group
+    ("agents", "action_mask")   [E, N, A]     all True
+    "state"                     [E, N * obs]  the observations joined; VMAS has no global state
+    "reward"                    [E, 1]        the agents' rewards summed
     "terminated"                [E, 1]        the scenario's own end (navigation: every agent on its goal)
-    "truncated"                 [E, 1]        ``max_steps`` reached (``StepCounter``)
+    "truncated"                 [E, 1]        max_steps reached
 
-Episodes that end early (``terminated`` before ``max_steps``) are padded and masked in the replay and the
-loss (the experiment keeps each row's first episode, as pymarl does). VMAS draws its scenarios from torch's
-global generator, which ``set_seed`` seeds: a run is reproducible, and its exploration draws from the same
-generator as the environment.
-"""
+Episodes that end early are padded and masked in the replay and the loss. VMAS draws from torch's global
+generator, which ``set_seed`` seeds, so runs are reproducible."""
 
 from __future__ import annotations
 
@@ -27,6 +24,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 from torchrl.envs.transforms import Transform
+from torchrl.envs.utils import MarlGroupMapType
 
 from mcrs.experiment.training.task import Task, first_episode_sum
 
@@ -34,9 +32,8 @@ GROUP = "agents"
 
 
 class TeamKeys(Transform):
-    """A VMAS env's per-agent keys as the task contract reads them: an all-True ``(group, "action_mask")``,
-    the joined observations as ``"state"`` and the summed per-agent rewards as ``"reward"``; batched, no
-    loop over envs or agents."""
+    """Add the task contract's keys to a VMAS env, batched: an all-True action mask, the joined observations
+    as ``state`` and the summed reward."""
 
     def __init__(self, n_actions: int, group: str = GROUP) -> None:
         super().__init__(in_keys=[], out_keys=[])
@@ -82,15 +79,13 @@ class TeamKeys(Transform):
 
 
 class VmasTask(Task):
-    """A VMAS scenario with discrete actions (``task=vmas_navigation``; ``VmasTask("navigation", 50,
-    {"n_agents": 3})`` in Python): its per-agent rewards summed into the team's, episodes that end early
-    padded, the joined observations as the mixer's state.
+    """A VMAS scenario with discrete actions, e.g. ``VmasTask("navigation", 50, {"n_agents": 3})``.
 
     Args:
-        scenario: a VMAS scenario name (``vmas.scenarios``), e.g. ``navigation``, ``balance``, ``transport``.
-        max_steps: the time limit (``StepCounter``): episodes are truncated there.
+        scenario: a VMAS scenario name, e.g. ``navigation``, ``balance``, ``transport``.
+        max_steps: where ``StepCounter`` truncates episodes.
         scenario_kwargs: the scenario's own settings (``n_agents``, ``collisions``, ``shared_rew``, ...).
-        name: the task's name in logs and run directories (default ``vmas_<scenario>``).
+        name: the task's name in logs and run directories; defaults to ``vmas_<scenario>``.
     """
 
     group = GROUP
@@ -124,8 +119,7 @@ class VmasTask(Task):
 
     def _vmas(self, num_envs: int, device: torch.device) -> EnvBase:
         try:
-            from torchrl.envs.libs.vmas import VmasEnv
-            from torchrl.envs.utils import MarlGroupMapType
+            from torchrl.envs.libs.vmas import VmasEnv  # needs the optional vmas package
         except ImportError as error:  # pragma: no cover - the vmas extra is missing
             raise ValueError(f"task {self.name}: needs VMAS: pip install 'mcrs[vmas]' ({error})") from None
         try:
@@ -157,7 +151,8 @@ class VmasTask(Task):
         }
 
     def episode_metrics(self, rollout: TensorDictBase) -> dict[str, torch.Tensor]:
-        """The team's return and the length of each row's first episode (shorter: the goal reached)."""
+        """Return the team's return and the length of each row's first episode, shorter when the goal is
+        reached."""
         E, T = rollout.batch_size
         done = rollout.get(("next", "done")).reshape(E, T).long()
         length = ((done.cumsum(-1) - done) == 0).sum(-1).float()

@@ -1,13 +1,8 @@
 """Pictures of one episode: the scene, the paper's figure 4 (uncertainty contours) and an animation.
 
-Everything is drawn from a rollout with ``expose_beliefs=True`` (:func:`rollout_episode`), through the
-object-oriented matplotlib API on an Agg canvas: importing this package never touches the global
-pyplot backend, so it is safe in notebooks, tests and headless servers alike.
-
-It sits at the top of the package's layers (it rolls policies out, trained ones included): the
-environment knows nothing of it. :func:`write_episode_pictures` is the one routine behind
-``mcrs-eval figures=true`` and ``mcrs-render``.
-"""
+Everything is drawn from a rollout with ``expose_beliefs=True`` on an Agg canvas, never the global pyplot
+backend, so it is safe in notebooks, tests and headless servers. :func:`write_episode_pictures` is the
+routine behind ``mcrs-eval figures=true`` and ``mcrs-render``."""
 
 from mcrs.viz.animation import save_episode_gif
 from mcrs.viz.contours import default_contour_steps, plot_uncertainty_contours, uncertainty_contour_data

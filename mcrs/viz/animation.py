@@ -20,13 +20,9 @@ def save_episode_gif(
     trail: int | None = 12,
     dpi: int = 80,
 ) -> Path:
-    """Animate the episode: an m(U) map behind the UAVs, their trails, no-fly cells and targets.
-
-    ``background`` is ``"global"`` (the global map of all detections) or a UAV index (that UAV's own
-    fused map, i.e. what it knows). ``trail`` keeps the trails to the last steps (None: the whole
-    trail; a short one keeps large maps readable). The frames are those of
-    :func:`mcrs.env.render.episode_rgb_frames`, the same drawing as the adapter's ``render()``.
-    """
+    """Animate the episode with the frames of :func:`mcrs.env.render.episode_rgb_frames`. ``background`` is
+    ``"global"`` or a UAV index for that UAV's own fused map. ``trail`` is how many past steps of trail to
+    draw, None for all; a short one keeps large maps readable."""
     frames = episode_rgb_frames(episode_frames(episode, env_config), background, trail, dpi)
     path = Path(path)
     path.write_bytes(encode_gif(frames, fps))

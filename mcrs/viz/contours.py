@@ -15,14 +15,14 @@ from mcrs.viz.frames import episode_frames
 
 
 def default_contour_steps(env_config: EnvConfig) -> tuple[int, int]:
-    """Half way and the end of the episode, as the two moments of the paper's figure 4."""
+    """Return half way and the end of the episode, the two moments of the paper's figure 4."""
     return (env_config.max_steps // 2, env_config.max_steps)
 
 
 def uncertainty_contour_data(
     episode: TensorDictBase, env_config: EnvConfig, uav: int = 0, steps: Sequence[int] | None = None
 ) -> np.ndarray:
-    """``[len(steps), W, H]``: UAV ``uav``'s own fused m(U) map after each of ``steps``."""
+    """Return UAV ``uav``'s own fused m(U) maps ``[len(steps), W, H]`` after each of ``steps``."""
     fr = episode_frames(episode, env_config)
     steps = default_contour_steps(env_config) if steps is None else steps
     if not 0 <= uav < env_config.n_uavs:
@@ -41,11 +41,9 @@ def plot_uncertainty_contours(
     uav: int = 0,
     steps: Sequence[int] | None = None,
 ) -> Figure:
-    """Paper figure 4: contour maps of one UAV's m(U), rows with / without communication, one column a step.
-
-    ``without_comm`` must come from the same config with ``comm_range=0`` (see :func:`rollout_comm_pair`).
-    The UAV's trail up to each step is drawn on top, so one sees what it learned by itself.
-    """
+    """Draw paper figure 4: one UAV's m(U) contours with and without communication, one column per step.
+    ``without_comm`` must come from the same config with ``comm_range=0`` (:func:`rollout_comm_pair`). The
+    UAV's trail is drawn on top."""
     steps = tuple(default_contour_steps(env_config) if steps is None else steps)
     rows = [
         ("with communication", with_comm, env_config.comm_range),

@@ -21,12 +21,9 @@ def write_episode_pictures(
     gif: bool = True,
     uav: int = 0,
 ) -> list[Path]:
-    """Roll out one episode of ``policy`` (seed ``seed``) and write its pictures into ``out_dir``.
-
-    ``scene.png`` (the whole episode), ``uncertainty_contours.png`` (figure 4: UAV ``uav``'s m(U) with the
-    config's communication and, same seed, without any) and, with ``gif``, ``episode.gif``. ``policy`` is
-    a heuristic's name or a checkpoint (see :func:`mcrs.policies.make_policy`). Returns the paths written.
-    """
+    """Roll out one episode of ``policy`` from ``seed`` and write its pictures into ``out_dir``; return the
+    paths. They are ``scene.png``, ``uncertainty_contours.png`` (figure 4 for UAV ``uav``) and, with
+    ``gif``, ``episode.gif``. ``policy`` is anything :func:`mcrs.policies.make_policy` takes."""
     if not 0 <= uav < env_config.n_uavs:
         raise ValueError(
             f"uav={uav}: must be in 0..{env_config.n_uavs - 1} (the map has {env_config.n_uavs} UAVs)"

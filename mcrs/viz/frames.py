@@ -1,9 +1,7 @@
-"""One episode as arrays: the rollout (beliefs exposed) and its per-step numpy frames.
+"""One episode as arrays: the rollout with beliefs exposed, and its per-step numpy frames.
 
-Every picture of :mod:`mcrs.viz` is drawn from these, so a rollout is taken once and drawn many times.
-The arrays themselves (:class:`EpisodeFrames`) are defined beside the drawing of one state, in
-mcrs.env.render, which the adapter's ``render()`` and the evaluation video share.
-"""
+Every picture of :mod:`mcrs.viz` is drawn from these, so a rollout is taken once. :class:`EpisodeFrames`
+lives in mcrs.env.render, beside the drawing that ``render()`` and the evaluation video share."""
 
 from __future__ import annotations
 
@@ -19,7 +17,7 @@ __all__ = ["EpisodeFrames", "episode_frames", "rollout_comm_pair", "rollout_epis
 
 
 def rollout_episode(env_config: EnvConfig, policy_name: str, seed: int) -> TensorDictBase:
-    """One full episode (``max_steps`` steps, one env, beliefs exposed): a ``[1, T]`` tensordict."""
+    """Roll out one full episode in one env with beliefs exposed; return a ``[1, T]`` tensordict."""
     cfg = policy_env(policy_name, env_config.replace(num_envs=1, expose_beliefs=True))
     env = MCRSEnv(cfg)
     env.set_seed(seed)
@@ -31,7 +29,7 @@ def rollout_episode(env_config: EnvConfig, policy_name: str, seed: int) -> Tenso
 def rollout_comm_pair(
     env_config: EnvConfig, policy_name: str, seed: int
 ) -> tuple[TensorDictBase, TensorDictBase]:
-    """The same episode seed with the config's communication and without any (``comm_range=0``)."""
+    """Roll out the same episode seed with the config's communication and with ``comm_range=0``."""
     with_comm = rollout_episode(env_config, policy_name, seed)
     without = rollout_episode(env_config.replace(comm_range=0.0), policy_name, seed)
     return with_comm, without

@@ -1,13 +1,11 @@
-"""Learning curves against env steps: one method's metric over seeds (:class:`Curve`), and the figure that
-draws them with the heuristics as horizontal lines (:func:`plot_curves`). ``mcrs-train budget=quickstart``
-draws its run's report with them (:func:`mcrs.evaluate.evaluate_run`); ``mcrs-report`` (mcrs_lab.analysis)
-draws the paper's figures 6-7, 10 and 11.
+"""Learning curves against env steps: one method's metric over seeds (:class:`Curve`) and the figure of them
+(:func:`plot_curves`).
 
-The figures draw each method's interquartile mean (IQM) over seeds with a 95 % stratified bootstrap
-confidence interval, as rliable and marl-eval do (Agarwal et al., 2021): with 2-5 seeds a Student-t band
-is several times the spread of the seeds and fills the panel, the bootstrap interval stays within what the
-seeds did. One task per curve, so the strata are the evaluation steps: each is resampled over seeds
-(``scipy.stats.bootstrap``, percentile method, a fixed generator so that the figures are reproducible)."""
+``mcrs-train budget=quickstart`` draws its run's report with them, and ``mcrs-report`` (mcrs_lab.analysis)
+draws the paper's figures 6-7, 10 and 11. Each method is drawn as its interquartile mean (IQM) over seeds
+with a 95 % stratified bootstrap interval, as rliable and marl-eval do (Agarwal et al., 2021); with 2-5
+seeds a Student-t band would fill the panel. The strata are the evaluation steps, each resampled over seeds
+with ``scipy.stats.bootstrap`` (percentile method, fixed generator)."""
 
 from __future__ import annotations
 
@@ -53,8 +51,8 @@ class Curve:
 
 @dataclass(frozen=True)
 class Reference:
-    """A policy that does not learn (a heuristic), drawn across a learning-curve panel: its mean over
-    evaluation seeds and the 95 % confidence half-width of that mean."""
+    """A heuristic drawn across a panel: its mean over evaluation seeds and the 95 % confidence half-width of
+    that mean."""
 
     label: str
     mean: float
@@ -77,13 +75,13 @@ BOOTSTRAP_SEED = 0
 
 
 def interquartile_mean(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """The mean of the middle 50 % of ``values`` along ``axis`` (25 % trimmed from each end; rliable's IQM)."""
+    """Return the mean of the middle 50 % of ``values`` along ``axis`` (rliable's IQM)."""
     return stats.trim_mean(values, 0.25, axis=axis)
 
 
 def iqm_interval(values: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """IQM over seeds (axis 0 of ``[seeds, steps]``) and its ``level`` bootstrap confidence interval,
-    seeds resampled within each step (stratified by step). One seed: the interval is the value itself."""
+    """Return the IQM over seeds of ``[seeds, steps]`` and its ``level`` bootstrap interval, stratified by
+    step. With one seed the interval is the value itself."""
     iqm = interquartile_mean(values)
     if values.shape[0] < 2:
         return iqm, iqm.copy(), iqm.copy()
@@ -102,8 +100,7 @@ def iqm_interval(values: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, n
 
 
 def curve_of(label: str, series: list[tuple[np.ndarray, np.ndarray]]) -> Curve | None:
-    """One method's curve from its seeds' ``(steps, values)``, on the steps that every seed logged; None
-    when they share no step."""
+    """Return one method's curve on the steps every seed logged, or None when they share no step."""
     common = series[0][0]
     for steps, _ in series[1:]:
         common = np.intersect1d(common, steps)
@@ -121,8 +118,7 @@ def curve_of(label: str, series: list[tuple[np.ndarray, np.ndarray]]) -> Curve |
 
 
 def _legend(fig, handles: list, names: list[str], most: int = 5) -> int:
-    """The figure's legend below the panels, in as many columns (up to ``most``) as fit its width: long
-    labels (``cnn_semu lambda=0.01 (3 seeds)``) would run off the sides. Returns the column count."""
+    """Draw the legend below the panels in as many columns as fit, at most ``most``; return the column count."""
     renderer = fig.canvas.get_renderer()
     for ncol in range(min(len(names), most), 0, -1):
         legend = fig.legend(handles, names, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
@@ -139,9 +135,9 @@ def plot_curves(
     order: list[str] | None = None,
     references: dict[str, list[Reference]] | None = None,
 ) -> Path:
-    """One panel per metric: a line per method (IQM over seeds) with its 95 % bootstrap band, and per panel
-    the ``references`` (the heuristics) as horizontal lines, each in its own colour and named at its end."""
-    import matplotlib
+    """Draw one panel per metric: each method's IQM line and 95 % band, and the ``references`` as named
+    horizontal lines."""
+    import matplotlib  # deferred: an optional, heavy dependency, needed only to draw
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -203,9 +199,9 @@ ZOOM_FROM = 0.05  # the y limits ignore the first 5 % of the steps (the untraine
 
 
 def _zoom(ax, curves: list[Curve], levels: list[float] | None = None) -> None:
-    """Y limits from the IQMs after the first ``ZOOM_FROM`` of the steps and the reference ``levels``:
-    the first evaluations (a reward of -200 on map10 and map20) would otherwise flatten every learning
-    curve. Bands may be clipped; a line left out is said in the panel's corner."""
+    """Return y limits from the IQMs after the first ``ZOOM_FROM`` of the steps and the reference ``levels``.
+    Otherwise the first evaluations (-200 on map10 and map20) would flatten every curve. A line left out is
+    noted in the panel's corner."""
     last = max((int(c.steps[-1]) for c in curves), default=0)
     later = [c.iqm[c.steps > ZOOM_FROM * last] for c in curves if (c.steps > ZOOM_FROM * last).any()]
     if not later:

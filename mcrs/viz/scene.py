@@ -27,10 +27,7 @@ from mcrs.viz.frames import episode_frames
 
 
 def plot_scene(episode: TensorDictBase, env_config: EnvConfig, path: str | Path | None = None) -> Figure:
-    """The whole episode on one picture: trails, no-fly cells, targets found/missed, last-step links.
-
-    The background is the final global m(U), so unexplored parts of the map stand out.
-    """
+    """Draw the whole episode over the final global m(U), so unexplored parts stand out."""
     fr = episode_frames(episode, env_config)
     cfg, T = env_config, fr.steps
     fig = new_figure(6.8, 7.0)
