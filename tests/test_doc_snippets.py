@@ -1,7 +1,8 @@
 """The code blocks of README.md and the first docs a user reads run as a user would copy them: each Python
 block alone, in a fresh interpreter and an empty folder (a block marked as a fragment of a program names
 the file that holds it whole); each ``mcrs-train``, ``mcrs-eval`` and
-``mcrs-render`` line of a shell block composes and passes the checks made before anything runs.
+``mcrs-render`` line of a shell block composes and passes the checks made before anything runs; each
+``mcrs-campaign``, ``mcrs-report`` and ``mcrs-results`` line parses, and its campaign file and filters load.
 
 A Python block that trains is in the slow set, with its budget cut to a few thousand env steps where it
 asks for more (the page's figures are kept by tests/test_doc_outputs.py). A ``<run>`` in a command
@@ -28,6 +29,9 @@ FENCE = re.compile(
     r"^(?:<!-- fragment: [^\n]*? whole in (?P<whole>\S+) -->\n)?```(?P<lang>python|bash)\n(?P<body>.*?)^```",
     re.S | re.M,
 )
+#: The pages whose shell blocks run the lab's tools (mcrs-campaign, mcrs-report, mcrs-results).
+LAB_DOCS = ("README.md", "docs/EXPERIMENTS.md")
+LAB_TOOLS = ("mcrs-campaign", "mcrs-report", "mcrs-results")
 #: The Hydra config each command composes.
 CONFIGS = {"mcrs-train": "config", "mcrs-eval": "eval", "mcrs-render": "render"}
 #: A budget above this many env steps is cut to it (a block's own figures are kept elsewhere).
@@ -35,12 +39,12 @@ MAX_STEPS = 3200
 STEPS = re.compile(r"train\.total_env_steps=(\d+)")
 
 
-def snippets(lang: str, fragments: bool = False) -> list[tuple[str, str]]:
+def snippets(lang: str, fragments: bool = False, docs: tuple[str, ...] = DOCS) -> list[tuple[str, str]]:
     """``(doc:line, body)`` of each block in ``lang``: the whole programs, or (``fragments``) the blocks
     marked ``<!-- fragment: ... whole in <file> -->``, which use names of the reader's own code, as
     ``(doc:line, file)``."""
     found = []
-    for doc in DOCS:
+    for doc in docs:
         text = (ROOT / doc).read_text()
         for match in FENCE.finditer(text):
             if match["lang"] == lang and bool(match["whole"]) == fragments:
@@ -57,12 +61,12 @@ def python_params() -> list:
     return params
 
 
-def command_lines() -> list:
+def command_lines(tools: tuple[str, ...] = tuple(CONFIGS), docs: tuple[str, ...] = DOCS) -> list:
     params = []
-    for where, body in snippets("bash"):
+    for where, body in snippets("bash", docs=docs):
         for offset, line in enumerate(body.splitlines()):
             words = shlex.split(line, comments=True)
-            if words and words[0] in CONFIGS:
+            if words and words[0] in tools:
                 doc, start = where.split(":")
                 params.append(pytest.param(words, id=f"{doc}:{int(start) + 1 + offset}"))
     return params
@@ -110,8 +114,28 @@ def test_a_documented_command_composes_and_passes_the_early_checks(words: list[s
         assert eval_errors(cfg) == []
 
 
+@pytest.mark.parametrize("words", command_lines(LAB_TOOLS, LAB_DOCS))
+def test_a_documented_lab_command_parses_and_its_campaign_file_loads(words: list[str]) -> None:
+    """A flag renamed or dropped, a campaign file moved, an ``--only`` that selects nothing: the line a
+    reader copies would fail. The commands are not run (a campaign takes days)."""
+    from mcrs_lab.analysis.doc_tables import build_parser as results_parser
+    from mcrs_lab.analysis.report import build_parser as report_parser
+    from mcrs_lab.campaign.cli import build_parser as campaign_parser
+    from mcrs_lab.campaign.matrix import campaign_roots, load_matrix, select
+
+    parsers = {"mcrs-campaign": campaign_parser, "mcrs-report": report_parser, "mcrs-results": results_parser}
+    args = [w.replace("<run dir>", "outputs/run") for w in words[1:] if w != "..."]
+    parsed = parsers[words[0]]().parse_args(args)
+    if words[0] == "mcrs-campaign" and getattr(parsed, "matrix", None) is not None:
+        matrix = parsed.matrix if parsed.matrix.is_absolute() else ROOT / parsed.matrix
+        campaign_roots(matrix)
+        points, _ = load_matrix(matrix)
+        assert select(points, getattr(parsed, "only", [])), f"{' '.join(words)}: --only selects no point"
+
+
 def test_the_pages_have_blocks() -> None:
     assert len(snippets("python")) >= 10 and len(command_lines()) >= 30
+    assert len(command_lines(LAB_TOOLS, LAB_DOCS)) >= 10
 
 
 def test_a_fragment_names_the_file_that_runs_it_whole() -> None:

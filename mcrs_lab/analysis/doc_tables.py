@@ -259,7 +259,7 @@ def default_docs() -> list[Path]:
     return [answer, *sorted(notebooks.glob("*.md"))]
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mcrs-results",
         description="Check or rewrite the generated tables of results documents from the committed records.",
@@ -271,7 +271,11 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         help="default: docs/RESULTS.md and results/notebooks/*.md",
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     status = 0
     for doc in args.docs or default_docs():
         status = max(status, _run(args.action, doc))
