@@ -285,7 +285,7 @@ class EpisodicMemory:
             episode: ``[E]`` int ids recorded with the entries they write; -1 when not given.
         """
         E, T = self._check_batch(state, counts, reward, desirable, episode)
-        D, cells, n = self.codec.state_dim, self.codec.n_cells, E * T
+        n = E * T
         if n == 0:
             return InsertStats(0, 0, 0, 0, 0)
         dev, C = self.device, self.capacity
@@ -295,19 +295,11 @@ class EpisodicMemory:
         flat, returns, step, wanted = in_order(
             reward, self.gamma, desirable if self.track_desirability else None
         )
-        time = self.normalised_time(torch.arange(T, device=dev))
-        x = self._embed(state, time.expand(E, T)).reshape(n, self.key_dim)[flat]
-        if not torch.isfinite(x).all():
-            raise ValueError("the embedding produced non-finite keys")
+        x = self._batch_keys(state, flat)
         if episode is None:
             episode = torch.full((E,), UNKNOWN_EPISODE, dtype=torch.int64)
         written = episode.to(dev, torch.int64).repeat_interleave(T)
-        codes, positions = self.codec.encode(
-            counts.reshape(n, cells, 2), state.reshape(n, D), check_maps=self.check_states
-        )
-        if codes.element_size() > self.codes.element_size():
-            self.codes = self.codes.to(codes.dtype)  # promotion: a count above 255 arrived
-        codes = codes.to(self.codes.dtype)
+        codes, positions = self._encode(state, counts)
 
         evicted = self._evict(max(0, self.size + n - C))
         if self.size == 0:
@@ -350,6 +342,28 @@ class EpisodicMemory:
             shifted=outcome.shifts,
             evicted=evicted,
         )
+
+    def _batch_keys(self, state: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+        """The keys x = phi(s, t/T) of an ``[E, T, D]`` batch, in the transition order ``flat`` gives."""
+        E, T = state.shape[:2]
+        time = self.normalised_time(torch.arange(T, device=self.device))
+        x = self._embed(state, time.expand(E, T)).reshape(E * T, self.key_dim)[flat]
+        if not torch.isfinite(x).all():
+            raise ValueError("the embedding produced non-finite keys")
+        return x
+
+    def _encode(self, state: torch.Tensor, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The batch's states in the codec's compact form, in the storage's dtype, which is promoted
+        when a count outgrows it."""
+        n = state.shape[0] * state.shape[1]
+        codes, positions = self.codec.encode(
+            counts.reshape(n, self.codec.n_cells, 2),
+            state.reshape(n, self.codec.state_dim),
+            check_maps=self.check_states,
+        )
+        if codes.element_size() > self.codes.element_size():
+            self.codes = self.codes.to(codes.dtype)  # promotion: a count above 255 arrived
+        return codes.to(self.codes.dtype), positions
 
     def _check_batch(
         self,
