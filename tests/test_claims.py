@@ -293,6 +293,56 @@ def test_a_claim_about_a_method_finds_its_default_runs_beside_a_sweep_of_it(tmp_
     assert verdicts["100x emc beats qmix"].startswith("**not reproduced**"), verdicts
 
 
+def test_a_claim_names_a_method_by_one_setting_beside_two_sweeps_of_it(tmp_path: Path) -> None:
+    """Table 4's delta sweep and figure 10's lambda sweep of CNN-SEMU in one report label its runs by both
+    settings; a claim still names each by the one it is about (``cnn_semu delta=0.13``, ``cnn_semu
+    lambda=0.5``), the others at their defaults, and ``cnn_semu`` alone is the run at every default. Before
+    the sweeps have run, ``cnn_semu lambda=0.1`` is figure 7's CNN-SEMU, at that lambda."""
+    base, sweeps = tmp_path / "base", tmp_path / "sweeps"
+    points = {"default": (1.3e-3, 0.1, 60.0), "delta": (1.3e-1, 0.1, 20.0), "lambda": (1.3e-3, 0.5, 40.0)}
+    for seed in range(3):
+        make_run(base, f"qmix_{seed}", seed=seed, steps=STEPS, reward=[0.0] * 9 + [50.0 + seed] * 2)
+        for name, (delta, weight, reward) in points.items():
+            make_run(
+                base if name == "default" else sweeps, f"cnn_semu_{name}_{seed}", algo="cnn_semu", seed=seed,
+                steps=STEPS, reward=[0.0] * 9 + [reward + seed] * 2, algo__memory__enabled=True,
+                algo__memory__delta=delta, algo__memory_weight=weight,
+            )  # fmt: skip
+    claims = tmp_path / "claims.yaml"
+    common = {"source": "fig. 7a", "paper": "-", "metric": "episode_reward"}
+    entries = [
+        {**common, "claim": "cnn_semu beats qmix", "above": ["cnn_semu"], "below": ["qmix"]},
+        {**common, "claim": "100x delta beats qmix", "above": ["cnn_semu delta=0.13"], "below": ["qmix"]},
+        {
+            **common,
+            "claim": "0.1 beats 0.5",
+            "above": ["cnn_semu lambda=0.1"],
+            "below": ["cnn_semu lambda=0.5"],
+        },
+    ]
+    claims.write_text(yaml.safe_dump({"map10": entries}))
+
+    def judged(*paths: Path) -> list[list[str]]:
+        out = tmp_path / "report"
+        assert report_main([*map(str, paths), "--out", str(out), "--claims", str(claims)]) == 0
+        return [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
+
+    rows = judged(base)
+    assert rows[0][5].strip().startswith("**reproduced**") and "cnn_semu 61.00 ± 1.00 (3)" in rows[0][3]
+    assert rows[1][5].strip() == "**not run**: no runs of cnn_semu delta=0.13"
+    assert rows[2][5].strip() == "**not run**: no runs of cnn_semu lambda=0.5"
+    assert "cnn_semu 61.00 ± 1.00 (3)" in rows[2][3]
+
+    rows = judged(base, sweeps)
+    verdicts = {r[1].strip(): r[5].strip() for r in rows}
+    assert verdicts["cnn_semu beats qmix"].startswith("**reproduced**"), verdicts
+    assert "cnn_semu delta=0.0013 lambda=0.1 61.00 ± 1.00 (3)" in rows[0][3]
+    assert verdicts["100x delta beats qmix"].startswith("**not reproduced**"), verdicts
+    assert "cnn_semu delta=0.13 lambda=0.1 21.00 ± 1.00 (3)" in rows[1][3]
+    assert verdicts["0.1 beats 0.5"].startswith("**reproduced**"), verdicts
+    assert "cnn_semu delta=0.0013 lambda=0.5 41.00 ± 1.00 (3)" in rows[2][3]
+
+
 # ------------------------------------------------------------------ Holm, effect sizes, bootstrap, verdicts
 def test_holm_matches_a_hand_computed_example() -> None:
     """Sorted 0.005, 0.01, 0.03, 0.04 of m = 4 tests: times 4, 3, 2, 1 is 0.02, 0.03, 0.06, 0.04; the last

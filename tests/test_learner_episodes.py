@@ -161,6 +161,27 @@ def test_the_claims_table_says_which_heuristic_played_the_learners_episodes(tmp_
     assert "not the learners' episodes" in lawnmower[3] and "one number on a side: no test" in lawnmower[4]
 
 
+def test_a_heuristic_with_no_learner_beside_it_gives_its_numbers_alone(tmp_path: Path) -> None:
+    """Before a map's learners have run, the claims table shows the heuristic's score and says nothing of
+    whose episodes it played: there are no learner's episodes to hold it against yet."""
+    runs = tmp_path / "runs"
+    make_run(runs, "qmix_0", steps=STEPS)
+    config = OmegaConf.to_container(OmegaConf.load(runs / "qmix_0" / "config.yaml"))
+    evals = tmp_path / "evals"
+    env, train = config["env"], config["train"]
+    _heuristic_result(evals, "greedy", "greedy", env, train["eval_seed"], train["eval_episodes"], 45.0)
+    claims = tmp_path / "claims.yaml"
+    entry = {"source": "ours", "paper": "-", "metric": "episode_reward", "claim": "qmix beats greedy"}
+    claims.write_text(
+        yaml.safe_dump({"map10": [entry | {"above": ["qmix"], "below": ["greedy (heuristic)"]}]})
+    )
+    out = tmp_path / "report"
+    assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
+    (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
+    assert row[3].strip().endswith("greedy (heuristic) 45.00 (1)"), row[3]
+    assert row[5].strip() == "**not run**: no runs of qmix"
+
+
 def test_the_layout_of_a_run_and_of_an_evaluation_name_the_task_seed_and_episodes() -> None:
     env = {"name": "map20", "comm_range": 5, "width": 20}
     assert task_key(env) == task_key({**env, "comm_range": 5.0, "expose_beliefs": True, "far_view": 3})

@@ -316,6 +316,8 @@ def _sample_text(samples: Samples, tests: list[Comparison]) -> str:
     if not samples.heuristic:
         return samples.text()
     mine = [t for t in tests if samples.label in (t.above, t.below)]
+    if not mine:  # no learner's seeds to set it beside: its numbers alone
+        return samples.text()
     scores = sorted({t.score for t in mine if np.isfinite(t.score)})
     parts = (
         [f"{samples.label} {', '.join(f'{v:.2f}' for v in scores)} on the learners' episodes"]

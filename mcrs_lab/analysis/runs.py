@@ -453,17 +453,26 @@ def select_map(runs: Runs, env_name: str | None) -> str | None:
 
 
 def default_labels(runs: list[TrainingRun]) -> dict[str, str]:
-    """Per algorithm whose runs are told apart by a setting, the label of those at today's defaults
-    (``emc`` -> ``emc delta=0.0013`` beside ``emc delta=0.13``): so a claim about the paper's EMC, which
-    names the method as ``emc``, still finds it when a sweep of it sits in the same report."""
+    """Short names of labels, so that a claim names a method as the paper does and finds it whatever other
+    sweeps of it sit in the same report: the algorithm alone for its runs at today's defaults (``emc`` ->
+    ``emc delta=0.0013`` beside ``emc delta=0.13``); the algorithm with the one swept setting off its
+    default, the others at theirs (``cnn_semu delta=0.13`` -> ``cnn_semu delta=0.13 lambda=0.1``); and, for
+    runs at every default, the algorithm with any one of the paper's symbols at the run's value, swept or
+    not (``cnn_semu lambda=0.1`` -> ``cnn_semu`` where no lambda sweep is in the report)."""
     fields, labels = label_fields(runs), run_labels(runs)
     out: dict[str, str] = {}
     for run in runs:
         names = fields[run.algo_name]
-        defaults = default_fields(run.algo_name, run.env_name) if names else None
+        defaults = default_fields(run.algo_name, run.env_name)
         if defaults is None:
             continue
         config = comparable_config(run)
-        if all(n in defaults and repr(config.get(n)) == repr(defaults[n]) for n in names):
+        changed = [n for n in names if n not in defaults or repr(config.get(n)) != repr(defaults[n])]
+        if len(changed) > 1:
+            continue  # two settings off their defaults: only the full label names the run
+        named = changed or [*names, *(n for n in SHORT_NAMES if n in config and n not in names)]
+        if not changed:
             out.setdefault(run.algo_name, labels[run.path])
+        for name in named:
+            out.setdefault(f"{run.algo_name} {_short(name)}={_format(config.get(name))}", labels[run.path])
     return out
