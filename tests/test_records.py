@@ -17,6 +17,7 @@ from mcrs_lab.analysis.records import make_record, write_record
 from mcrs_lab.analysis.report import main as report_main
 from mcrs_lab.analysis.runs import find_runs
 from mcrs_lab.campaign.cli import main as campaign_main
+from mcrs_lab.campaign.matrix import DEFAULT_MATRIX
 from tests.test_report import make_evaluation, make_run, read_csv
 
 pytestmark = pytest.mark.slow
@@ -123,6 +124,24 @@ def test_recording_twice_changes_nothing_and_another_run_is_not_overwritten(
     with pytest.raises(ValueError, match="records another run"):
         write_record(path, other)
     assert write_record(path, other, replace=True) == "updated"
+
+
+def test_a_campaign_file_chooses_where_a_hand_made_record_goes(
+    runs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--matrix`` puts the record under that file's records root (the paper's: results/records/paper),
+    none keeps results/records, and ``--records`` wins over both."""
+    run_dir = runs / "train" / "map10_qmix_rc0_seed0"
+    monkeypatch.chdir(tmp_path)
+    point = Path("comm_range", "smoke", "map10_qmix_rc0_seed0.json")
+    assert campaign_main(["record", str(run_dir), "--matrix", str(DEFAULT_MATRIX)]) == 0
+    assert [p.relative_to(tmp_path) for p in tmp_path.rglob("*.json")] == [
+        Path("results/records/paper") / point
+    ]
+    assert campaign_main(["record", str(run_dir)]) == 0
+    assert (tmp_path / "results" / "records" / point).is_file()
+    assert campaign_main(["record", str(run_dir), "--matrix", str(DEFAULT_MATRIX), "--records", "mine"]) == 0
+    assert (tmp_path / "mine" / point).is_file()
 
 
 def test_a_record_changed_while_it_is_rewritten_is_kept(

@@ -8,6 +8,7 @@
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign tsne                                  the file's t-SNE records (figure 9) the runs allow
     mcrs-campaign record RUN_DIR... [--prune]           a record of any mcrs-train run or mcrs-eval result
+    mcrs-campaign record RUN_DIR --matrix FILE          the same, in that campaign file's records root
     mcrs-campaign report --out DIR [--only fig7]        mcrs-report on the records of the selected points
 
 A campaign file named ``paper`` keeps its records in results/records/paper/ (commit them) and its runs in
@@ -113,7 +114,14 @@ def build_parser() -> argparse.ArgumentParser:
     tsne.add_argument("--records", type=Path, help="where the records go (default: the file's)")
     record = sub.add_parser("record", help="record mcrs-train runs or mcrs-eval results")
     record.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
-    record.add_argument("--records", type=Path, default=RECORDS_DIR, help="where the records go")
+    record.add_argument(
+        "--matrix",
+        type=Path,
+        help="a campaign file: the records go to its root (section6_paper.yaml: results/records/paper)",
+    )
+    record.add_argument(
+        "--records", type=Path, help=f"where the records go (default: --matrix's, else {RECORDS_DIR})"
+    )
     record.add_argument(
         "--prune", action="store_true", help="drop the replay and memory from a finished run's last.pt"
     )
@@ -313,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "matrix", None) is not None:
             records, outputs = campaign_roots(args.matrix)
             args.records = args.records or records
-            args.outputs = args.outputs or outputs
+            args.outputs = getattr(args, "outputs", None) or outputs
+        args.records = args.records or RECORDS_DIR  # mcrs-campaign record without --matrix
         return commands[args.command](args)
     except (MatrixError, CampaignBusy, RecordError, figure9.tsne.TsneRecordError) as error:
         raise SystemExit(f"mcrs-campaign: error: {error}") from None
