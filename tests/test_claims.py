@@ -268,9 +268,10 @@ def test_a_pattern_claim_on_evaluations_of_trained_policies(tmp_path: Path) -> N
 
 def test_a_claim_names_a_method_by_one_setting_beside_two_sweeps_of_it(tmp_path: Path) -> None:
     """Figure 7's claims name ``cnn_semu``; table 4's delta sweep and figure 10's lambda sweep of it in the
-    same report label its runs by both settings; a claim still names each by the one it is about (``cnn_semu delta=0.13``, ``cnn_semu
-    lambda=0.5``), the others at their defaults, and ``cnn_semu`` alone is the run at every default. Before
-    the sweeps have run, ``cnn_semu lambda=0.1`` is figure 7's CNN-SEMU, at that lambda."""
+    same report label its runs by both settings; a claim still names each by the one it is about
+    (``cnn_semu delta=0.13``, ``cnn_semu lambda=0.5``), the others at their defaults, and ``cnn_semu``
+    alone is the run at every default. Before the sweeps have run, ``cnn_semu lambda=0.1`` is figure 7's
+    CNN-SEMU, at that lambda."""
     base, sweeps = tmp_path / "base", tmp_path / "sweeps"
     points = {"default": (1.3e-3, 0.1, 60.0), "delta": (1.3e-1, 0.1, 20.0), "lambda": (1.3e-3, 0.5, 40.0)}
     for seed in range(3):
