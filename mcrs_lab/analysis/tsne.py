@@ -146,7 +146,9 @@ def plot_tsne(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(3.6 * len(panels) + 1.0, 3.9), squeeze=False, layout="constrained"
+    )
     scatter = None
     for ax, (name, xy) in zip(axes[0], panels.items(), strict=True):
         scatter = ax.scatter(xy[:, 0], xy[:, 1], c=returns, s=1.5, cmap="viridis", rasterized=True)
