@@ -18,7 +18,9 @@ from mcrs.experiment.run import checkpoint as ckpt
 from mcrs_lab.analysis.records import write_record
 from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
 from mcrs_lab.campaign import runner
+from mcrs_lab.campaign.cli import heuristic_folders
 from mcrs_lab.campaign.cli import main as campaign_main
+from mcrs_lab.campaign.evaluations import load_evaluations
 from mcrs_lab.campaign.matrix import DEFAULT_MATRIX, MatrixError, campaign_roots, load_matrix, select
 from tests.test_report import read_csv
 from tests.train_helpers import compose_config
@@ -105,6 +107,22 @@ def test_a_campaign_files_name_chooses_its_roots_and_the_default_file_is_the_pap
     Path("m.yaml").write_text(TWO_POINTS)
     campaign_main(["run", "--matrix", "m.yaml", "--hours", "1", "--dry-run"])
     assert "hydra.run.dir=outputs/campaign/comm_range/smoke/" in capsys.readouterr().out
+
+
+def test_a_campaigns_report_holds_its_heuristics_on_the_learners_episodes(tmp_path: Path) -> None:
+    """``mcrs-campaign report`` adds the records of the file's heuristics-only evaluations on the map,
+    where ``mcrs-campaign evaluate`` put them (the paper's: heuristics/default/eval/<map>), and falls back
+    to the older ``<records>/heuristics/<map>`` where there are none."""
+    paper = load_evaluations(DEFAULT_MATRIX, set(load_matrix(DEFAULT_MATRIX)[1]))
+    committed = CAMPAIGNS.parents[1] / "results" / "records" / "paper"
+    assert heuristic_folders(paper, committed, "map20") == [committed / "heuristics/default/eval/map20"]
+    records = tmp_path / "records"
+    assert heuristic_folders(paper, records, "map20") == []
+    (records / "heuristics" / "map20").mkdir(parents=True)
+    assert heuristic_folders(paper, records, "map20") == [records / "heuristics" / "map20"]
+    (records / "heuristics" / "default" / "eval" / "map20").mkdir(parents=True)
+    assert heuristic_folders(paper, records, "map20") == [records / "heuristics/default/eval/map20"]
+    assert heuristic_folders(paper, records, "map10") == []
 
 
 def test_a_figure_may_name_its_own_seeds(tmp_path: Path) -> None:

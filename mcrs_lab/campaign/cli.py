@@ -280,6 +280,20 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def heuristic_folders(evaluations: list[Evaluation], records: Path, env: str) -> list[Path]:
+    """The records of the file's heuristics-only evaluations on ``env`` (the learners' own evaluation
+    episodes: what the claims hold a learner against), else the older ``<records>/heuristics/<env>``."""
+    folders = [
+        records / e.name / variant / "eval" / env
+        for e in evaluations
+        if not e.trained
+        for variant, _ in e.variants
+    ]
+    found = [f for f in folders if f.is_dir()]
+    older = records / "heuristics" / env
+    return found or ([older] if older.is_dir() else [])
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from mcrs_lab.analysis.report import main as report_main
 
@@ -291,14 +305,13 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise SystemExit(
             f"mcrs-campaign: error: the points are on {', '.join(maps)}: pass --env (one of them)"
         )
-    heuristics = args.records / "heuristics" / env
     if not paths:
         raise SystemExit("mcrs-campaign: error: no record of the selected points yet (mcrs-campaign status)")
     print(f"{len(paths)} of {len(points)} points recorded", flush=True)
     return report_main(
         [
             *map(str, paths),
-            *([str(heuristics)] if heuristics.is_dir() else []),
+            *map(str, heuristic_folders(_evaluations(args), args.records, env)),
             "--env",
             env,
             "--out",
