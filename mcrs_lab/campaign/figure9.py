@@ -216,13 +216,16 @@ def before_prune(entries: list[TsneEntry], point: Point, outputs: Path, records:
     return lines
 
 
+def missing(entries: list[TsneEntry], records: Path) -> list[TsneEntry]:
+    """The entries whose t-SNE record is not made yet."""
+    return [entry for entry in entries if not entry.tsne_path(records).is_file()]
+
+
 def pending(entries: list[TsneEntry], outputs: Path, records: Path) -> list[str]:
     """Every t-SNE record that the recorded states and the finished embedding runs allow, and each
     entry's states where its memory run has finished and still holds its memory; the lines to print."""
     lines = []
-    for entry in entries:
-        if entry.tsne_path(records).is_file():
-            continue
+    for entry in missing(entries, records):
         if not entry.states_path(records).is_file():
             run_dir = _finished_run(entry.memory, outputs, records)
             if run_dir is None:

@@ -443,7 +443,7 @@ class Campaign:
             run_pending(
                 plan(self.evaluations, [point], self.records, self.outputs)[0], self.outputs, self.records
             )
-        if self.tsne and self.make_tsne and self.stop_signal is None:
+        if figure9.missing(self.tsne, self.records) and self.make_tsne and self.stop_signal is None:
             if self.deadline - time.time() < TSNE_FLOOR_S:
                 _print(
                     f"tsne: not now ({_hours(TSNE_FLOOR_S)} needed before the deadline); a later run makes it"
