@@ -760,13 +760,20 @@ def test_a_point_another_campaign_trains_is_not_started_whatever_its_outputs(tmp
             f"{runner.claim_path(records, point)}); its record lands in {records}" in capsys.readouterr().out
         )
         assert runner.claim_point(records, point, ours) == holder
-        assert campaign_main(["status", *args]) == 0  # status says who trains it
-        assert f"training now: {holder}" in capsys.readouterr().out
+        record = {"format": RECORD_FORMAT, "version": RECORD_VERSION, "kind": "training", "run_dir": "x",
+                  **RECORD_FIELDS, "status": "stopped", "checkpoint_env_steps": 50}  # fmt: skip
+        write_record(point.record_path(records), record)  # their earlier stop; its checkpoint is in theirs
+        assert campaign_main(["status", *args]) == 0  # status says who trains it, not that it starts over
+        out = capsys.readouterr().out
+        assert f"training now: {holder}; a stopped record at 50 steps of x |" in out
+        assert "starts from 0" not in out
     finally:
         held.close()
     assert not point.run_dir(ours).exists()
     assert runner.claim_holder(records, point) is None
-    assert campaign_main(["status", *args]) == 0 and "training now" not in capsys.readouterr().out
+    assert campaign_main(["status", *args]) == 0
+    out = capsys.readouterr().out
+    assert "training now" not in out and "a stopped record at 50 steps of x, no checkpoint of it here" in out
     again = runner.claim_point(records, point, ours)  # released: free again
     assert not isinstance(again, str)
     again.close()

@@ -144,9 +144,14 @@ def _points(args: argparse.Namespace) -> tuple[list[Point], int]:
 
 
 def _where(state: Progress, records: Path) -> str:
-    """The status table's last column: the record or run directory, and who trains the point now."""
+    """The status table's last column: the record or run directory, and who trains the point now. A missing
+    point's earlier run starts over here unless another runner, with its own outputs, trains it now."""
     holder = None if state.state == "done" else claim_holder(records, state.point)
-    return state.note if holder is None else "; ".join(filter(None, [f"training now: {holder}", state.note]))
+    if holder is not None:
+        return "; ".join(filter(None, [f"training now: {holder}", state.note]))
+    if state.state == "missing" and state.note:
+        return f"{state.note}, no checkpoint of it here: starts from 0"
+    return state.note
 
 
 def cmd_status(args: argparse.Namespace) -> int:

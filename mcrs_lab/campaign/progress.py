@@ -24,7 +24,7 @@ class Progress:
     point: Point
     state: str
     env_steps: int  # reached: by the record (done) or the checkpoint (partial, unrecorded); 0 if missing
-    note: str = ""
+    note: str = ""  # a missing point's earlier record, if any
 
 
 def checkpoint_steps(run_dir: Path) -> tuple[int | None, bool]:
@@ -54,8 +54,6 @@ def progress(point: Point, outputs: Path, records: Path, total_env_steps: int) -
         return Progress(point, "partial", steps, str(run_dir))
     note = ""
     if record is not None:
-        note = (
-            f"a {record.get('status')} record at {record.get('checkpoint_env_steps')} steps of "
-            f"{record.get('run_dir')}, no checkpoint of it here: starts from 0"
-        )
+        status, reached = record.get("status"), record.get("checkpoint_env_steps")
+        note = f"a {status} record at {reached} steps of {record.get('run_dir')}"
     return Progress(point, "missing", 0, note)
