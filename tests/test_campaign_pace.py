@@ -65,6 +65,16 @@ def test_a_points_pace_is_its_algorithms_own_runs_then_older_ones_then_the_slowe
     assert pace.speed("map20", "emu") == pytest.approx(100 / 3600)  # the slowest of the campaign's own
     assert pace.speed("map10", "qmix") == pytest.approx(720 / 3600)  # the slowest older run on map10
     assert pace.speed("map15", "qmix") is None
+    # The campaign whose folder holds this one (the lured campaign beside results/records/paper) answers
+    # last, from its own <experiment>/<budget> folders only.
+    write_record(tmp_path / "baselines" / "campaign" / "q15.json", _training("map15", "qmix", 540, 1.0))
+    write_record(tmp_path / "baselines" / "campaign" / "q20.json", _training("map20", "qmix", 9000, 1.0))
+    write_record(tmp_path / "a" / "b" / "c" / "deep.json", _training("map30", "qmix", 100, 1.0))
+    pace = Pace.read(records)
+    assert pace.speed("map15", "qmix") == pytest.approx(540 / 3600)
+    assert pace.speed("map15", "vdn") == pytest.approx(540 / 3600)  # the slowest on map15
+    assert pace.speed("map20", "qmix") == pytest.approx(100 / 3600)  # its own run still first
+    assert pace.speed("map30", "qmix") is None  # nothing deeper than the outer campaign's folders
 
 
 def test_left_line_sums_the_known_estimates_and_counts_the_unknown() -> None:

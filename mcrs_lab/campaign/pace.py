@@ -2,8 +2,10 @@
 
 The campaign's own records (``<records>/<experiment>/<budget>/*.json``) come first; where they hold no run
 of a point's algorithm on its map, the records of older campaigns kept deeper in the same folder (the
-"near" campaign's ``near/<experiment>/<budget>/``) answer, since the simulator's and the learner's cost do
-not depend on the reward's reading. A pace is env steps per second of wall time over a run's sessions,
+"near" campaign's ``near/<experiment>/<budget>/``) answer, then those of the campaign whose folder holds
+this one (the lured campaign's ``results/records/<experiment>/<budget>/`` beside the paper's
+``results/records/paper``), since the simulator's and the learner's cost do not depend on the reward's
+reading. A pace is env steps per second of wall time over a run's sessions,
 evaluations and checkpoints included, as ``mcrs-campaign run`` will spend it, for a run of one torch
 thread: a record of a run with more threads is brought down to one by :func:`thread_speedup`, and
 :meth:`Pace.speed` brings it up to the threads asked for.
@@ -55,24 +57,30 @@ def _speeds_of(paths: Iterable[Path]) -> Speeds:
 
 @dataclass(frozen=True)
 class Pace:
-    """The recorded speeds: ``own`` of the campaign's folders, ``older`` of every training record below."""
+    """The recorded speeds: ``own`` of the campaign's folders, ``older`` of every training record below,
+    ``outer`` of the campaign whose folder holds this one (its ``*/*/*.json`` only, never a whole tree)."""
 
     own: Speeds
     older: Speeds
+    outer: Speeds
 
     @classmethod
     def read(cls, records: Path) -> Pace:
         own = sorted(records.glob("*/*/*.json"))
-        return cls(_speeds_of(own), _speeds_of(sorted(set(records.rglob("*.json")) - set(own))))
+        below = set(records.rglob("*.json"))
+        outer = sorted(set(records.parent.glob("*/*/*.json")) - below) if records.parent != records else []
+        return cls(_speeds_of(own), _speeds_of(sorted(below - set(own))), _speeds_of(outer))
 
     def speed(self, env: str, algo: str, threads: int = 1) -> float | None:
         """Env steps per second of a run of ``algo`` on ``env`` with ``threads`` torch threads: that
-        algorithm's own runs (this campaign's, then older ones), else the slowest recorded algorithm on that
-        map (an algorithm's first run would otherwise look free); None when no run on that map is recorded."""
-        for speeds in (self.own, self.older):
+        algorithm's own runs (this campaign's, older ones, the outer campaign's), else the slowest recorded
+        algorithm on that map (an algorithm's first run would otherwise look free); None when no run on that
+        map is recorded."""
+        tiers = (self.own, self.older, self.outer)
+        for speeds in tiers:
             if (env, algo) in speeds:
                 return speeds[env, algo] * thread_speedup(threads)
-        for speeds in (self.own, self.older):
+        for speeds in tiers:
             same_map = [value for (name, _), value in speeds.items() if name == env]
             if same_map:
                 return min(same_map) * thread_speedup(threads)
