@@ -112,6 +112,36 @@ def test_a_generated_figure_is_drawn_from_the_records_and_checked(tmp_path: Path
         update(doc)
 
 
+def test_a_figure_whose_records_have_not_landed_says_so_until_they_draw_it(tmp_path: Path, capsys) -> None:
+    """A block may name a figure its records do not draw yet: it says so and is drawn once they land."""
+    shutil.copytree(RECORDS, tmp_path / RECORDS)  # heuristics at one R_c: no figure of R_c yet
+    doc = tmp_path / "docs" / "R.md"
+    doc.parent.mkdir()
+    header = f"<!-- figure comm_range.png of: {COMMAND.replace(' --env', f' {RANGES} --env')} -->\n"
+    not_drawn = "*Not drawn yet: its records have not landed.* <!-- ![R_c](results/rc.png) -->\n"
+    doc.write_text(f"# R\n\n{header}{not_drawn}<!-- end figure -->\n")
+    image = doc.parent / "results" / "rc.png"
+    assert check(doc) == [] and update(doc) == 0 and not image.exists()
+    doc.write_text(doc.read_text().replace(not_drawn, "![R_c](results/rc.png)\n"))  # claims it is drawn
+    (diff,) = check(doc)
+    assert diff.endswith(
+        f"{doc}:3: figure results/rc.png: mcrs-report {RECORDS} {RANGES} --env map20 draws no comm_range.png now\n"
+    )
+    assert update(doc) == 1 and not_drawn in doc.read_text() and not image.exists()
+    shutil.copytree(RANGES, tmp_path / RANGES)  # the ranges land
+    assert [d.split(": figure ")[1].split(" ")[1:3] for d in check(doc)] == [
+        ["is", "drawn"],
+        ["is", "missing;"],
+    ]
+    assert update(doc) == 2 and image.read_bytes().startswith(b"\x89PNG")
+    assert "![R_c](results/rc.png)\n<!-- end figure -->" in doc.read_text() and check(doc) == []
+    doc.write_text(doc.read_text().replace("comm_range.png of", "ranges.png of"))  # no such figure
+    with pytest.raises(DocTableError, match=r"line 3: .* writes no ranges.png; it writes: comm_range.png"):
+        check(doc)
+    with pytest.raises(SystemExit, match=r"mcrs-results: error: .* writes no ranges.png"):
+        main(["check", str(doc)])
+
+
 def test_the_checked_documents_are_the_answer_sheet_and_its_notebooks() -> None:
     docs = default_docs()
     assert docs[0] == Path("docs/RESULTS.md") and len(docs) >= 6

@@ -1,4 +1,4 @@
-"""Figures 10 and 11: the end-of-training reward against a swept setting, from the runs' curves."""
+"""Figures 10-12: the end-of-training reward against a swept setting, and the learning curves of a sweep."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrs.viz.learning_curves import Curve
+from mcrs.viz.learning_curves import Curve, plot_curves
 from mcrs_lab.analysis.runs import TrainingRun
-from mcrs_lab.analysis.sweep_figure import plot_sweep, sweep_points, sweep_table
+from mcrs_lab.analysis.sweep_figure import plot_sweep, sweep_panels, sweep_points, sweep_table
 
 BUDGET = 100
 
@@ -59,4 +59,30 @@ def test_the_figure_is_a_png(tmp_path: Path) -> None:
     path = plot_sweep(
         sweep_points(groups, curves, BUDGET, "algo.memory.delta"), "delta", tmp_path / "d.png", "t"
     )
+    assert path.read_bytes().startswith(b"\x89PNG")
+
+
+def test_the_learning_curves_of_a_sweep_are_a_panel_per_algorithm_and_a_curve_per_value(
+    tmp_path: Path,
+) -> None:
+    """Figure 12: one colour per value in every panel, so the curves are named by the value alone, unless
+    two methods of one algorithm share it (CNN-SEMU at the default delta and at lambda = 0.5)."""
+    lambda_half = _run("cnn_semu", 0.0013)
+    lambda_half.config["algo"]["memory_weight"] = 0.5
+    groups = {
+        "emc delta=0.13": [_run("emc", 0.13)],
+        "emc delta=0.0013": [_run("emc", 0.0013)],
+        "cnn_semu delta=0.0013": [_run("cnn_semu", 0.0013)],
+        "cnn_semu lambda=0.5": [lambda_half],
+        "cnn_semu delta=0.00013": [_run("cnn_semu", 0.00013)],
+        "qmix": [_run("qmix", None)],
+    }
+    curves = {label: _curve(label, np.ones((3, 11))) for label in groups}
+    panels, order = sweep_panels(groups, curves, "algo.memory.delta", "delta", ["cnn_semu", "emc", "semu"])
+    assert list(panels) == ["cnn_semu", "emc"]  # in the order asked; semu has no curve
+    assert list(panels["emc"]) == ["delta = 0.13", "delta = 0.0013"]
+    assert panels["emc"]["delta = 0.13"] is curves["emc delta=0.13"]
+    assert list(panels["cnn_semu"]) == ["delta = 0.0013", "cnn_semu lambda=0.5", "delta = 0.00013"]
+    assert order == ["delta = 0.00013", "delta = 0.0013", "cnn_semu lambda=0.5", "delta = 0.13"]
+    path = plot_curves(panels, tmp_path / "c.png", "t", order, panel_legends=True)
     assert path.read_bytes().startswith(b"\x89PNG")

@@ -134,9 +134,11 @@ def plot_curves(
     title: str,
     order: list[str] | None = None,
     references: dict[str, list[Reference]] | None = None,
+    panel_legends: bool = False,
 ) -> Path:
     """Draw one panel per metric: each method's IQM line and 95 % band, and the ``references`` as named
-    horizontal lines."""
+    horizontal lines. One legend below the panels names what the first panel draws; with ``panel_legends``
+    each panel has its own (panels whose curves differ, as one panel per algorithm of a sweep)."""
     import matplotlib  # deferred: an optional, heavy dependency, needed only to draw
 
     matplotlib.use("Agg")
@@ -172,15 +174,20 @@ def plot_curves(
         ax.set_title(name)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
+        if panel_legends:
+            ax.legend(fontsize=7, loc="lower right")
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    handles, names = axes.flat[0].get_legend_handles_labels()
-    ncol = _legend(fig, handles, names)
-    fig.suptitle(
-        title + "  (IQM over seeds, 95 % stratified bootstrap CI; heuristics: mean and 95 % band)",
-        fontsize=10,
+    bottom = 0.0
+    if not panel_legends:
+        handles, names = axes.flat[0].get_legend_handles_labels()
+        ncol = _legend(fig, handles, names)
+        bottom = 0.06 + 0.02 * ((len(names) - 1) // ncol)
+    drawn = "IQM over seeds, 95 % stratified bootstrap CI" + (
+        "; heuristics: mean and 95 % band" if any((references or {}).get(name) for name in panels) else ""
     )
-    fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(names) - 1) // ncol), 1, 0.96))
+    fig.suptitle(f"{title}  ({drawn})", fontsize=10)
+    fig.tight_layout(rect=(0, bottom, 1, 0.96))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -20,6 +20,14 @@ to the document) is what the command draws::
     ![learning curves, map20](results/map20_learning_curves.png)
     <!-- end figure -->
 
+A figure whose records have not landed yet (a sweep not run, a map not trained) is not drawn by the
+command; its block then says so, keeping the image line in a comment, and ``update`` draws it once they
+have::
+
+    <!-- figure delta.png of: mcrs-report results/records/paper/delta/campaign --env map20 -->
+    *Not drawn yet: its records have not landed.* <!-- ![figure 11, map20](results/map20_delta.png) -->
+    <!-- end figure -->
+
 Each distinct command runs once, into a temporary folder, from the repository root (the folder holding
 the document's ``docs/`` or ``results/notebooks/``), so the paths are the committed records'. A table or image outside these
 blocks is not made from the records: ``check`` names its line and fails (``update`` leaves it alone).
@@ -51,7 +59,9 @@ BLOCK = re.compile(
 )
 #: mcrs-report options that write files besides --out: refused in a document's blocks.
 WRITING_OPTIONS = ("--out", "--marl-eval")
-IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)\s]+\.png)\)")
+IMAGE = re.compile(r"!\[(?P<alt>[^\]]*)\]\((?P<path>[^)\s]+\.png)\)")
+#: A figure block's body while its command draws nothing, around its image line.
+NOT_DRAWN = "*Not drawn yet: its records have not landed.* <!-- {image} -->\n"
 
 
 class DocTableError(Exception):
@@ -71,6 +81,12 @@ class Block:
     end: int
     kind: str = "table"
     image: str = ""  # a figure's image path, relative to the document
+    alt: str = ""  # a figure's image text
+
+    def figure_body(self, drawn: bool) -> str:
+        """What a figure block holds: its image line, or while nothing is drawn, :data:`NOT_DRAWN`."""
+        line = f"![{self.alt}]({self.image})"
+        return f"{line}\n" if drawn else NOT_DRAWN.format(image=line)
 
 
 def _writes(option: str) -> bool:
@@ -112,6 +128,7 @@ def find_blocks(text: str) -> list[Block]:
                 match.end("body"),
                 match["kind"],
                 image["path"] if image else "",
+                image["alt"] if image else "",
             )
         )
     return blocks
@@ -139,11 +156,11 @@ def _inside(folder: Path) -> Iterator[None]:
         os.chdir(before)
 
 
-def generate(blocks: list[Block], root: Path) -> dict[Block, str | bytes]:
-    """Each table as ``mcrs-report`` writes it now, and each figure's PNG bytes (each distinct command
-    runs once, quietly)."""
+def generate(blocks: list[Block], root: Path) -> dict[Block, str | bytes | None]:
+    """Each table as ``mcrs-report`` writes it now, and each figure's PNG bytes, or None for a figure of
+    :data:`report.FIGURES` that the records do not draw yet (each distinct command runs once, quietly)."""
     made: dict[tuple[str, ...], Path] = {}
-    out: dict[Block, str | bytes] = {}
+    out: dict[Block, str | bytes | None] = {}
     with tempfile.TemporaryDirectory(prefix="mcrs-results-") as tmp, _inside(root):
         for block in blocks:
             if block.args not in made:
@@ -157,6 +174,9 @@ def generate(blocks: list[Block], root: Path) -> dict[Block, str | bytes]:
                     ) from None
                 made[block.args] = folder
             path = made[block.args] / block.file
+            if not path.is_file() and block.kind == "figure" and block.file in report.FIGURES:
+                out[block] = None
+                continue
             if not path.is_file():
                 suffix = Path(block.file).suffix
                 written = sorted(p.name for p in made[block.args].glob(f"*{suffix}") if p.name != "report.md")
@@ -191,13 +211,19 @@ def check(doc: Path) -> list[str]:
         for line in hand_made(text)
     ]
     for block, fresh in generate(find_blocks(text), _root(doc)).items():
-        if isinstance(fresh, bytes):
+        if block.kind == "figure":
+            command = f"mcrs-report {shlex.join(block.args)}"
+            if fresh is None and block.body != block.figure_body(drawn=False):
+                diffs.append(
+                    f"{doc}:{block.line}: figure {block.image}: {command} draws no {block.file} now\n"
+                )
+            if isinstance(fresh, bytes) and block.body != block.figure_body(drawn=True):
+                diffs.append(f"{doc}:{block.line}: figure {block.image} is drawn now by {command}\n")
             image = _image_path(doc, block)
-            if not image.is_file() or image.read_bytes() != fresh:
+            if isinstance(fresh, bytes) and (not image.is_file() or image.read_bytes() != fresh):
                 state = "differs from" if image.is_file() else "is missing; it should be"
                 diffs.append(
-                    f"{doc}:{block.line}: figure {block.image} {state} the {block.file} of "
-                    f"mcrs-report {shlex.join(block.args)}\n"
+                    f"{doc}:{block.line}: figure {block.image} {state} the {block.file} of {command}\n"
                 )
             continue
         if fresh != block.body:
@@ -235,10 +261,14 @@ def update(doc: Path) -> int:
     changed = 0
     for block in reversed(blocks):  # from the end, so the earlier offsets stay valid
         made = fresh[block]
-        if isinstance(made, bytes):
+        if block.kind == "figure":
             image = _image_path(doc, block)
-            if not image.is_file() or image.read_bytes() != made:
+            if isinstance(made, bytes) and (not image.is_file() or image.read_bytes() != made):
                 write_bytes_atomic(image, made)  # drawn from the records alone
+                changed += 1
+            body = block.figure_body(drawn=made is not None)
+            if body != block.body:
+                text = text[: block.start] + body + text[block.end :]
                 changed += 1
         elif made != block.body:
             text = text[: block.start] + made + text[block.end :]

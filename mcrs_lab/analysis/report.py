@@ -16,6 +16,9 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
 - ``q_tot.png``: the mean Q_tot of replayed transitions (figure 8b);
 - ``final.md|csv``: every evaluation metric at the last step, with the heuristics evaluated by
   ``mcrs-eval`` at the same R_c as extra rows;
+- ``delta.png|md`` and ``lambda.png|md``: the reward at the end of training against the swept setting
+  (figures 11 and 10), and ``delta_curves.png``, ``lambda_curves.png``: the reward over training at each
+  value, a panel per algorithm (figure 12, figure 10's curves), when an algorithm ran at two values or more;
 - ``milestones.md|csv``: the reward at a third, two thirds and all of the budget; ``table4.md|csv``
   when delta was swept, and on map20 (with the paper's table 4 beside ours) wherever a memory method
   ran (mcrs_lab.analysis.table4);
@@ -69,7 +72,19 @@ from mcrs_lab.analysis.runs import (
 )
 from mcrs_lab.analysis.sensors import sensor_table
 from mcrs_lab.analysis.step_notation import parse_step_list
+from mcrs_lab.analysis.sweep_figure import SWEPT_SETTINGS
 from mcrs_lab.analysis.versus import versus_evaluated
+
+#: Every figure ``mcrs-report`` can draw. Each is drawn only when the records hold what it shows: a
+#: document's figure block (mcrs-results) may name one whose records have not landed yet.
+FIGURES = (
+    "learning_curves.png",
+    "q_tot.png",
+    "comm_range.png",
+    "tsne.png",
+    *(f"{symbol}.png" for symbol in SWEPT_SETTINGS.values()),
+    *(f"{symbol}_curves.png" for symbol in SWEPT_SETTINGS.values()),
+)
 
 TSNE_RECORD = "tsne.npz"
 

@@ -12,7 +12,7 @@ from mcrs_lab.analysis.evaluations import Layout, heuristic_references, heuristi
 from mcrs_lab.analysis.report_document import Report
 from mcrs_lab.analysis.runs import Skipped, TrainingRun, default_labels, label_fields, run_labels
 from mcrs_lab.analysis.step_notation import format_steps, step_labels
-from mcrs_lab.analysis.sweep_figure import SWEPT_SETTINGS, plot_sweep, sweep_points, sweep_table
+from mcrs_lab.analysis.sweep_figure import SWEPT_SETTINGS, plot_sweep, sweep_panels, sweep_points, sweep_table
 from mcrs_lab.analysis.table4 import PAPER_TABLE4_ENV, Table4Row, table4
 from mcrs_lab.analysis.versus import Versus, versus, versus_table
 
@@ -143,7 +143,9 @@ def report_training(report: Report) -> dict[str, dict[str, Curve]]:
 def _report_sweeps(
     report: Report, groups: dict[str, list[TrainingRun]], curves: dict[str, Curve], budget: int
 ) -> None:
-    """<symbol>.png|md (figures 10 and 11), for each swept setting with two values or more of one algorithm."""
+    """For each swept setting with two values or more of one algorithm: <symbol>.png|md, the reward at the
+    end against the value (figures 10 and 11), and <symbol>_curves.png, the reward over training at each
+    value, a panel per algorithm (figure 12, and figure 10's curves)."""
     for setting, symbol in SWEPT_SETTINGS.items():
         points = sweep_points(groups, curves, budget, setting)
         if not points:
@@ -156,7 +158,20 @@ def _report_sweeps(
             report.out / f"{symbol}.png",
             f"{report.env_name}: episode reward against {symbol}",
         )
-        report.add(f"Episode reward against {symbol}", f"![{symbol}]({png.name})\n\n{md}")
+        swept = {p.algo for p in points}
+        algos = [a for a in ALGO_ORDER if a in swept] + sorted(swept - set(ALGO_ORDER))
+        panels, order = sweep_panels(groups, curves, setting, symbol, algos)
+        curves_png = plot_curves(
+            panels,
+            report.out / f"{symbol}_curves.png",
+            f"{report.env_name}: episode reward at each {symbol}",
+            order,
+            panel_legends=True,
+        )
+        report.add(
+            f"Episode reward against {symbol}",
+            f"![{symbol}]({png.name})\n\n{md}\n\n![{symbol}, over training]({curves_png.name})",
+        )
 
 
 def _layouts(runs: list[TrainingRun]) -> frozenset[Layout]:

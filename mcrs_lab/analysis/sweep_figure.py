@@ -53,6 +53,31 @@ def sweep_points(
     return sorted(points, key=lambda p: (p.algo, p.value))
 
 
+def sweep_panels(
+    groups: dict[str, list[TrainingRun]],
+    curves: dict[str, Curve],
+    setting: str,
+    symbol: str,
+    algos: list[str],
+) -> tuple[dict[str, dict[str, Curve]], list[str]]:
+    """The learning curves of a sweep (figure 12): a panel per algorithm of ``algos``, in that order, and a
+    curve per value of ``setting`` (``delta = 0.013``; the method's label where two methods of one algorithm
+    share a value), and the curves' order: by value, so that a value has one colour in every panel."""
+    panels: dict[str, dict[str, Curve]] = {algo: {} for algo in algos}
+    values: dict[str, float] = {}
+    for label, runs in groups.items():
+        algo, value = runs[0].algo_name, runs[0].setting(setting)
+        if algo not in panels or label not in curves or not isinstance(value, (int, float)):
+            continue
+        name = f"{symbol} = {value:g}"
+        name = label if name in panels[algo] else name
+        panels[algo][name] = curves[label]
+        values.setdefault(name, float(value))
+    plain = f"{symbol} = "  # at a shared value, the curve named by the value alone comes first
+    order = sorted(values, key=lambda n: (values[n], not n.startswith(plain), n))
+    return {algo: curves for algo, curves in panels.items() if curves}, order
+
+
 def sweep_table(points: list[SweepPoint], symbol: str) -> str:
     """Markdown: algorithm, the swept value, seeds, the end-of-training episode reward (mean ± std)."""
     rows = [
