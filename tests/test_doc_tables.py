@@ -122,6 +122,11 @@ def test_a_figure_whose_records_have_not_landed_says_so_until_they_draw_it(tmp_p
     doc.write_text(f"# R\n\n{header}{not_drawn}<!-- end figure -->\n")
     image = doc.parent / "results" / "rc.png"
     assert check(doc) == [] and update(doc) == 0 and not image.exists()
+    assert main(["check", str(doc)]) == 0
+    assert (
+        "all 1 generated tables and figures agree with the records (1 figure not drawn yet, awaiting records)"
+        in (capsys.readouterr().out)
+    )
     doc.write_text(doc.read_text().replace(not_drawn, "![R_c](results/rc.png)\n"))  # claims it is drawn
     (diff,) = check(doc)
     assert diff.endswith(

@@ -334,7 +334,11 @@ def _run(action: str, doc: Path) -> int:
         if hand:
             print(f"{doc}: {hand} tables or figures are not generated from the records (make them blocks)")
         return 1
-    print(f"{doc}: all {n} generated tables and figures agree with the records")
+    waiting = sum(b.kind == "figure" and b.body == b.figure_body(drawn=False) for b in find_blocks(text))
+    print(
+        f"{doc}: all {n} generated tables and figures agree with the records"
+        + (f" ({waiting} figure{'s' * (waiting > 1)} not drawn yet, awaiting records)" if waiting else "")
+    )
     return 0
 
 
