@@ -244,6 +244,7 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
         "a stopped record at 50 steps of x, no checkpoint of it here: starts from 0",
     ]
     assert "4 points (200 env steps each): 1 done, 1 unrecorded, 1 partial, 1 missing" in out
+    assert "\ndone by figure: figa 1 of 4\n" in out
     assert campaign_main(["run", *args, "--hours", "1", "--dry-run"]) == 0
     plan = capsys.readouterr().out.splitlines()
     assert plan[0] == f"record {unrecorded.run_dir(outputs)}"

@@ -154,6 +154,15 @@ def _where(state: Progress, records: Path) -> str:
     return state.note
 
 
+def figures_line(states: list[Progress]) -> str:
+    """How many of each figure's points are done, in the file's order (a point may serve several)."""
+    done: dict[str, list[bool]] = {}
+    for state in states:
+        for figure in state.point.figures:
+            done.setdefault(figure, []).append(state.state == "done")
+    return "done by figure: " + ", ".join(f"{f} {sum(d)} of {len(d)}" for f, d in done.items())
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     _check_jobs(args.jobs)
     points, total = _points(args)
@@ -168,6 +177,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     print(
         f"\n{len(states)} points ({total:,} env steps each): " + ", ".join(f"{counts[k]} {k}" for k in STATES)
     )
+    print(figures_line(states))
     print(left_line(campaign.left_s(states), args.jobs))
     for line in summary(_evaluations(args), points, args.records):
         print(line)
