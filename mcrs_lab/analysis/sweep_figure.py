@@ -75,7 +75,7 @@ def sweep_panels(
         values.setdefault(name, float(value))
     plain = f"{symbol} = "  # at a shared value, the curve named by the value alone comes first
     order = sorted(values, key=lambda n: (values[n], not n.startswith(plain), n))
-    return {algo: curves for algo, curves in panels.items() if curves}, order
+    return {algo: drawn for algo, drawn in panels.items() if drawn}, order
 
 
 def sweep_table(points: list[SweepPoint], symbol: str) -> str:

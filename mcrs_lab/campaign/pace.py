@@ -5,10 +5,10 @@ of a point's algorithm on its map, the records of older campaigns kept deeper in
 "near" campaign's ``near/<experiment>/<budget>/``) answer, then those of the campaign whose folder holds
 this one (the lured campaign's ``results/records/<experiment>/<budget>/`` beside the paper's
 ``results/records/paper``), since the simulator's and the learner's cost do not depend on the reward's
-reading. A pace is env steps per second of wall time over a run's sessions,
-evaluations and checkpoints included, as ``mcrs-campaign run`` will spend it, for a run of one torch
-thread: a record of a run with more threads is brought down to one by :func:`thread_speedup`, and
-:meth:`Pace.speed` brings it up to the threads asked for.
+reading. A pace is env steps per second of wall time over a run's sessions, evaluations and checkpoints
+included, as ``mcrs-campaign run`` will spend it, for a run of one torch thread: a record of a run with
+more threads is brought down to one by :func:`thread_speedup`, and :meth:`Pace.speed` brings it up to the
+threads asked for.
 """
 
 from __future__ import annotations

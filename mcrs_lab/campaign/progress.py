@@ -24,7 +24,7 @@ class Progress:
     point: Point
     state: str
     env_steps: int  # reached: by the record (done) or the checkpoint (partial, unrecorded); 0 if missing
-    note: str = ""  # a missing point's earlier record, if any
+    note: str = ""  # the record (done), the run directory (partial, unrecorded), an earlier record (missing)
 
 
 def checkpoint_steps(run_dir: Path) -> tuple[int | None, bool]:
