@@ -194,7 +194,7 @@ def test_report_writes_the_claims_table(tmp_path: Path) -> None:
     out = tmp_path / "report"
     assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
     rows = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
-    verdicts = {r[1].strip(): r[5].strip() for r in rows}
+    verdicts = {r[1].strip(): r[2].strip() for r in rows}
     assert verdicts["qmix beats greedy"].startswith(
         "**yes**: every comparison significant after Holm"
     )  # our question
@@ -202,7 +202,7 @@ def test_report_writes_the_claims_table(tmp_path: Path) -> None:
         "**not shown**: vdn against greedy (heuristic) within noise"
     )
     assert verdicts["emc beats qmix"] == "**not run**: no runs of emc"
-    assert "qmix 52.00 ± 1.00 (3)" in rows[0][3]  # (50 + 52) / 2 + seed, averaged over the seeds
+    assert "qmix 52.00 ± 1.00 (3)" in rows[0][4]  # (50 + 52) / 2 + seed, averaged over the seeds
 
 
 def test_a_claim_on_the_mean_q_tot_reads_the_training_scalar(tmp_path: Path) -> None:
@@ -225,11 +225,11 @@ def test_a_claim_on_the_mean_q_tot_reads_the_training_scalar(tmp_path: Path) -> 
     assert report_main([str(runs), "--out", str(out), "--claims", str(claims)]) == 0
     row = (out / "claims.md").read_text().splitlines()[2].split("|")[1:-1]
     assert (
-        row[3]
+        row[4]
         .strip()
         .startswith("mean Q_tot of replayed transitions, last tenth: emu_change 101.00 ± 1.00 (3)")
     )
-    assert row[5].strip().startswith("**reproduced**")
+    assert row[2].strip().startswith("**reproduced**")
 
 
 def test_a_bad_claims_file_is_one_line(tmp_path: Path) -> None:
@@ -257,8 +257,8 @@ def test_a_pattern_claim_on_evaluations_of_trained_policies(tmp_path: Path) -> N
     out = tmp_path / "report"
     assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
     (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
-    assert "on the same fixed episodes: trained qmix 51.00 ± 1.41 (2)" in row[3]
-    assert row[5].strip().startswith("**yes**: significantly higher after Holm: trained qmix (Holm p = ")
+    assert "on the same fixed episodes: trained qmix 51.00 ± 1.41 (2)" in row[4]
+    assert row[2].strip().startswith("**yes**: significantly higher after Holm: trained qmix (Holm p = ")
 
     entry["above"] = ["trained vdn*"]  # matches nothing: the pattern is reported as not run
     claims.write_text(yaml.safe_dump({"map10": [entry | {"below": ["greedy (heuristic)"]}]}))
@@ -302,19 +302,19 @@ def test_a_claim_names_a_method_by_one_setting_beside_two_sweeps_of_it(tmp_path:
         return [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
 
     rows = judged(base)
-    assert rows[0][5].strip().startswith("**reproduced**") and "cnn_semu 61.00 ± 1.00 (3)" in rows[0][3]
-    assert rows[1][5].strip() == "**not run**: no runs of cnn_semu delta=0.13"
-    assert rows[2][5].strip() == "**not run**: no runs of cnn_semu lambda=0.5"
-    assert "cnn_semu 61.00 ± 1.00 (3)" in rows[2][3]
+    assert rows[0][2].strip().startswith("**reproduced**") and "cnn_semu 61.00 ± 1.00 (3)" in rows[0][4]
+    assert rows[1][2].strip() == "**not run**: no runs of cnn_semu delta=0.13"
+    assert rows[2][2].strip() == "**not run**: no runs of cnn_semu lambda=0.5"
+    assert "cnn_semu 61.00 ± 1.00 (3)" in rows[2][4]
 
     rows = judged(base, sweeps)
-    verdicts = {r[1].strip(): r[5].strip() for r in rows}
+    verdicts = {r[1].strip(): r[2].strip() for r in rows}
     assert verdicts["cnn_semu beats qmix"].startswith("**reproduced**"), verdicts
-    assert "cnn_semu delta=0.0013 lambda=0.1 61.00 ± 1.00 (3)" in rows[0][3]
+    assert "cnn_semu delta=0.0013 lambda=0.1 61.00 ± 1.00 (3)" in rows[0][4]
     assert verdicts["100x delta beats qmix"].startswith("**not reproduced**"), verdicts
-    assert "cnn_semu delta=0.13 lambda=0.1 21.00 ± 1.00 (3)" in rows[1][3]
+    assert "cnn_semu delta=0.13 lambda=0.1 21.00 ± 1.00 (3)" in rows[1][4]
     assert verdicts["0.1 beats 0.5"].startswith("**reproduced**"), verdicts
-    assert "cnn_semu delta=0.0013 lambda=0.5 41.00 ± 1.00 (3)" in rows[2][3]
+    assert "cnn_semu delta=0.0013 lambda=0.5 41.00 ± 1.00 (3)" in rows[2][4]
 
 
 # ------------------------------------------------------------------ Holm, effect sizes, bootstrap, verdicts

@@ -148,17 +148,17 @@ def test_the_claims_table_says_which_heuristic_played_the_learners_episodes(tmp_
         for r in (line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:])
     }
     greedy = rows["qmix beats greedy"]
-    assert "greedy (heuristic) 45.00 on the learners' episodes" in greedy[3]
-    assert "one-sample on the same episodes" in greedy[4] and greedy[5].strip().startswith("**reproduced**")
+    assert "greedy (heuristic) 45.00 on the learners' episodes" in greedy[4]
+    assert "one-sample on the same episodes" in greedy[5] and greedy[2].strip().startswith("**reproduced**")
     coverage = rows["qmix beats coverage"]
     assert (
         "coverage (heuristic) 61.00 ± 1.00 (3) over evaluation seeds, not the learners' episodes"
-        in coverage[3]
+        in coverage[4]
     )
-    assert "heuristic on other episodes" in coverage[4] and "p " in coverage[4] and "→" in coverage[4]
-    assert coverage[5].strip().startswith("**not reproduced**")
+    assert "heuristic on other episodes" in coverage[5] and "p " in coverage[5] and "→" in coverage[5]
+    assert coverage[2].strip().startswith("**not reproduced**")
     lawnmower = rows["qmix beats lawnmower"]  # the same seed on another task is not the learners' episodes
-    assert "not the learners' episodes" in lawnmower[3] and "one number on a side: no test" in lawnmower[4]
+    assert "not the learners' episodes" in lawnmower[4] and "one number on a side: no test" in lawnmower[5]
 
 
 def test_a_heuristic_with_no_learner_beside_it_gives_its_numbers_alone(tmp_path: Path) -> None:
@@ -178,8 +178,8 @@ def test_a_heuristic_with_no_learner_beside_it_gives_its_numbers_alone(tmp_path:
     out = tmp_path / "report"
     assert report_main([str(evals), "--out", str(out), "--claims", str(claims)]) == 0
     (row,) = [line.split("|")[1:-1] for line in (out / "claims.md").read_text().splitlines()[2:]]
-    assert row[3].strip().endswith("greedy (heuristic) 45.00 (1)"), row[3]
-    assert row[5].strip() == "**not run**: no runs of qmix"
+    assert row[4].strip().endswith("greedy (heuristic) 45.00 (1)"), row[4]
+    assert row[2].strip() == "**not run**: no runs of qmix"
 
 
 def test_the_layout_of_a_run_and_of_an_evaluation_name_the_task_seed_and_episodes() -> None:

@@ -299,9 +299,9 @@ def claims_table(
         metric = METRIC_TEXT.get(claim.metric, claim.metric.replace("_", " "))
         what = f"{metric}, {window_text or WINDOW_TEXT[claim.window]}"
         tests = "<br>".join(t.text() for t in result.comparisons) or "-"
-        row = [claim.source, claim.claim, claim.paper, f"{what}: {ours}", tests, f"**{word}**: {result.why}"]
-        rows.append(row)
-    header = ["source", "claim", "paper", "ours (mean ± std (seeds))", COMPARISONS_HEADER, "verdict"]
+        row = [claim.source, claim.claim, f"**{word}**: {result.why}", claim.paper, f"{what}: {ours}", tests]
+        rows.append(row)  # the verdict beside the claim, the evidence after it
+    header = ["source", "claim", "verdict", "paper", "ours (mean ± std (seeds))", COMPARISONS_HEADER]
     return markdown(header, rows, left=6)
 
 
