@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from mcrs.experiment.run import checkpoint as ckpt
 from mcrs_lab.analysis import comm_range as cr
@@ -62,6 +63,40 @@ def test_a_trained_policys_seeds_are_its_training_runs() -> None:
     trained, greedy = curves["trained qmix"], curves["greedy"]
     assert trained.seeds.tolist() == [2] and trained.mean["targets_found"][0] == pytest.approx((11 + 20) / 2)
     assert greedy.seeds.tolist() == [2] and greedy.mean["targets_found"][0] == pytest.approx(4.0)
+
+
+def test_figure_5s_statement_is_tested_paired_over_the_trained_runs() -> None:
+    """At the largest R_c against the smallest, each training run against itself: a gain every run shows
+    passes a paired test that Welch's would not (the runs differ more from each other than R_c moves them);
+    a run evaluated at one range only is not paired, a heuristic not tested."""
+    gains = {"b/a": (10.0, 12.0), "b/b": (20.0, 22.5), "b/c": (30.0, 31.5)}  # (R_c 0, R_c 4) per run
+    rows = [
+        _row(f"o/{run[-1]}", rc, 0, found, run)
+        for run, pair in gains.items()
+        for rc, found in zip((0.0, 4.0), pair, strict=True)
+    ]
+    rows += [_row("o/d", 0.0, 0, 99.0, "b/d"), _row("greedy", 0.0, 0, 1.0), _row("greedy", 4.0, 0, 9.0)]
+    for row in rows:
+        row.means["uncertainty"] = 50.0 - row.means["targets_found"]  # falls as targets rise
+    (targets, uncertainty) = tests = cr.range_tests(rows)
+    assert [(label, metric) for label, metric, _ in tests] == [
+        ("trained qmix", "targets_found"),
+        ("trained qmix", "uncertainty"),
+    ]
+    found = targets[2]
+    high, low = np.array([12.0, 22.5, 31.5]), np.array([10.0, 20.0, 30.0])
+    assert found.test == "paired" and found.diff == pytest.approx(2.0)
+    assert found.p == pytest.approx(stats.ttest_rel(high, low).pvalue)
+    assert stats.ttest_ind(high, low, equal_var=False).pvalue > 0.5  # unpaired, the gain drowns
+    assert found.p_holm == pytest.approx(min(1.0, 2 * found.p)) and found.outcome == "holds"
+    assert uncertainty[2].diff == pytest.approx(-2.0) and uncertainty[2].outcome == "holds"
+    table = cr.range_tests_table(tests)
+    assert "| trained qmix | targets found (higher)" in table and "R_c 4 vs R_c 0: Δ +2.00" in table
+    assert table.count("paired over seeds") == 2 and table.splitlines()[2].endswith("| yes              |")
+    one = cr.range_tests([r for r in rows if r.run in ("b/a", None)])  # one run: no test
+    assert [t.outcome for _, _, t in one] == ["few", "few"] and "one seed: no test" in cr.range_tests_table(
+        one
+    )
 
 
 def test_figure_9_is_drawn_from_its_record_alone(tmp_path: Path) -> None:

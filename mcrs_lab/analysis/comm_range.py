@@ -16,11 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from mcrs.env.metrics import METRIC_LABELS
+from mcrs.experiment.util.tables import markdown
+from mcrs_lab.analysis.pairwise import Comparison, corrected, paired_test
 from mcrs_lab.analysis.policy_identity import policy_label
 from mcrs_lab.analysis.runs import EvaluationRow
 
 #: The panels of figure 5 (and the reward).
 RANGE_METRICS = {name: METRIC_LABELS[name] for name in ("targets_found", "uncertainty", "episode_reward")}
+#: Figure 5's statement: as R_c grows, more targets are found and less uncertainty is left.
+RANGE_CLAIM = {"targets_found": "higher", "uncertainty": "lower"}
 
 
 @dataclass(frozen=True)
@@ -35,18 +39,69 @@ class RangeCurve:
     seeds: np.ndarray
 
 
-def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
-    """Per policy label, each metric against R_c. A trained policy's seeds are its training runs, each
-    counted by its mean over its evaluation seeds; a heuristic's are the evaluation seeds."""
+def _by_range(rows: list[EvaluationRow]) -> dict[str, dict[float, dict[str, list[EvaluationRow]]]]:
+    """Policy label -> R_c -> seed -> its rows: a trained policy's seeds are its training runs, a
+    heuristic's its evaluation seeds."""
     grouped: dict[str, dict[float, dict[str, list[EvaluationRow]]]] = {}
     for row in rows:
         unit = str(row.seed) if row.is_heuristic else (row.run or row.policy)
         by_range = grouped.setdefault(row.label or policy_label(row.policy), {})
         by_range.setdefault(row.comm_range, {}).setdefault(unit, []).append(row)
+    return grouped
+
+
+def curves_from_evaluations(rows: list[EvaluationRow]) -> dict[str, RangeCurve]:
+    """Per policy label, each metric against R_c. A trained policy's seeds are its training runs, each
+    counted by its mean over its evaluation seeds; a heuristic's are the evaluation seeds."""
     return {
         label: _curve(label, {rc: list(units.values()) for rc, units in by_range.items()}, _unit_mean)
-        for label, by_range in grouped.items()
+        for label, by_range in _by_range(rows).items()
     }
+
+
+def range_tests(rows: list[EvaluationRow]) -> list[tuple[str, str, Comparison]]:
+    """Figure 5's statement tested on each trained policy evaluated at two R_c or more: at its largest R_c
+    against its smallest, more targets found and less uncertainty, paired over its training runs (the seeds
+    evaluated at both), Holm over every test of the table. (policy, metric, comparison) triples."""
+    found: list[tuple[str, str, Comparison]] = []
+    for label, by_range in sorted(_by_range([r for r in rows if not r.is_heuristic]).items()):
+        if len(by_range) < 2:
+            continue
+        low, high = min(by_range), max(by_range)
+        units = sorted(set(by_range[low]) & set(by_range[high]))
+        for metric, better in RANGE_CLAIM.items():
+            pairs = [
+                (_unit_mean(by_range[high][u], metric), _unit_mean(by_range[low][u], metric)) for u in units
+            ]
+            pairs = [(h, lo) for h, lo in pairs if h is not None and lo is not None]
+            a, b = np.array([h for h, _ in pairs]), np.array([lo for _, lo in pairs])
+            found.append((label, metric, paired_test(f"R_c {high:g}", f"R_c {low:g}", a, b, better)))
+    tests = corrected([t for _, _, t in found])
+    return [(label, metric, t) for (label, metric, _), t in zip(found, tests, strict=True)]
+
+
+#: What a test of :func:`range_tests` says of the paper's statement.
+RANGE_VERDICTS = {
+    "holds": "yes",
+    "reversed": "**no**: the other way",
+    "noise": "within noise",
+    "few": "one seed: no test",
+}
+
+
+def range_tests_table(tests: list[tuple[str, str, Comparison]]) -> str:
+    """Markdown of :func:`range_tests`: policy, metric, the comparison, and whether it goes the paper's way."""
+    rows = [
+        [label, f"{METRIC_LABELS[metric]} ({RANGE_CLAIM[metric]})", t.text(), RANGE_VERDICTS[t.outcome]]
+        for label, metric, t in tests
+    ]
+    header = [
+        "policy",
+        "metric (the paper's direction)",
+        "Δ [95 % bootstrap CI], Hedges' g, p → Holm p",
+        "as figure 5 says",
+    ]
+    return markdown(header, rows, left=len(header))
 
 
 def _unit_mean(unit: list[EvaluationRow], metric: str) -> float | None:

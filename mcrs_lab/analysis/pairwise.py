@@ -73,7 +73,7 @@ class Comparison:
     above: str
     below: str
     better: str  # higher | lower: the claimed direction of ``diff``
-    test: str  # welch | one-sample (against a heuristic's score on the same episodes) | none (one number)
+    test: str  # welch | one-sample (against a heuristic's score on the same episodes) | paired | none (one number)
     diff: float  # mean of above minus mean of below (the heuristic's score on the learner's episodes)
     g: float  # Hedges' g of diff (NaN where it is not defined)
     ci: tuple[float, float]  # the bootstrap interval of diff
@@ -103,7 +103,9 @@ class Comparison:
         holm = p_text(self.p_holm) if np.isfinite(self.p_holm) else "-"
         d, lo_text, hi_text = _signed(self.diff, lo, hi)
         tested = f"Δ {d} [{lo_text}, {hi_text}], {g}, p {p_text(self.p)} → {holm}"
-        how = ", one-sample on the same episodes" if self.test == "one-sample" else ""
+        how = {"one-sample": ", one-sample on the same episodes", "paired": ", paired over seeds"}.get(
+            self.test, ""
+        )
         other = ", heuristic on other episodes" if self.other_episodes else ""
         return f"{self.above} vs {self.below}: {tested}{how}{other}"
 
@@ -222,6 +224,19 @@ def pairwise_test(a: Samples, b: Samples, better: str) -> Comparison:
         p = float(stats.ttest_ind(a.values, b.values, equal_var=False).pvalue)
     g, ci = hedges_g(a.values, b.values), bootstrap_ci(a.values, b.values)
     return Comparison(a.label, b.label, better, "welch", diff, g, ci, p, other_episodes=other)
+
+
+def paired_test(above: str, below: str, a: np.ndarray, b: np.ndarray, better: str) -> Comparison:
+    """``a`` against ``b`` measured on the same units, in the same order (a trained policy's seeds evaluated
+    at two settings): the t-test of the differences, their Hedges' g (over the differences' own spread) and
+    the bootstrap interval of their mean."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    diff = float(d.mean()) if len(d) else float("nan")
+    if len(d) < 2:
+        return Comparison(above, below, better, "none", diff, float("nan"), (diff, diff), float("nan"))
+    return Comparison(
+        above, below, better, "paired", diff, hedges_g(d), bootstrap_ci(d), _one_sample_p(d, 0.0)
+    )
 
 
 def compare(a: Samples, b: Samples, better: str) -> tuple[str, float]:

@@ -30,7 +30,9 @@ keeps one map, groups training runs into methods (an algorithm plus the settings
   ``mcrs_lab/analysis/paper_claims.yaml``) judged on these runs: reproduced, not reproduced, not shown (within
   noise, one seed) or not run (mcrs_lab.analysis.claims); for evaluations only, the claims of ``--claims``;
 - ``comm_range.png``, ``comm_range.md|csv``: metrics against R_c (figure 5) from evaluations at
-  several ranges, and from training runs that differ in ``env.comm_range``;
+  several ranges, and from training runs that differ in ``env.comm_range``; ``comm_range_tests.md``:
+  figure 5's statement tested on each trained policy evaluated at several ranges (more targets and less
+  uncertainty at its largest R_c than at its smallest, paired over its training runs, Holm);
 - ``tsne.png``, ``tsne.md``: figure 9, drawn from a t-SNE record (``tsne.npz``, written by a campaign:
   mcrs_lab.campaign.figure9) found under the paths, or with ``--tsne`` computed from saved buffers;
 - ``evaluations.md``: when the paths hold evaluations only, the heuristics and trained policies evaluated
@@ -133,6 +135,13 @@ def report_comm_range(report: Report) -> bool:
     md = markdown(["policy", "R_c", "seeds", *cr.RANGE_METRICS.values()], table)
     (report.out / "comm_range.md").write_text(md + "\n")
     report.add("Communication range (figure 5)", f"![communication range]({png.name})\n\n{md}")
+    tests = cr.range_tests(report.runs.evaluations)
+    if tests:
+        tests_md = cr.range_tests_table(tests)
+        (report.out / "comm_range_tests.md").write_text(tests_md + "\n")
+        report.add(
+            "Figure 5's statement, tested (largest R_c against the smallest, paired over seeds)", tests_md
+        )
     return True
 
 
