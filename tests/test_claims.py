@@ -382,7 +382,7 @@ def test_a_claim_needs_its_direction_to_survive_holm() -> None:
     strong = {"a": samples("a", 1, 2, 3), "b": samples("b", 10, 11, 12), "c": samples("c", 30, 31, 33)}
     flipped = verdict(two, strong)  # a far below both: the reversal survives Holm
     assert (
-        flipped.word == "not reproduced" and "b significantly higher than a (Holm p = <0.001)" in flipped.why
+        flipped.word == "not reproduced" and "b significantly higher than a (Holm p < 0.001)" in flipped.why
     )
     assert verdict(claim(below=("b",)), {"a": samples("a", 1, 5, 9), "b": samples("b", 2, 4, 6)}).word == (
         "not shown"

@@ -32,7 +32,7 @@ from mcrs_lab.analysis.evaluations import (
     trained_layouts,
     trained_samples,
 )
-from mcrs_lab.analysis.pairwise import Comparison, Samples, corrected, p_text, pairwise_test
+from mcrs_lab.analysis.pairwise import Comparison, Samples, corrected, p_is, pairwise_test
 from mcrs_lab.analysis.runs import EvaluationRow
 
 END_FRACTION = 0.1  # "end": the evaluations in the last tenth of the budget
@@ -221,26 +221,26 @@ def verdict(claim: Claim, samples: dict[str, Samples]) -> Verdict:
             worst = max(p for results in outcomes.values() for _, _, p in results)
             return Verdict(
                 "reproduced",
-                f"every comparison significant after Holm (largest Holm p = {p_text(worst)})",
+                f"every comparison significant after Holm (largest Holm p {p_is(worst)})",
                 compared,
                 tests,
             )
         for m, results in outcomes.items():
             for r, o, p in results:
                 if o == "reversed":
-                    why = f"{r} significantly {claim.better} than {m} (Holm p = {p_text(p)})"
+                    why = f"{r} significantly {claim.better} than {m} (Holm p {p_is(p)})"
                     return Verdict("not reproduced", why, compared, tests)
         if single:
             return Verdict("not shown", f"one seed of {', '.join(single)}: no test", compared, tests)
         m, r, p = max(
             ((m, r, p) for m, res in outcomes.items() for r, o, p in res if o == "noise"), key=lambda x: x[2]
         )
-        return Verdict("not shown", f"{m} against {r} within noise (Holm p = {p_text(p)})", compared, tests)
+        return Verdict("not shown", f"{m} against {r} within noise (Holm p {p_is(p)})", compared, tests)
 
     later = f"; {unfinished}" if unfinished else ""
     winners = [m for m, v in state.items() if v == "holds"]
     if winners:
-        won = ", ".join(f"{m} (Holm p = {p_text(max(p for _, _, p in outcomes[m]))})" for m in winners)
+        won = ", ".join(f"{m} (Holm p {p_is(max(p for _, _, p in outcomes[m]))})" for m in winners)
         return Verdict(
             "reproduced", f"significantly {claim.better} after Holm: {won}{later}", compared, tests
         )
@@ -266,7 +266,7 @@ def _summary(method: str, results: list[tuple[str, str, float]], state: str) -> 
         return f"{method}: one seed"
     p = max(p for _, o, p in results if o == state) if state != "holds" else 0.0
     way = "significantly the other way" if state == "reversed" else "within noise"
-    return f"{method}: {way} (Holm p = {p_text(p)})"
+    return f"{method}: {way} (Holm p {p_is(p)})"
 
 
 # ------------------------------------------------------------------------------------------- table

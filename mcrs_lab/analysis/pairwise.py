@@ -121,6 +121,11 @@ def p_text(p: float) -> str:
     return "<0.001" if p < 0.001 else f"{p:.3f}"
 
 
+def p_is(p: float) -> str:
+    """``= 0.021`` or ``< 0.001``: a p-value after its name."""
+    return "< 0.001" if p < 0.001 else f"= {p:.3f}"
+
+
 def holm(pvalues: list[float] | np.ndarray) -> np.ndarray:
     """Holm's step-down adjustment: the k-th smallest of m p-values times (m - k + 1), kept from falling
     below the one before it and capped at 1. Rejecting where the adjusted p is below alpha holds the
