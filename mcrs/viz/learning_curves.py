@@ -186,8 +186,9 @@ def plot_curves(
     drawn = "IQM over seeds, 95 % stratified bootstrap CI" + (
         "; heuristics: mean and 95 % band" if any((references or {}).get(name) for name in panels) else ""
     )
-    fig.suptitle(f"{title}  ({drawn})", fontsize=10)
-    fig.tight_layout(rect=(0, bottom, 1, 0.96))
+    one_column = cols == 1  # too narrow for the title and what is drawn on one line
+    fig.suptitle(f"{title}\n({drawn})" if one_column else f"{title}  ({drawn})", fontsize=10)
+    fig.tight_layout(rect=(0, bottom, 1, 0.92 if one_column else 0.96))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
