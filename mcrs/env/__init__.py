@@ -9,7 +9,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from mcrs.env.config import SCENARIOS, EnvConfig, scenario
+    from mcrs.env.config import SCENARIOS, EnvConfig, ScenarioConfig, scenario
     from mcrs.env.core import METRICS, MOVES, N_ACTIONS, SURROUNDING, MCRSCore, StepResult
     from mcrs.env.pettingzoo_env import MCRSParallelEnv
     from mcrs.env.torchrl_env import MCRSEnv
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 #: Where each exported name lives. ``mcrs.env.config`` loads neither torch, TorchRL nor PettingZoo, so a
 #: command line can refuse a config at once.
 _EXPORTS = {
-    **dict.fromkeys(("SCENARIOS", "EnvConfig", "scenario"), "mcrs.env.config"),
+    **dict.fromkeys(("SCENARIOS", "EnvConfig", "ScenarioConfig", "scenario"), "mcrs.env.config"),
     **dict.fromkeys(
         ("METRICS", "MOVES", "N_ACTIONS", "SURROUNDING", "MCRSCore", "StepResult"), "mcrs.env.core"
     ),
@@ -35,6 +35,7 @@ __all__ = [
     "MCRSCore",
     "MCRSEnv",
     "MCRSParallelEnv",
+    "ScenarioConfig",
     "StepResult",
     "scenario",
 ]
