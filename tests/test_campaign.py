@@ -443,7 +443,9 @@ def test_no_run_starts_that_the_time_budget_cannot_hold(tmp_path: Path, capsys) 
             campaign_main(["run", *args, "--hours", "3"])
 
 
-def test_finish_first_starts_the_runs_that_can_end_before_the_deadline_first(tmp_path: Path, capsys) -> None:
+def test_finish_first_starts_the_runs_that_can_end_in_time_first_and_finish_only_starts_only_them(
+    tmp_path: Path, capsys
+) -> None:
     matrix = tmp_path / "m.yaml"
     matrix.write_text(TWO_POINTS.replace("algo: [qmix]", "algo: [qmix, vdn]").replace("[0, 2]", "[0]"))
     qmix, vdn = load_matrix(matrix)[0]
@@ -470,6 +472,22 @@ def test_finish_first_starts_the_runs_that_can_end_before_the_deadline_first(tmp
     )
     with pytest.raises(SystemExit, match="--finish-first needs --fill"):
         campaign_main(["run", *[a for a in args if a != "--fill"], "--finish-first"])
+    # --finish-only: the run that cannot end in time is not started, in the plan and in the run
+    assert campaign_main(["run", *args, "--finish-only"]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[0].startswith(f"start {vdn.id} (at 0 env steps, estimated 0.50 h): ")
+    assert plan[1] == f"not started: {qmix.id} needs about 2.00 h, 0.50 h left (--finish-only)"
+    assert plan[-1].startswith("2 runs, 1 at a time, only those that can end in time (and partial ones), ")
+    with pytest.raises(SystemExit, match="--finish-only needs --fill"):
+        campaign_main(["run", *[a for a in args if a != "--fill"], "--finish-only"])
+    run_args = [a for a in args if a != "--dry-run"]
+    run_args[run_args.index("--hours") + 1] = "0.4"  # under vdn's 0.5 h too: nothing starts, nothing is made
+    assert campaign_main(["run", *run_args, "--finish-only"]) == 0
+    out = capsys.readouterr().out
+    assert f"not started: {vdn.id} needs about 0.50 h, 0.40 h left (--finish-only)" in out
+    assert f"not started: {qmix.id} needs about 2.00 h, 0.40 h left (--finish-only)" in out
+    assert "campaign: 0 runs ended, 0 stopped at the deadline (resumable), 2 not started" in out
+    assert not qmix.run_dir(tmp_path / "o").exists() and not vdn.run_dir(tmp_path / "o").exists()
 
 
 def test_threads_reach_every_command_and_the_cores_bound_them(tmp_path: Path, capsys) -> None:

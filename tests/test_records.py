@@ -105,6 +105,7 @@ def test_record_of_a_real_run_holds_the_evidence(runs: Path, tmp_path: Path) -> 
     assert record["loop_time_s"] == round(expected, 1) > 0
     machine = record["recorded"]["machine"]
     assert machine["cpu_count"] >= 1 and machine["torch"] == torch.__version__
+    assert machine["cpu_capability"] == torch.backends.cpu.get_cpu_capability()  # its kernels: its roundings
     assert len(record["recorded"]["git"]["commit"]) == 40
     assert write_record(path, record) == "written"
     assert path.stat().st_size < 50_000

@@ -118,7 +118,9 @@ def training_record_path(root: Path, config: dict[str, Any]) -> Path:
 # ---------------------------------------------------------------------------------------- facts
 def machine_facts() -> dict[str, Any]:
     """What the machine was: CPUs, torch, the load (a shared machine runs slower). A run's torch threads
-    are its config's ``threads`` (kept in its record)."""
+    are its config's ``threads`` (kept in its record). The CPU capability is the kernel set torch
+    dispatches to (AVX2, AVX512): two machines of another model or capability round differently, so the
+    same seed trains to other figures there."""
     import torch
 
     model = platform.processor() or platform.machine()
@@ -132,6 +134,7 @@ def machine_facts() -> dict[str, Any]:
     return {
         "cpu_count": os.cpu_count(),
         "cpu_model": model,
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch": torch.__version__,
         "load_avg": [round(x, 2) for x in os.getloadavg()],
         "python": platform.python_version(),

@@ -4,6 +4,7 @@
     mcrs-campaign run --hours 10 --jobs 2 [--only ...]  run the next ones (partial first); --dry-run lists them
     mcrs-campaign run --hours 2.5 --fill                 the same, every slot busy, stopped (resumable) at 2.5 h
     mcrs-campaign run --hours 2.5 --fill --finish-first  the same, the runs that can end by then started first
+    mcrs-campaign run --hours 2.5 --fill --finish-only   only those (a machine that does not keep run folders)
     mcrs-campaign run --hours 2 --jobs 1 --threads 2 --only <point>   one slow point on both cores
     mcrs-campaign evaluate [--only fig7] [--dry-run]    the file's evaluations of finished policies
     mcrs-campaign tsne                                  the file's t-SNE records (figure 9) the runs allow
@@ -84,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --fill: a freed slot takes first the runs expected to end before --hours (partial runs "
         "still resume first), then the rest (for a machine that may not keep its run folders)",
+    )
+    run.add_argument(
+        "--finish-only",
+        action="store_true",
+        help="with --fill: start only the runs expected to end before --hours (and resume partial ones); "
+        "a slot no run can fill in time stays free (a machine that does not keep its run folders would "
+        "lose a run stopped at the deadline)",
     )
     run.add_argument("--jobs", type=int, default=2, help="runs at a time (each with one torch thread)")
     run.add_argument(
@@ -203,10 +211,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise SystemExit(
             f"mcrs-campaign: error: --hours={args.hours}: must be > 0 and <= {MAX_HOURS} (a year)"
         )
-    if args.finish_first and not args.fill:
-        raise SystemExit(
-            "mcrs-campaign: error: --finish-first needs --fill (without it no run starts that cannot end in time)"
-        )
+    for flag, given in (("--finish-first", args.finish_first), ("--finish-only", args.finish_only)):
+        if given and not args.fill:
+            raise SystemExit(
+                f"mcrs-campaign: error: {flag} needs --fill (without it no run starts that cannot end in time)"
+            )
     points, total = _points(args)
     evaluations = [] if args.no_evaluate else _evaluations(args)
     campaign = Campaign(
@@ -222,9 +231,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         make_tsne=not args.no_evaluate,
     )
     if args.dry_run:
-        print("\n".join(campaign.dry_run(args.hours, args.fill, args.finish_first)))
+        print("\n".join(campaign.dry_run(args.hours, args.fill, args.finish_first, args.finish_only)))
         return 0
-    return campaign.run(args.hours, args.fill, args.finish_first)
+    return campaign.run(args.hours, args.fill, args.finish_first, args.finish_only)
 
 
 def _evaluations(args: argparse.Namespace) -> list[Evaluation]:

@@ -6,7 +6,9 @@ runs still going at the deadline are stopped as on SIGINT (checkpointed, recorde
 first by the next ``run``), so that a working session that ends at a known time loses no core-hours.
 With ``finish_first`` too, a freed slot takes the first run expected to end before the deadline (partial
 runs still resume first), then the rest: on a machine that may not keep its run folders between sessions,
-a run stopped at the deadline can be lost with them.
+a run stopped at the deadline can be lost with them. With ``finish_only`` the rest are not started at all:
+a slot that no run can fill in time stays free (for the session's own work) instead of training a run that
+the deadline would stop and the machine then lose.
 
 Each child runs in its own session (process group), with one torch thread (``threads``: more), its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
@@ -203,7 +205,9 @@ class Campaign:
         return [self.estimate_s(s, pace) for s in states if s.state in ("partial", "missing")]
 
     # ---------------------------------------------------------------------------------- running
-    def dry_run(self, hours: float, fill: bool = False, finish_first: bool = False) -> list[str]:
+    def dry_run(
+        self, hours: float, fill: bool = False, finish_first: bool = False, finish_only: bool = False
+    ) -> list[str]:
         """The commands ``run`` would start, in order, with their estimated length; nothing is run."""
         to_record, launches = self.plan()
         pace = Pace.read(self.records)
@@ -217,9 +221,9 @@ class Campaign:
         queue = list(zip(launches, estimates, strict=True))
         while queue:
             slot = min(range(self.jobs), key=slots.__getitem__)
-            index = _next_run(queue, deadline - slots[slot], finish_first)
+            index = _next_run(queue, deadline - slots[slot], finish_first or finish_only)
             (state, command), estimate = queue.pop(index)
-            refusal = self._start_refusal(state, estimate, deadline - slots[slot], fill)
+            refusal = self._start_refusal(state, estimate, deadline - slots[slot], fill, finish_only)
             if refusal is not None:
                 lines.append(refusal)
                 continue
@@ -233,24 +237,32 @@ class Campaign:
             lines.append(f"{line}): {shlex.join(command)}")
         rule = "runs going then are stopped and resume next time" if fill else "no new start"
         order = ", those that can end in time first" if finish_first else ""
+        order = ", only those that can end in time (and partial ones)" if finish_only else order
         lines.append(left_line(estimates, self.jobs))
         lines.append(f"{len(launches)} runs, {self.jobs} at a time{order}, {rule} after {hours:g} h")
         return lines
 
-    def _start_refusal(self, state: Progress, estimate: float | None, left: float, fill: bool) -> str | None:
+    def _start_refusal(
+        self, state: Progress, estimate: float | None, left: float, fill: bool, finish_only: bool = False
+    ) -> str | None:
         """Why a run must not start with ``left`` seconds to the deadline, or None."""
         if fill and left < FILL_FLOOR_S:
             return (
                 f"not started: {state.point.id}: {_hours(max(0.0, left))} left, under the "
                 f"{_hours(FILL_FLOOR_S)} a start needs (--fill)"
             )
+        if finish_only and state.state != "partial" and (estimate is None or estimate > left):
+            needs = "has no estimate" if estimate is None else f"needs about {_hours(estimate)}"
+            return f"not started: {state.point.id} {needs}, {_hours(max(0.0, left))} left (--finish-only)"
         if not fill and estimate is not None and estimate > left:
             return (
                 f"not started: {state.point.id} needs about {_hours(estimate)}, {_hours(max(0.0, left))} left"
             )
         return None
 
-    def run(self, hours: float, fill: bool = False, finish_first: bool = False) -> int:
+    def run(
+        self, hours: float, fill: bool = False, finish_first: bool = False, finish_only: bool = False
+    ) -> int:
         """Run the plan within ``hours`` (with ``fill``: stop what still runs then); returns 0 when every
         run it started ended well or was stopped at the deadline and the rest were left for lack of time,
         1 when a point was refused (its run directory in use by a live run, or not the campaign's) or a
@@ -269,9 +281,9 @@ class Campaign:
             lock.truncate()
             lock.write(str(os.getpid()))
             lock.flush()
-            return self._run(hours, fill, finish_first)
+            return self._run(hours, fill, finish_first, finish_only)
 
-    def _run(self, hours: float, fill: bool, finish_first: bool) -> int:
+    def _run(self, hours: float, fill: bool, finish_first: bool, finish_only: bool) -> int:
         deadline = self.deadline = time.time() + hours * 3600
         to_record, launches = self.plan()
         for state in to_record:
@@ -293,10 +305,12 @@ class Campaign:
                 while queue and len(running) < self.jobs and self.stop_signal is None:
                     estimates = [self.estimate_s(state, pace) for state, _ in queue]
                     index = _next_run(
-                        list(zip(queue, estimates, strict=True)), deadline - time.time(), finish_first
+                        list(zip(queue, estimates, strict=True)),
+                        deadline - time.time(),
+                        finish_first or finish_only,
                     )
                     (state, command), estimate = queue.pop(index), estimates[index]
-                    refusal = self._start_refusal(state, estimate, deadline - time.time(), fill)
+                    refusal = self._start_refusal(state, estimate, deadline - time.time(), fill, finish_only)
                     if refusal is not None:
                         _print(refusal)
                         not_started += 1
