@@ -262,6 +262,13 @@ def test_status_tells_done_unrecorded_partial_and_missing(tmp_path: Path, capsys
         == "left: about 0.0 h of runs at the recorded runs' pace (0.0 h at 2 at a time); 2 runs have no estimate (no timed run on their map)"
     )
     assert plan[4] == "2 runs, 2 at a time, no new start after 1 h"
+    # --finish-only resumes a partial run whatever its estimate, and starts no run it cannot time
+    assert campaign_main(["run", *args, "--hours", "1", "--dry-run", "--fill", "--finish-only"]) == 0
+    plan = capsys.readouterr().out.splitlines()
+    assert plan[1].startswith(
+        f"resume {partial.id} (at 100 env steps, estimated unknown, stopped at the deadline)"
+    )
+    assert plan[2] == f"not started: {missing.id} has no estimate, 1.00 h left (--finish-only)"
 
 
 def test_run_resumes_a_partial_point_first_and_records_every_run(tmp_path: Path, capsys) -> None:
