@@ -3,14 +3,16 @@ and the time left that ``mcrs-campaign status`` and ``run --dry-run`` print."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 
 from mcrs_lab.analysis.records import write_record
-from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION
+from mcrs_lab.analysis.runs import RECORD_FORMAT, RECORD_VERSION, read_record
 from mcrs_lab.campaign.cli import main as campaign_main
-from mcrs_lab.campaign.pace import TWO_THREAD_SPEEDUP, Pace, left_line, thread_speedup
+from mcrs_lab.campaign.matrix import load_matrix
+from mcrs_lab.campaign.pace import TWO_THREAD_SPEEDUP, MachinePace, Pace, left_line, thread_speedup
 from tests.test_campaign import TWO_POINTS
 
 #: test_campaign's two map10 points, and one on map15.
@@ -132,3 +134,41 @@ def test_a_pace_is_per_thread_and_a_two_thread_run_is_counted_faster(tmp_path: P
     assert "not started" in capsys.readouterr().out
     assert campaign_main(["run", *args, "--hours", "1.5", "--jobs", "1", "--threads", "2"]) == 0
     assert f"estimated {2 / TWO_THREAD_SPEEDUP:.2f} h" in capsys.readouterr().out
+
+
+def test_a_machine_slower_than_the_recorded_pace_scales_the_next_estimates() -> None:
+    here = MachinePace()
+    assert here.factor == 1.0 and here.scale(100.0) == 100.0 and here.scale(None) is None
+    here.observe(100.0, 250.0)  # a run estimated at 100 s took 250 s here
+    here.observe(100.0, 150.0)
+    assert here.factor == pytest.approx(2.0) and here.scale(60.0) == pytest.approx(120.0)
+    faster = MachinePace()
+    faster.observe(100.0, 40.0)  # a faster machine keeps the recorded estimates
+    faster.observe(None, 40.0)  # a run without an estimate says nothing
+    assert faster.factor == 1.0 and faster.ratios == [0.4]
+
+
+def test_finish_only_judges_a_start_by_what_this_machines_runs_took(tmp_path: Path, capsys) -> None:
+    """The recorded pace says qmix takes 2 s and vdn 400 s, so 1,080 s hold both; the qmix run takes
+    longer here (a process start alone is seconds), and vdn's estimate, scaled as much, no longer fits."""
+    matrix = tmp_path / "m.yaml"
+    matrix.write_text(TWO_POINTS.replace("algo: [qmix]", "algo: [qmix, vdn]").replace("[0, 2]", "[0]"))
+    qmix, vdn = load_matrix(matrix)[0]
+    records = tmp_path / "records"
+    for algo, hours in (("qmix", 1 / 3600), ("vdn", 200 / 3600)):  # 100 env steps in 1 s and in 200 s
+        write_record(
+            records / "comm_range" / "smoke" / f"earlier_{algo}.json", _training("map10", algo, 100, hours)
+        )
+    args = ["--matrix", str(matrix), "--outputs", str(tmp_path / "o"), "--records", str(records)]
+    args += ["--hours", "0.3", "--jobs", "1", "--fill", "--finish-only"]
+    assert campaign_main(["run", *args, "--dry-run"]) == 0
+    plan = capsys.readouterr().out  # at the recorded pace both would run
+    assert f"start {qmix.id} (at 0 env steps, estimated 0.00 h)" in plan and f"start {vdn.id} " in plan
+    assert campaign_main(["run", *args]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"campaign: runs here take \d+\.\d\dx the recorded pace", out), out
+    assert re.search(
+        rf"not started: {vdn.id} needs about \d+\.\d\d h, 0\.\d\d h left \(--finish-only\)", out
+    ), out
+    assert read_record(qmix.record_path(records))["status"] == "finished"
+    assert not vdn.run_dir(tmp_path / "o").exists()

@@ -14,7 +14,7 @@ threads asked for.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcrs_lab.analysis.records import RecordError
@@ -85,6 +85,28 @@ class Pace:
             if same_map:
                 return min(same_map) * thread_speedup(threads)
         return None
+
+
+@dataclass
+class MachinePace:
+    """How the runs of this machine compare with the recorded pace, which other machines may have set (one
+    CPU model string has trained EMC on map20 at 145 and at 88 env steps/s): each run started here and
+    finished gives its wall time over its estimate, and the estimates of the next starts are scaled by
+    their mean. A faster machine keeps the recorded estimates (an estimate errs long, not short)."""
+
+    ratios: list[float] = field(default_factory=list)
+
+    def observe(self, estimated_s: float | None, wall_s: float) -> None:
+        """A run estimated at ``estimated_s`` seconds took ``wall_s``."""
+        if estimated_s and estimated_s > 0 and wall_s > 0:
+            self.ratios.append(wall_s / estimated_s)
+
+    @property
+    def factor(self) -> float:
+        return max(1.0, sum(self.ratios) / len(self.ratios)) if self.ratios else 1.0
+
+    def scale(self, estimate_s: float | None) -> float | None:
+        return None if estimate_s is None else estimate_s * self.factor
 
 
 def left_line(estimates: list[float | None], jobs: int) -> str:

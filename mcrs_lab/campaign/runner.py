@@ -8,7 +8,9 @@ With ``finish_first`` too, a freed slot takes the first run expected to end befo
 runs still resume first), then the rest: on a machine that may not keep its run folders between sessions,
 a run stopped at the deadline can be lost with them. With ``finish_only`` the rest are not started at all:
 a slot that no run can fill in time stays free (for the session's own work) instead of training a run that
-the deadline would stop and the machine then lose.
+the deadline would stop and the machine then lose. Those choices use the recorded pace, scaled once a
+run started here has finished by how much longer than its estimate it took (pace.MachinePace): the
+records may come from a faster machine.
 
 Each child runs in its own session (process group), with one torch thread (``threads``: more), its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
@@ -48,7 +50,7 @@ from mcrs_lab.analysis.records import (
 from mcrs_lab.campaign import figure9
 from mcrs_lab.campaign.evaluations import Evaluation, plan, run_pending
 from mcrs_lab.campaign.matrix import Point
-from mcrs_lab.campaign.pace import Pace, left_line
+from mcrs_lab.campaign.pace import MachinePace, Pace, left_line
 from mcrs_lab.campaign.progress import Progress, progress
 
 #: Seconds a stopped child may take to exit after SIGINT before it is killed.
@@ -76,6 +78,7 @@ class Job:
     claim: IO[str]  # the point's lock (claim_point), shared with the child
     started: float = field(default_factory=time.time)
     machine: dict[str, Any] = field(default_factory=machine_facts)
+    estimate_s: float | None = None  # a fresh start's estimate at the recorded pace (MachinePace)
 
 
 def _hours(seconds: float | None) -> str:
@@ -289,6 +292,7 @@ class Campaign:
         for state in to_record:
             self._record(state.point)
         pace = Pace.read(self.records)
+        here = MachinePace()
         queue = list(launches)
         running: list[Job] = []
         not_started = refused = stopped_at_deadline = 0
@@ -303,7 +307,11 @@ class Campaign:
                     not_started += len(queue)
                     break
                 while queue and len(running) < self.jobs and self.stop_signal is None:
-                    estimates = [self.estimate_s(state, pace) for state, _ in queue]
+                    recorded = [self.estimate_s(state, pace) for state, _ in queue]
+                    estimates = [  # a partial run's estimate is its own speed here already
+                        e if state.state == "partial" else here.scale(e)
+                        for (state, _), e in zip(queue, recorded, strict=True)
+                    ]
                     index = _next_run(
                         list(zip(queue, estimates, strict=True)),
                         deadline - time.time(),
@@ -319,12 +327,21 @@ class Campaign:
                     if job is None:
                         refused += 1
                     else:
+                        job.estimate_s = recorded[index] if state.state == "missing" else None
                         running.append(job)
                 time.sleep(1.0)
                 for job in [j for j in running if j.process.poll() is not None]:
                     running.remove(job)
                     self._finish(job)
                     pace = Pace.read(self.records)
+                    if job.process.returncode == 0 and job.estimate_s:
+                        factor = here.factor
+                        here.observe(job.estimate_s, time.time() - job.started)
+                        if here.factor != factor:
+                            _print(
+                                f"campaign: runs here take {here.factor:.2f}x the recorded pace "
+                                "(the next starts' estimates are scaled)"
+                            )
             if self.stop_signal is not None:
                 self._stop(running)
                 return 128 + self.stop_signal
