@@ -23,7 +23,6 @@ with as many decimals, and the rest of every line must still match.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import platform
 import re
@@ -34,6 +33,8 @@ from pathlib import Path
 from typing import NamedTuple
 
 import pytest
+
+from mcrs_lab.analysis.records import cpuinfo
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ("README.md", "docs/TRAINING.md", "docs/API.md", "docs/EVALUATION.md")
@@ -63,13 +64,8 @@ def this_cpu() -> str:
     """This machine's CPU kind as the blocks name it: the vendor and torch's kernel capability."""
     import torch
 
-    vendor = platform.machine()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("vendor_id"):
-                vendor = VENDORS.get(line.split(":", 1)[1].strip(), vendor)
-                break
-    return f"{vendor} {torch.backends.cpu.get_cpu_capability()}"
+    vendor = cpuinfo("vendor_id")
+    return f"{VENDORS.get(vendor, vendor) if vendor else platform.machine()} {torch.backends.cpu.get_cpu_capability()}"
 
 
 def blocks() -> list[Block]:

@@ -116,6 +116,17 @@ def training_record_path(root: Path, config: dict[str, Any]) -> Path:
 
 
 # ---------------------------------------------------------------------------------------- facts
+def cpuinfo(key: str) -> str | None:
+    """The first value of ``key`` in /proc/cpuinfo (``model name``, ``vendor_id``); None off Linux."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.split(":", 1)[0].strip() == key:
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
 def machine_facts() -> dict[str, Any]:
     """What the machine was: CPUs, torch, the load (a shared machine runs slower). A run's torch threads
     are its config's ``threads`` (kept in its record). The CPU capability is the kernel set torch
@@ -123,17 +134,9 @@ def machine_facts() -> dict[str, Any]:
     same seed trains to other figures there."""
     import torch
 
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     return {
         "cpu_count": os.cpu_count(),
-        "cpu_model": model,
+        "cpu_model": cpuinfo("model name") or platform.processor() or platform.machine(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch": torch.__version__,
         "load_avg": [round(x, 2) for x in os.getloadavg()],
