@@ -151,6 +151,17 @@ def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> 
                     algo__memory__delta=delta,
                 )
     make_run(tmp_path, "qmix", algo="qmix", env="map20")  # no memory: no delta label, no table-4 row
+    # a point stopped at a session's end, its one seed short of the later columns
+    make_run(
+        tmp_path,
+        "semu_stopped",
+        algo="semu",
+        env="map20",
+        reward=[0.0, 5.0],
+        steps=STEPS[:2],
+        algo__memory__enabled=True,
+        algo__memory__delta=1.3e-2,
+    )
     runs = find_runs([tmp_path])
     assert sorted(set(run_labels(runs.training).values())) == [
         "cnn_semu delta=0.0013",
@@ -158,6 +169,7 @@ def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> 
         "emc delta=0.0013",
         "emc delta=0.13",
         "qmix",
+        "semu",
     ]
     out = tmp_path / "report"
     report_main([str(tmp_path), "--out", str(out)])
@@ -165,15 +177,18 @@ def test_swept_settings_label_methods_and_delta_gives_table4(tmp_path: Path) -> 
     assert [(r["delta"], r["algorithm"]) for r in table if r["seeds"] != "0"] == [
         ("0.0013", "emc"),
         ("0.0013", "cnn_semu"),
+        ("0.013", "semu"),
         ("0.13", "emc"),
         ("0.13", "cnn_semu"),
     ]
     assert len(table) == 12  # and the paper's other rows (delta 1.3e-4 and 1.3e-2, SEMU), ours blank
     ours = [r for r in table if r["seeds"] != "0"]
-    assert float(ours[2]["reward_10000"]) == pytest.approx(13.0)  # 0.13 * 100 at a third of 30k
-    assert float(ours[2]["reward_30000"]) == pytest.approx(4.0)
-    assert float(ours[2]["paper_2000000"]) == pytest.approx(311.41)  # the paper's EMC at delta 0.13
-    assert "| 0.13    | emc       |     2 | 13.00 ± 0.00 |" in (out / "table4.md").read_text()
+    assert float(ours[3]["reward_10000"]) == pytest.approx(13.0)  # 0.13 * 100 at a third of 30k
+    assert float(ours[3]["reward_30000"]) == pytest.approx(4.0)
+    assert float(ours[3]["paper_2000000"]) == pytest.approx(311.41)  # the paper's EMC at delta 0.13
+    md = (out / "table4.md").read_text()
+    assert "| 0.13    | emc       |            2 | 13.00 ± 0.00 |" in md
+    assert "| 0.013   | semu      | 1 (to 10.0k) |         5.00 |           - |           - |" in md
 
 
 def test_table4_on_the_papers_map_needs_a_memory_run_not_a_sweep(tmp_path: Path) -> None:
@@ -472,7 +487,7 @@ def test_a_seed_stopped_short_is_left_out_of_its_method_until_resumed(tmp_path: 
 
 def test_milestones_at_chosen_steps_take_the_nearest_evaluated_step(tmp_path: Path) -> None:
     """``--milestones 12k,28k``: the columns are the longest run's evaluated steps nearest to 12k and
-    28k (10k and 30k); a method whose run ended earlier shows n/a past its end."""
+    28k (10k and 30k); a method whose run ended earlier shows a dash past its end and how far it got."""
     steps = [0, 10_000, 20_000, 30_000]
     make_run(tmp_path, "qmix", reward=[1.0, 2.0, 3.0, 4.0], steps=steps)
     make_run(tmp_path, "vdn", algo="vdn", reward=[5.0, 6.0], steps=steps[:2])
@@ -490,6 +505,8 @@ def test_milestones_at_chosen_steps_take_the_nearest_evaluated_step(tmp_path: Pa
         float(rows["qplex"]["reward_30000_mean"]) == 9.0 and float(rows["qplex"]["reward_10000_mean"]) == 8.0
     )
     assert "the chosen env steps (--milestones)" in (out / "report.md").read_text()
+    # the shorter run says how far it got, and the column past it is a dash
+    assert "| vdn    | 1 (to 10.0k) |  6.00 |     - |" in (out / "milestones.md").read_text()
 
 
 @pytest.mark.parametrize("bad", ["0", "-5k", "1.5", "abc", "10k,,20k", "0.0000005M"])

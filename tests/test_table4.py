@@ -18,7 +18,8 @@ def test_the_paper_columns_stand_beside_ours_at_the_steps_we_share() -> None:
     ours = [
         Table4Row(0.0013, "cnn_semu", 3, [(330.0, 1.0), (340.0, 2.0), (345.0, 3.0)]),
         Table4Row(0.0013, "emc", 2, [(320.0, 1.0), (325.0, 2.0), (326.0, 3.0)]),
-        Table4Row(0.13, "emc", 1, [(300.0, 0.0), (310.0, 0.0), (math.nan, math.nan)]),
+        Table4Row(0.13, "emc", 1, [(300.0, 0.0), (310.0, 0.0), (math.nan, math.nan)], last_step=672_000),
+        Table4Row(0.013, "emc", 1, [(math.nan, math.nan)] * 3, last_step=169_600),
     ]
     rows, md = table4(ours, STEPS, "map20")
     header = _cells(md.splitlines()[0])
@@ -41,7 +42,9 @@ def test_the_paper_columns_stand_beside_ours_at_the_steps_we_share() -> None:
     cells = {tuple(row[:2]): row[2:] for row in map(_cells, md.splitlines()[2:])}
     emc_row = ["320.00 ± 1.00", "325.00 ± 2.00", "356.03", "326.00 ± 3.00", "365.62", "369.75"]
     assert cells["0.0013", "emc"] == ["2", *emc_row]
-    assert cells["0.13", "emc"][:5] == ["1", "300.00", "310.00", "339.95", "n/a"]  # one seed: no spread
+    # one seed: no spread; a run stopped short of a column says how far it got, the column a dash
+    assert cells["0.13", "emc"][:5] == ["1 (to 672.0k)", "300.00", "310.00", "339.95", "-"]
+    assert cells["0.013", "emc"] == ["1 (to 169.6k)", "-", "-", "359.43", "-", "361.68", "366.49"]
     assert cells["0.00013", "semu"] == ["-", "-", "-", "363.22", "-", "365.63", "370.01"]  # not run by us
 
 

@@ -4,6 +4,8 @@ Q_tot (figures 6-8, 10-12)."""
 
 from __future__ import annotations
 
+import math
+
 from mcrs.experiment.util.tables import markdown, mean_std, write_csv
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
 from mcrs_lab.analysis.claims import CLAIM_Q_TOT, claims_table
@@ -11,7 +13,7 @@ from mcrs_lab.analysis.curves import Q_TOT, aggregate, final_rows, milestone_ste
 from mcrs_lab.analysis.evaluations import Layout, heuristic_references, heuristic_rows, training_layout
 from mcrs_lab.analysis.report_document import Report
 from mcrs_lab.analysis.runs import Skipped, TrainingRun, default_labels, label_fields, run_labels
-from mcrs_lab.analysis.step_notation import format_steps, step_labels
+from mcrs_lab.analysis.step_notation import format_steps, seeds_reached, step_labels
 from mcrs_lab.analysis.sweep_figure import SWEPT_SETTINGS, plot_sweep, sweep_panels, sweep_points, sweep_table
 from mcrs_lab.analysis.table4 import PAPER_TABLE4_ENV, Table4Row, table4
 from mcrs_lab.analysis.versus import Versus, versus, versus_table
@@ -215,14 +217,12 @@ def _report_milestones(
         for s, (m, sd) in zip(steps, values, strict=True):
             row[f"reward_{s}_mean"], row[f"reward_{s}_std"] = m, sd
         rows.append(row)
+        short = any(math.isnan(m) for m, _ in values)
         table.append(
             [
                 label,
-                str(rewards[label].seeds),
-                *(
-                    mean_std(row[f"reward_{s}_mean"], row[f"reward_{s}_std"], n=rewards[label].seeds)
-                    for s in steps
-                ),
+                seeds_reached(rewards[label].seeds, int(rewards[label].steps[-1]), short),
+                *("-" if math.isnan(m) else mean_std(m, sd, n=rewards[label].seeds) for m, sd in values),
             ]
         )
     write_csv(report.out / "milestones.csv", rows)
@@ -243,7 +243,8 @@ def _report_milestones(
         if delta is None or not first.setting("algo.memory.enabled"):
             continue  # delta means nothing without a memory (QMIX's config still carries the default)
         values = milestone_values(rewards[label], steps)
-        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values))
+        last = int(rewards[label].steps[-1])
+        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values, last_step=last))
     if not ours or not (swept or report.env_name == PAPER_TABLE4_ENV):
         return
     rows4, md4 = table4(ours, steps, report.env_name)

@@ -17,6 +17,12 @@ def format_steps(steps: int, extra: int = 0) -> str:
     return f"{steps / 1e3:.{1 + extra}f}k"
 
 
+def seeds_reached(seeds: int, last_step: int, short: bool) -> str:
+    """A table's seed count, and for seeds short of a later column (a run stopped at a session's end, to
+    resume) how far they got: ``1 (to 169.6k)``, so the dashes past it read as "not reached yet"."""
+    return f"{seeds} (to {format_steps(last_step)})" if short else str(seeds)
+
+
 def step_labels(steps: list[int]) -> list[str]:
     """Column headings for env steps (``11.2k``, ``1.33M``), with as many decimals as it takes for
     distinct steps to get distinct headings (11,150 and 11,200 are both ``11.2k`` at one decimal)."""

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 
 from mcrs.experiment.util.tables import markdown, mean_std
-from mcrs_lab.analysis.step_notation import step_labels
+from mcrs_lab.analysis.step_notation import seeds_reached, step_labels
 
 #: The map of the paper's hyperparameter study (section 6.3: "using a 20 x 20 map as an example").
 PAPER_TABLE4_ENV = "map20"
@@ -38,12 +38,14 @@ MEMORY_ORDER = ("emc", "semu", "cnn_semu")
 
 @dataclass(frozen=True)
 class Table4Row:
-    """Our runs of one (delta, algorithm): mean and std over seeds at each of our milestone steps."""
+    """Our runs of one (delta, algorithm): mean and std over seeds at each of our milestone steps, and
+    the last env step its seeds share (a run stopped at a session's end is short of the later columns)."""
 
     delta: float
     algorithm: str
     seeds: int
     values: list[tuple[float, float]]
+    last_step: int | None = None
 
 
 def same_delta(a: float, b: float) -> bool:
@@ -62,6 +64,13 @@ def paper_rewards(delta: float, algorithm: str) -> tuple[float, ...] | None:
 def _order(delta: float, algorithm: str) -> tuple[float, int, str]:
     rank = MEMORY_ORDER.index(algorithm) if algorithm in MEMORY_ORDER else len(MEMORY_ORDER)
     return (delta, rank, algorithm)
+
+
+def _seeds_cell(row: Table4Row) -> str:
+    if not row.seeds:
+        return "-"
+    short = any(math.isnan(mean) for mean, _ in row.values)
+    return seeds_reached(row.seeds, row.last_step, short) if row.last_step is not None else str(row.seeds)
 
 
 def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list[dict[str, object]], str]:
@@ -89,7 +98,7 @@ def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list
     for row in sorted(rows, key=lambda r: _order(r.delta, r.algorithm)):
         paper = paper_rewards(row.delta, row.algorithm) if with_paper else None
         csv_row: dict[str, object] = {"delta": row.delta, "algorithm": row.algorithm, "seeds": row.seeds}
-        cells = [f"{row.delta:g}", row.algorithm, str(row.seeds) if row.seeds else "-"]
+        cells = [f"{row.delta:g}", row.algorithm, _seeds_cell(row)]
         for step, is_paper, k in columns:
             if is_paper:
                 value = paper[k] if paper else math.nan
@@ -98,7 +107,7 @@ def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list
             else:
                 mean, std = row.values[k]
                 csv_row[f"reward_{step}"] = mean
-                cells.append(mean_std(mean, std, n=row.seeds) if row.seeds else "-")
+                cells.append(mean_std(mean, std, n=row.seeds) if row.seeds and not math.isnan(mean) else "-")
         csv_rows.append(csv_row)
         md_rows.append(cells)
     return csv_rows, markdown(header, md_rows, left=2)
