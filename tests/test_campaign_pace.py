@@ -138,14 +138,19 @@ def test_a_pace_is_per_thread_and_a_two_thread_run_is_counted_faster(tmp_path: P
 
 def test_a_machine_slower_than_the_recorded_pace_scales_the_next_estimates() -> None:
     here = MachinePace()
-    assert here.factor == 1.0 and here.scale(100.0) == 100.0 and here.scale(None) is None
-    here.observe(100.0, 250.0)  # a run estimated at 100 s took 250 s here
-    here.observe(100.0, 150.0)
-    assert here.factor == pytest.approx(2.0) and here.scale(60.0) == pytest.approx(120.0)
+    qplex, cnn, emc = ("map10", "qplex"), ("map10", "cnn_semu"), ("map20", "emc")
+    assert here.factor() == 1.0 and here.scale(100.0, emc) == 100.0 and here.scale(None) is None
+    here.observe(qplex, 100.0, 250.0)  # a run estimated at 100 s took 250 s here
+    here.observe(qplex, 100.0, 150.0)
+    here.observe(cnn, 100.0, 110.0)
+    # a start of a kind that finished here is scaled by its own kind's ratio, another by the mean of all
+    assert here.scale(60.0, qplex) == pytest.approx(120.0)
+    assert here.scale(60.0, cnn) == pytest.approx(66.0)
+    assert here.factor(emc) == here.factor() == pytest.approx((2.5 + 1.5 + 1.1) / 3)
     faster = MachinePace()
-    faster.observe(100.0, 40.0)  # a faster machine keeps the recorded estimates
-    faster.observe(None, 40.0)  # a run without an estimate says nothing
-    assert faster.factor == 1.0 and faster.ratios == [0.4]
+    faster.observe(emc, 100.0, 40.0)  # a faster machine keeps the recorded estimates
+    faster.observe(emc, None, 40.0)  # a run without an estimate says nothing
+    assert faster.factor(emc) == faster.factor() == 1.0 and faster.ratios == {emc: [0.4]}
 
 
 def test_finish_only_judges_a_start_by_what_this_machines_runs_took(tmp_path: Path, capsys) -> None:

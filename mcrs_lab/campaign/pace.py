@@ -91,22 +91,26 @@ class Pace:
 class MachinePace:
     """How the runs of this machine compare with the recorded pace, which other machines may have set (one
     CPU model string has trained EMC on map20 at 145 and at 88 env steps/s): each run started here and
-    finished gives its wall time over its estimate, and the estimates of the next starts are scaled by
-    their mean. A faster machine keeps the recorded estimates (an estimate errs long, not short)."""
+    finished gives its wall time over its estimate. A next start is scaled by the mean ratio of its own
+    (map, algorithm), since each one's recorded pace may come from another machine (map10 QPLEX took 1.37x
+    and CNN-SEMU 1.05x here side by side), or by the mean over all where none of its kind has finished. A
+    faster machine keeps the recorded estimates (an estimate errs long, not short)."""
 
-    ratios: list[float] = field(default_factory=list)
+    ratios: dict[tuple[str, str], list[float]] = field(default_factory=dict)
 
-    def observe(self, estimated_s: float | None, wall_s: float) -> None:
-        """A run estimated at ``estimated_s`` seconds took ``wall_s``."""
+    def observe(self, kind: tuple[str, str], estimated_s: float | None, wall_s: float) -> None:
+        """A run of ``kind`` (map, algorithm) estimated at ``estimated_s`` seconds took ``wall_s``."""
         if estimated_s and estimated_s > 0 and wall_s > 0:
-            self.ratios.append(wall_s / estimated_s)
+            self.ratios.setdefault(kind, []).append(wall_s / estimated_s)
 
-    @property
-    def factor(self) -> float:
-        return max(1.0, sum(self.ratios) / len(self.ratios)) if self.ratios else 1.0
+    def factor(self, kind: tuple[str, str] | None = None) -> float:
+        """The scale of a start of ``kind``: its own runs' mean ratio, else all runs', at least 1."""
+        pool = self.ratios.get(kind) if kind is not None else None
+        pool = pool or [ratio for ratios in self.ratios.values() for ratio in ratios]
+        return max(1.0, sum(pool) / len(pool)) if pool else 1.0
 
-    def scale(self, estimate_s: float | None) -> float | None:
-        return None if estimate_s is None else estimate_s * self.factor
+    def scale(self, estimate_s: float | None, kind: tuple[str, str] | None = None) -> float | None:
+        return None if estimate_s is None else estimate_s * self.factor(kind)
 
 
 def left_line(estimates: list[float | None], jobs: int) -> str:

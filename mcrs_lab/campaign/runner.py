@@ -9,8 +9,8 @@ runs still resume first), then the rest: on a machine that may not keep its run 
 a run stopped at the deadline can be lost with them. With ``finish_only`` the rest are not started at all:
 a slot that no run can fill in time stays free (for the session's own work) instead of training a run that
 the deadline would stop and the machine then lose. Those choices use the recorded pace, scaled once a
-run started here has finished by how much longer than its estimate it took (pace.MachinePace): the
-records may come from a faster machine.
+run started here has finished by how much longer than its estimate it took, per map and algorithm where
+one of them has finished (pace.MachinePace): the records may come from a faster machine.
 
 Each child runs in its own session (process group), with one torch thread (``threads``: more), its output appended to
 ``<run dir>/campaign.log``; each session is noted in ``<run dir>/campaign.jsonl`` (times, command,
@@ -309,7 +309,7 @@ class Campaign:
                 while queue and len(running) < self.jobs and self.stop_signal is None:
                     recorded = [self.estimate_s(state, pace) for state, _ in queue]
                     estimates = [  # a partial run's estimate is its own speed here already
-                        e if state.state == "partial" else here.scale(e)
+                        e if state.state == "partial" else here.scale(e, (state.point.env, state.point.algo))
                         for (state, _), e in zip(queue, recorded, strict=True)
                     ]
                     index = _next_run(
@@ -335,13 +335,13 @@ class Campaign:
                     self._finish(job)
                     pace = Pace.read(self.records)
                     if job.process.returncode == 0 and job.estimate_s:
-                        factor = here.factor
-                        here.observe(job.estimate_s, time.time() - job.started)
-                        if here.factor != factor:
-                            _print(
-                                f"campaign: runs here take {here.factor:.2f}x the recorded pace "
-                                "(the next starts' estimates are scaled)"
-                            )
+                        kind = (job.point.env, job.point.algo)
+                        here.observe(kind, job.estimate_s, time.time() - job.started)
+                        _print(
+                            f"campaign: runs here take {here.factor():.2f}x the recorded pace, {' '.join(kind)} "
+                            f"{here.factor(kind):.2f}x (the next starts' estimates are scaled by their own map "
+                            "and algorithm's, else by all)"
+                        )
             if self.stop_signal is not None:
                 self._stop(running)
                 return 128 + self.stop_signal
