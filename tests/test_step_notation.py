@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from mcrs_lab.analysis.step_notation import format_steps, parse_step_list, seeds_reached, step_labels
@@ -18,8 +20,8 @@ def test_format_steps_in_thousands_and_millions() -> None:
 
 
 def test_seeds_short_of_a_column_say_how_far_they_got() -> None:
-    assert seeds_reached(1, 169_600, short=True) == "1 (to 169.6k)"
-    assert seeds_reached(3, 1_001_600, short=False) == "3"
+    assert seeds_reached(1, 169_600, [(300.0, 0.0), (math.nan, math.nan)]) == "1 (to 169.6k)"
+    assert seeds_reached(3, 1_001_600, [(300.0, 1.0), (310.0, 2.0)]) == "3"
 
 
 def test_step_labels_take_the_decimals_that_tell_steps_apart() -> None:

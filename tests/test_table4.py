@@ -16,8 +16,8 @@ STEPS = [332_800, 668_800, 1_001_600]  # a 1M run's evaluations nearest its thir
 
 def test_the_paper_columns_stand_beside_ours_at_the_steps_we_share() -> None:
     ours = [
-        Table4Row(0.0013, "cnn_semu", 3, [(330.0, 1.0), (340.0, 2.0), (345.0, 3.0)]),
-        Table4Row(0.0013, "emc", 2, [(320.0, 1.0), (325.0, 2.0), (326.0, 3.0)]),
+        Table4Row(0.0013, "cnn_semu", 3, [(330.0, 1.0), (340.0, 2.0), (345.0, 3.0)], last_step=1_001_600),
+        Table4Row(0.0013, "emc", 2, [(320.0, 1.0), (325.0, 2.0), (326.0, 3.0)], last_step=1_001_600),
         Table4Row(0.13, "emc", 1, [(300.0, 0.0), (310.0, 0.0), (math.nan, math.nan)], last_step=672_000),
         Table4Row(0.013, "emc", 1, [(math.nan, math.nan)] * 3, last_step=169_600),
     ]
@@ -49,7 +49,7 @@ def test_the_paper_columns_stand_beside_ours_at_the_steps_we_share() -> None:
 
 
 def test_off_the_papers_map_the_table_is_ours_alone() -> None:
-    ours = [Table4Row(0.13, "cnn_semu", 2, [(1.0, 0.5), (2.0, 0.5), (3.0, 0.5)])]
+    ours = [Table4Row(0.13, "cnn_semu", 2, [(1.0, 0.5), (2.0, 0.5), (3.0, 0.5)], last_step=1_001_600)]
     rows, md = table4(ours, STEPS, "map10")
     assert rows == [
         {

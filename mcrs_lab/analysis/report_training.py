@@ -4,8 +4,6 @@ Q_tot (figures 6-8, 10-12)."""
 
 from __future__ import annotations
 
-import math
-
 from mcrs.experiment.util.tables import markdown, mean_std, write_csv
 from mcrs.viz.learning_curves import CURVE_METRICS, FINAL_METRICS, Curve, Reference, plot_curves
 from mcrs_lab.analysis.claims import CLAIM_Q_TOT, claims_table
@@ -217,12 +215,11 @@ def _report_milestones(
         for s, (m, sd) in zip(steps, values, strict=True):
             row[f"reward_{s}_mean"], row[f"reward_{s}_std"] = m, sd
         rows.append(row)
-        short = any(math.isnan(m) for m, _ in values)
         table.append(
             [
                 label,
-                seeds_reached(rewards[label].seeds, int(rewards[label].steps[-1]), short),
-                *("-" if math.isnan(m) else mean_std(m, sd, n=rewards[label].seeds) for m, sd in values),
+                seeds_reached(rewards[label].seeds, int(rewards[label].steps[-1]), values),
+                *(mean_std(m, sd, n=rewards[label].seeds, missing="-") for m, sd in values),
             ]
         )
     write_csv(report.out / "milestones.csv", rows)
@@ -244,7 +241,7 @@ def _report_milestones(
             continue  # delta means nothing without a memory (QMIX's config still carries the default)
         values = milestone_values(rewards[label], steps)
         last = int(rewards[label].steps[-1])
-        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values, last_step=last))
+        ours.append(Table4Row(delta, first.algo_name, rewards[label].seeds, values, last))
     if not ours or not (swept or report.env_name == PAPER_TABLE4_ENV):
         return
     rows4, md4 = table4(ours, steps, report.env_name)

@@ -3,6 +3,8 @@ command line (``--milestones 100k,300k,1M``)."""
 
 from __future__ import annotations
 
+import math
+
 #: Suffixes an env-step count may carry.
 STEP_SUFFIXES = {"": 1, "k": 1_000, "M": 1_000_000}
 
@@ -17,9 +19,11 @@ def format_steps(steps: int, extra: int = 0) -> str:
     return f"{steps / 1e3:.{1 + extra}f}k"
 
 
-def seeds_reached(seeds: int, last_step: int, short: bool) -> str:
-    """A table's seed count, and for seeds short of a later column (a run stopped at a session's end, to
-    resume) how far they got: ``1 (to 169.6k)``, so the dashes past it read as "not reached yet"."""
+def seeds_reached(seeds: int, last_step: int, values: list[tuple[float, float]]) -> str:
+    """A table's seed count, and where their ``values`` (mean, std per column) stop short of a column (a
+    run stopped at a session's end, to resume) how far they got: ``1 (to 169.6k)``, so the dashes past it
+    read as "not reached yet"."""
+    short = any(math.isnan(mean) for mean, _ in values)
     return f"{seeds} (to {format_steps(last_step)})" if short else str(seeds)
 
 

@@ -45,7 +45,7 @@ class Table4Row:
     algorithm: str
     seeds: int
     values: list[tuple[float, float]]
-    last_step: int | None = None
+    last_step: int
 
 
 def same_delta(a: float, b: float) -> bool:
@@ -66,13 +66,6 @@ def _order(delta: float, algorithm: str) -> tuple[float, int, str]:
     return (delta, rank, algorithm)
 
 
-def _seeds_cell(row: Table4Row) -> str:
-    if not row.seeds:
-        return "-"
-    short = any(math.isnan(mean) for mean, _ in row.values)
-    return seeds_reached(row.seeds, row.last_step, short) if row.last_step is not None else str(row.seeds)
-
-
 def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list[dict[str, object]], str]:
     """table4.csv's rows and table4.md: ours at ``steps``; on the paper's map also the paper's columns
     (``0.67M (paper)``, after ours at the nearest step) and the paper's rows we did not run."""
@@ -80,7 +73,7 @@ def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list
     rows = list(ours)
     if with_paper:
         rows += [
-            Table4Row(delta, algo, 0, [(math.nan, math.nan)] * len(steps))
+            Table4Row(delta, algo, 0, [(math.nan, math.nan)] * len(steps), last_step=0)
             for delta, algo in PAPER_TABLE4
             if not any(r.algorithm == algo and same_delta(r.delta, delta) for r in ours)
         ]
@@ -98,7 +91,8 @@ def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list
     for row in sorted(rows, key=lambda r: _order(r.delta, r.algorithm)):
         paper = paper_rewards(row.delta, row.algorithm) if with_paper else None
         csv_row: dict[str, object] = {"delta": row.delta, "algorithm": row.algorithm, "seeds": row.seeds}
-        cells = [f"{row.delta:g}", row.algorithm, _seeds_cell(row)]
+        seeds = seeds_reached(row.seeds, row.last_step, row.values) if row.seeds else "-"
+        cells = [f"{row.delta:g}", row.algorithm, seeds]
         for step, is_paper, k in columns:
             if is_paper:
                 value = paper[k] if paper else math.nan
@@ -107,7 +101,7 @@ def table4(ours: list[Table4Row], steps: list[int], env_name: str) -> tuple[list
             else:
                 mean, std = row.values[k]
                 csv_row[f"reward_{step}"] = mean
-                cells.append(mean_std(mean, std, n=row.seeds) if row.seeds and not math.isnan(mean) else "-")
+                cells.append(mean_std(mean, std, n=row.seeds, missing="-"))
         csv_rows.append(csv_row)
         md_rows.append(cells)
     return csv_rows, markdown(header, md_rows, left=2)

@@ -7,10 +7,11 @@ import math
 from pathlib import Path
 
 
-def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None) -> str:
-    """``mean ± std``, or the mean alone when ``n`` is 1, since one sample has no spread."""
+def mean_std(mean: float, std: float, digits: int = 2, n: int | None = None, missing: str = "n/a") -> str:
+    """``mean ± std``, or the mean alone when ``n`` is 1, since one sample has no spread; ``missing`` for
+    no value (a metric not logged, or a step a run has not reached)."""
     if math.isnan(mean):
-        return "n/a"
+        return missing
     if n is not None and n < 2:
         return f"{mean:.{digits}f}"
     return f"{mean:.{digits}f} ± {std:.{digits}f}"
