@@ -29,12 +29,13 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Binary, Bounded, Categorical, Composite
+from torchrl.data import Binary, Bounded, Composite
 from torchrl.envs import Compose, EnvBase, StepCounter, TransformedEnv
 
 from mcrs.experiment.training.task import Task
 from mcrs.models.acting import recurrent_primer
 from mcrs.objectives import ValueFactorisationLoss
+from mcrs.tasks.specs import done_spec, group_action_spec
 
 #: The non-monotonic payoff of QTRAN (Son et al. 2019, table 1) and QPLEX (Wang et al. 2021, table 1).
 PAYOFF = torch.tensor([[8.0, -12.0, -12.0], [-12.0, 0.0, 0.0], [-12.0, 0.0, 0.0]])
@@ -87,25 +88,12 @@ class MatrixGameEnv(EnvBase):
             shape=(E,),
             device=dev,
         )
-        self.action_spec = Composite(
-            {
-                GROUP: Composite(
-                    action=Categorical(A, shape=(E, N), dtype=torch.int64, device=dev),
-                    shape=(E, N),
-                    device=dev,
-                )
-            },
-            shape=(E,),
-            device=dev,
-        )
+        self.action_spec = group_action_spec(GROUP, E, N, A, dev)
         low, high = self.payoff.min().item(), self.payoff.max().item()
         self.reward_spec = Composite(
             reward=Bounded(low, high, shape=(E, 1), dtype=torch.float32, device=dev), shape=(E,), device=dev
         )
-        done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=done, terminated=done.clone(), truncated=done.clone(), shape=(E,), device=dev
-        )
+        self.done_spec = done_spec(E, dev)
 
     # ------------------------------------------------------------------ EnvBase hooks
     def _set_seed(self, seed: int | None) -> None:

@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Binary, Categorical, Composite, Unbounded
+from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from mcrs.experiment.training.task import Task
+from mcrs.tasks.specs import done_spec, group_action_spec
 
 GROUP = "agents"
 REWARDS = ("sum", "mean")
@@ -106,24 +107,11 @@ class PettingZooBatchEnv(EnvBase):
             shape=(E,),
             device=dev,
         )
-        self.action_spec = Composite(
-            {
-                GROUP: Composite(
-                    action=Categorical(A, shape=(E, N), dtype=torch.int64, device=dev),
-                    shape=(E, N),
-                    device=dev,
-                )
-            },
-            shape=(E,),
-            device=dev,
-        )
+        self.action_spec = group_action_spec(GROUP, E, N, A, dev)
         self.reward_spec = Composite(
             reward=Unbounded(shape=(E, 1), dtype=torch.float32, device=dev), shape=(E,), device=dev
         )
-        done = Categorical(2, shape=(E, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=done, terminated=done.clone(), truncated=done.clone(), shape=(E,), device=dev
-        )
+        self.done_spec = done_spec(E, dev)
 
     # ------------------------------------------------------------------ one env's arrays
     def _read(self, i: int, env: Any, observations: dict[str, Any]) -> None:
