@@ -18,6 +18,7 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from tensordict.nn import TensorDictModule
+from torchrl.envs.utils import check_env_specs
 
 from mcrs.experiment.config import ConfigError
 from mcrs.experiment.training.task import check_env, make_task, with_agent_state
@@ -80,6 +81,7 @@ def test_simple_spread_is_a_task_whose_team_reward_is_the_agents_sum() -> None:
     assert (task.n_agents, task.n_actions, task.obs_dim, task.state_shape) == (2, 5, 12, (24,))
     env = task.make_env(3, CPU)
     check_env(task, env)
+    check_env_specs(env)  # every key the env writes matches its specs' shapes, dtypes and domains
     env.set_seed(7)
     td = env.reset()
     actions = torch.tensor([[1, 2], [3, 4], [0, 1]])
